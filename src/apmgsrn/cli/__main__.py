@@ -1,0 +1,5 @@
+import sys
+
+from apmgsrn.cli.main import main
+
+sys.exit(main())

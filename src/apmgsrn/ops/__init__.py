@@ -1,0 +1,1 @@
+"""Stateless maths. Pure-PyTorch references are always importable; accelerated backends load lazily."""

@@ -1,0 +1,46 @@
+"""Trilinear sampling of a dense volume at points in [-1, 1]^3 (the ground truth of SPEC section 1)."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def sample_volume(volume: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Trilinearly interpolate a volume at points, corner-aligned.
+
+    Voxel ``i`` of an axis with ``n`` voxels sits at ``-1 + 2 i / (n - 1)``; points outside the box are
+    clamped to its border (ground truth never uses zero padding).
+
+    Args:
+        volume: ``[D, H, W]`` values, C order (z, y, x), x fastest.
+        points: ``[N, 3]`` coordinates ``(x, y, z)`` in ``[-1, 1]^3``.
+
+    Returns:
+        ``[N]`` interpolated values, in the volume's dtype.
+    """
+    n = points.shape[0]
+    grid = points.to(volume.dtype).view(1, n, 1, 1, 3)  # [1, N, 1, 1, 3]
+    out = F.grid_sample(
+        volume[None, None], grid, mode="bilinear", padding_mode="border", align_corners=True
+    )  # [1, 1, N, 1, 1]
+    return out.view(n)
+
+
+def voxel_coordinates(shape: tuple[int, int, int], z: slice | None = None) -> torch.Tensor:
+    """Coordinates in ``[-1, 1]^3`` of every voxel of a ``(D, H, W)`` volume (or of z-slab ``z``).
+
+    Returns:
+        ``[n, 3]`` points ``(x, y, z)``, C order (x fastest), matching ``volume[z].reshape(-1)``.
+    """
+    d, h, w = shape
+    zs = torch.arange(d)[z if z is not None else slice(None)]
+    axes = [_axis(zs, d), _axis(torch.arange(h), h), _axis(torch.arange(w), w)]
+    gz, gy, gx = torch.meshgrid(*axes, indexing="ij")
+    return torch.stack([gx, gy, gz], dim=-1).reshape(-1, 3)
+
+
+def _axis(index: torch.Tensor, n: int) -> torch.Tensor:
+    if n == 1:
+        return torch.zeros(len(index))
+    return index.to(torch.float32) * (2.0 / (n - 1)) - 1.0
