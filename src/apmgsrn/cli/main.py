@@ -14,6 +14,7 @@ COMMAND_MODULES = [
     "apmgsrn.cli.evaluate",
     "apmgsrn.cli.decode",
     "apmgsrn.cli.info",
+    "apmgsrn.cli.render",
 ]
 
 

@@ -5,6 +5,12 @@ sampled with one batched ``grid_sample``. Sampling is *zero-padded trilinear* (c
 outside the grid contributes zero, so a feature fades to zero over the half cell beyond the grid's border,
 and is exactly zero one cell beyond it. Accelerated backends must match this function in forward and
 backward.
+
+:func:`multigrid_features` dispatches to the fused backends, loaded lazily on first use (importing this
+module builds, compiles and initialises nothing): ``"cpu"`` (C/OpenMP, :mod:`.multigrid_cpu`) and
+``"triton"`` (CUDA, :mod:`.multigrid_triton`). They compute transform, bounds test, trilinear weights,
+gather and concatenation in one pass per point and skip the grids that do not cover it, so beyond the
+``[N, M * C]`` output their memory does not grow with ``M``.
 """
 
 from __future__ import annotations
@@ -55,6 +61,83 @@ def multigrid_features_reference(
     return sampled.view(m * c, n).t()  # [N, M * C]
 
 
+BACKENDS = ("torch", "cpu", "triton")
+"""Backend names accepted besides ``"auto"``: the pure-PyTorch reference, the fused C/OpenMP CPU
+kernel (:mod:`apmgsrn.ops.multigrid_cpu`) and the fused Triton GPU kernels
+(:mod:`apmgsrn.ops.multigrid_triton`)."""
+
+
+def backend_available(name: str, device: torch.device | str = "cpu") -> bool:
+    """Whether a backend can run on tensors of ``device`` here (builds the CPU kernel on first ask).
+
+    Args:
+        name: one of :data:`BACKENDS`.
+        device: where the tensors live.
+
+    Returns:
+        True when the backend is usable; ``"torch"`` always is.
+    """
+    device = torch.device(device)
+    if name == "torch":
+        return True
+    if name == "cpu":
+        if device.type != "cpu":
+            return False
+        from apmgsrn.ops import multigrid_cpu
+
+        return multigrid_cpu.is_available()
+    if name == "triton":
+        if device.type != "cuda":
+            return False
+        from apmgsrn.ops import multigrid_triton
+
+        return multigrid_triton.is_available()
+    raise ValueError(f"unknown multigrid backend {name!r}; use auto or one of {BACKENDS}")
+
+
+def resolve_backend(name: str, device: torch.device | str) -> str:
+    """The backend ``name`` stands for on ``device``: ``"auto"`` picks the fastest usable one.
+
+    Args:
+        name: ``"auto"`` or one of :data:`BACKENDS`.
+        device: where the tensors live.
+
+    Returns:
+        A name from :data:`BACKENDS`.
+
+    Raises:
+        ValueError: unknown name.
+        RuntimeError: an explicitly named backend cannot run here (not installed, no compiler,
+            wrong device).
+    """
+    device = torch.device(device)
+    if name == "auto":
+        fast = "triton" if device.type == "cuda" else "cpu" if device.type == "cpu" else None
+        return fast if fast is not None and backend_available(fast, device) else "torch"
+    if name not in BACKENDS:
+        raise ValueError(f"unknown multigrid backend {name!r}; use auto or one of {BACKENDS}")
+    if not backend_available(name, device):
+        reason = ""
+        if name == "cpu" and device.type == "cpu":
+            from apmgsrn.ops import multigrid_cpu
+
+            reason = f": {multigrid_cpu.load_error()}"
+        elif name == "triton" and device.type == "cuda":
+            from apmgsrn.ops import multigrid_triton
+
+            reason = f": {multigrid_triton.load_error()}"
+        raise RuntimeError(f"multigrid backend {name!r} cannot run on {device.type} tensors here{reason}")
+    return name
+
+
+def _needs_reference(points: torch.Tensor, matrices: torch.Tensor, translations: torch.Tensor) -> bool:
+    """Cases the fused kernels do not cover: gradients for points or maps, or non-float32 inputs."""
+    inputs = (points, matrices, translations)
+    if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):
+        return True
+    return any(t.dtype != torch.float32 for t in inputs)
+
+
 def multigrid_features(
     points: torch.Tensor,
     matrices: torch.Tensor,
@@ -62,13 +145,58 @@ def multigrid_features(
     grids: torch.Tensor,
     backend: str = "auto",
 ) -> torch.Tensor:
-    """Dispatch to a backend (``"auto"``, ``"torch"``, or an accelerated one where available).
+    """Concatenated multi-grid features through the chosen backend.
 
-    See :func:`multigrid_features_reference` for shapes and semantics.
+    Same shapes and semantics as :func:`multigrid_features_reference`. The fused backends give
+    gradients for ``grids`` only: when ``points``, ``matrices`` or ``translations`` require grad (the
+    density path), or the inputs are not float32, this runs the reference instead, so autograd stays
+    exact. The Triton backend also reads float16/bfloat16 grids (features come out float32).
+
+    Args:
+        points: ``[N, 3]``.
+        matrices: ``[M, 3, 3]``.
+        translations: ``[M, 3]``.
+        grids: ``[M, C, D, H, W]``; a channel-last view (``grids.permute(0, 2, 3, 4, 1).contiguous()
+            .permute(0, 4, 1, 2, 3)``) is read as is, which spares the fused kernels a per-call
+            conversion when ``C > 1``.
+        backend: ``"auto"`` (fastest usable for the tensors' device: ``"triton"`` on CUDA,
+            ``"cpu"`` on CPU, else the reference), ``"torch"``, ``"cpu"`` or ``"triton"``.
+
+    Returns:
+        ``[N, M * C]`` features, grid-major.
+
+    Raises:
+        ValueError: unknown backend name.
+        RuntimeError: an explicitly named backend cannot run here.
     """
-    if backend in ("auto", "torch"):
+    name = resolve_backend(backend, points.device)
+    if name == "torch":
         return multigrid_features_reference(points, matrices, translations, grids)
-    raise ValueError(f"unknown multigrid backend {backend!r}")
+    if name == "triton":
+        half = grids.dtype in (torch.float16, torch.bfloat16)
+        if _needs_reference(points, matrices, translations) or not (half or grids.dtype == torch.float32):
+            return multigrid_features_reference(points, matrices, translations, grids.float())
+        from apmgsrn.ops.multigrid_triton import multigrid_features_triton
+
+        return multigrid_features_triton(points, matrices, translations, grids)
+    if _needs_reference(points, matrices, translations) or grids.dtype != torch.float32:
+        return multigrid_features_reference(points, matrices, translations, grids)
+    from apmgsrn.ops.multigrid_cpu import multigrid_features_cpu
+
+    return multigrid_features_cpu(points, matrices, translations, grids)
+
+
+def feature_density_reference(
+    points: torch.Tensor,
+    matrices: torch.Tensor,
+    translations: torch.Tensor,
+    power: int = 10,
+) -> torch.Tensor:
+    """Pure-PyTorch feature density; see :func:`feature_density`."""
+    local = local_coordinates(points, matrices, translations)  # [M, N, 3]
+    falloff = torch.exp(-local.pow(2 * power).sum(-1))  # [M, N]
+    det = torch.linalg.det(matrices)  # [M]
+    return (det[:, None] * falloff).sum(0)  # [N]
 
 
 def feature_density(
@@ -76,19 +204,51 @@ def feature_density(
     matrices: torch.Tensor,
     translations: torch.Tensor,
     power: int = 10,
+    backend: str = "auto",
 ) -> torch.Tensor:
     """Flat-top Gaussian feature density ``rho(p) = sum_i det(A_i) exp(-sum_d G_i(p)_d^(2P))``.
+
+    On CPU float32 tensors ``"auto"`` uses the fused kernel of :mod:`apmgsrn.ops.multigrid_cpu`
+    (one pass per point, no ``[M, N, 3]`` intermediates; gradients for ``matrices`` and
+    ``translations``); gradients for ``points``, other dtypes, devices or powers above 63 use the
+    reference.
 
     Args:
         points: ``[N, 3]``.
         matrices: ``[M, 3, 3]``.
         translations: ``[M, 3]``.
         power: ``P`` of the super-Gaussian (SPEC: 10).
+        backend: ``"auto"``, ``"torch"`` or ``"cpu"``.
 
     Returns:
         ``[N]`` unnormalised density.
     """
-    local = local_coordinates(points, matrices, translations)  # [M, N, 3]
-    falloff = torch.exp(-local.pow(2 * power).sum(-1))  # [M, N]
-    det = torch.linalg.det(matrices)  # [M]
-    return (det[:, None] * falloff).sum(0)  # [N]
+    if backend not in ("auto", "torch", "cpu"):
+        raise ValueError(f"unknown feature density backend {backend!r}; use auto, torch or cpu")
+    fused = (
+        backend != "torch"
+        and points.device.type == "cpu"
+        and 1 <= power <= 63
+        and not (torch.is_grad_enabled() and points.requires_grad)
+        and all(t.dtype == torch.float32 for t in (points, matrices, translations))
+    )
+    if fused:
+        fused = backend_available("cpu", "cpu")
+        if not fused and backend == "cpu":
+            resolve_backend("cpu", "cpu")  # raises with the reason
+    if not fused:
+        return feature_density_reference(points, matrices, translations, power)
+    from apmgsrn.ops.multigrid_cpu import feature_density_cpu
+
+    return feature_density_cpu(points, matrices, translations, power)
+
+
+def feature_mass(power: int = 10) -> float:
+    """Integral of one grid's density ``det(A) exp(-sum_d G(p)_d^(2P))`` over all space.
+
+    The ``det(A)`` factor cancels the change of variables, so every grid carries this same mass,
+    ``(2 Gamma(1 + 1 / (2P)))^3``, wherever it is placed and however it is scaled.
+    """
+    import math
+
+    return (2.0 * math.gamma(1.0 + 1.0 / (2 * power))) ** 3

@@ -1,1 +1,44 @@
-"""render."""
+"""Neural volume rendering (SPEC section 7): ray marching any field ``[N, 3] -> [N, 1]`` with a transfer
+function, empty-space skipping, early ray termination and progressive refinement, on any torch device.
+
+Typical use::
+
+    from apmgsrn.render import Camera, VolumeRenderer, make_transfer_function
+    tf = make_transfer_function("viridis", (vmin, vmax), opacity=((0, 0), (1, 0.5)))
+    image = VolumeRenderer(field, tf).render(Camera.orbit(width=512, height=512)).image  # [H, W, 3]
+"""
+
+from apmgsrn.render.camera import Camera, extent_from_shape
+from apmgsrn.render.colormaps import BUILTIN_COLORMAPS, builtin_colormap, make_transfer_function
+from apmgsrn.render.empty_space import ValueBounds
+from apmgsrn.render.metrics import image_psnr, image_ssim
+from apmgsrn.render.paraview import load_transfer_function, read_presets, save_transfer_function
+from apmgsrn.render.progressive import ProgressiveImage, render_progressive
+from apmgsrn.render.raymarch import RendererConfig, RenderResult, RenderStatistics, VolumeRenderer
+from apmgsrn.render.transfer_function import ColorMap, OpacityMap, TransferFunction, TransferTable
+from apmgsrn.render.volume_field import VolumeField
+
+__all__ = [
+    "BUILTIN_COLORMAPS",
+    "Camera",
+    "ColorMap",
+    "OpacityMap",
+    "ProgressiveImage",
+    "RenderResult",
+    "RenderStatistics",
+    "RendererConfig",
+    "TransferFunction",
+    "TransferTable",
+    "ValueBounds",
+    "VolumeField",
+    "VolumeRenderer",
+    "builtin_colormap",
+    "extent_from_shape",
+    "image_psnr",
+    "image_ssim",
+    "load_transfer_function",
+    "make_transfer_function",
+    "read_presets",
+    "render_progressive",
+    "save_transfer_function",
+]

@@ -1,0 +1,66 @@
+"""Arguments and helpers shared by several sub-commands."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from apmgsrn.errors import ApmgsrnError
+
+
+def add_data_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options that say how to read a volume file."""
+    group = parser.add_argument_group("input volume")
+    group.add_argument("--variable", help="variable / dataset / array name (default: the only 3-D one)")
+    group.add_argument("--time", type=int, help="index along a leading time dimension")
+    group.add_argument("--shape", help="X,Y,Z dimensions of a raw file (else parsed from NAME_XxYxZ_dtype.raw)")
+    group.add_argument("--dtype", help="element type of a raw file (uint8, int16, float32, ...)")
+    group.add_argument("--fill-nonfinite", type=float, metavar="VALUE",
+                       help="replace NaN/Inf voxels by VALUE instead of refusing the volume")
+
+
+def open_data(args: argparse.Namespace, path: str):
+    """Open the volume at ``path`` with the data options of ``args``."""
+    from apmgsrn.data import open_volume, parse_shape
+
+    shape = parse_shape(args.shape) if getattr(args, "shape", None) else None
+    return open_volume(
+        path,
+        variable=getattr(args, "variable", None),
+        time=getattr(args, "time", None),
+        shape=shape,
+        dtype=getattr(args, "dtype", None),
+        fill_nonfinite=getattr(args, "fill_nonfinite", None),
+    )
+
+
+def add_device_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--device", default="auto", help="auto (default), cpu, cuda or cuda:I")
+
+
+def parse_triple(text: str, option: str) -> tuple[int, int, int]:
+    """``"R"`` -> (R, R, R); ``"A,B,C"`` -> (A, B, C)."""
+    try:
+        values = [int(v) for v in text.replace("x", ",").split(",")]
+    except ValueError:
+        raise ApmgsrnError(f"{option} {text!r}: expected an integer or three integers like 16,16,16") from None
+    if len(values) == 1:
+        values = values * 3
+    if len(values) != 3 or min(values) < 1:
+        raise ApmgsrnError(f"{option} {text!r}: expected an integer or three positive integers like 16,16,16")
+    return tuple(values)
+
+
+def format_bytes(count: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB"):
+        if abs(count) < 1024 or unit == "TB":
+            return f"{count:.1f} {unit}" if unit != "B" else f"{int(count)} B"
+        count /= 1024
+    return f"{count} B"
+
+
+def require_model(path: str) -> Path:
+    path_obj = Path(path)
+    if not path_obj.exists():
+        raise ApmgsrnError(f"{path}: no such model file")
+    return path_obj

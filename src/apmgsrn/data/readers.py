@@ -1,0 +1,117 @@
+"""`open_volume`: pick the reader for a path by its suffix (or Zarr directory) and open it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from apmgsrn.data.volume import Volume, parse_shape
+from apmgsrn.errors import ApmgsrnError
+
+#: Suffixes per format, as listed to users.
+SUPPORTED_SUFFIXES = {
+    "NetCDF": (".nc", ".nc4"),
+    "HDF5": (".h5", ".hdf5"),
+    "Zarr": (".zarr",),
+    "raw": (".raw", ".bin"),
+    "NumPy": (".npy",),
+    "VTK XML": (".vti", ".vtr"),
+}
+
+
+def supported_formats() -> str:
+    """One line listing the readable formats, for messages and ``--help``.
+
+    Returns:
+        E.g. ``"NetCDF (.nc, .nc4), HDF5 (.h5, .hdf5), ..."``.
+    """
+    listed = ", ".join(f"{name} ({', '.join(suffixes)})" for name, suffixes in SUPPORTED_SUFFIXES.items())
+    return f"{listed}, or a Zarr directory"
+
+
+def _refuse(path: Path, what: str, flag: str, value: object) -> None:
+    if value is not None:
+        raise ApmgsrnError(f"{path}: {flag} does not apply to {what}; drop {flag}")
+
+
+def open_volume(
+    path: str | Path,
+    variable: str | None = None,
+    time: int | None = None,
+    shape: tuple[int, int, int] | str | None = None,
+    dtype: str | None = None,
+    fill_nonfinite: float | None = None,
+) -> Volume:
+    """Open a volume file lazily; nothing but metadata is read until `Volume.read`.
+
+    Args:
+        path: A ``.nc``, ``.h5``/``.hdf5``, ``.raw``/``.bin``, ``.npy``, ``.vti``/``.vtr`` file or
+            a Zarr directory.
+        variable: Variable (NetCDF), dataset path (HDF5), array path (Zarr group) or array name
+            (VTK); default: the only 3-D one in the file.
+        time: Index along a leading time dimension (NetCDF, HDF5, Zarr).
+        shape: ``(X, Y, Z)`` of a raw file, x first as typed on the command line (or the text
+            ``"X,Y,Z"``); stored as ``Volume.shape == (Z, Y, X)``.
+        dtype: Voxel type of a raw file (``uint8``, ``float32``, ...).
+        fill_nonfinite: If set, reads replace NaN/Inf by this value.
+
+    Returns:
+        The opened `Volume`.
+
+    Raises:
+        ApmgsrnError: For a missing or unreadable file, an unknown format, a missing or ambiguous
+            variable, data that is not 3-D, or raw dims that do not match the file size.
+    """
+    path = Path(path).expanduser()
+    if not path.exists():
+        raise ApmgsrnError(f"{path}: no such file or directory; check the path")
+    suffix = path.suffix.lower()
+    if suffix not in SUPPORTED_SUFFIXES["raw"]:
+        _refuse(path, "files with their own header (only raw .raw/.bin files)", "--shape", shape)
+        _refuse(path, "files with their own header (only raw .raw/.bin files)", "--dtype", dtype)
+
+    if path.is_dir():
+        from apmgsrn.data.zarr_store import ZarrVolume, is_zarr_directory
+
+        if suffix != ".zarr" and not is_zarr_directory(path):
+            raise ApmgsrnError(
+                f"{path}: is a directory but not a Zarr store (no zarr.json, .zarray or .zgroup); "
+                f"give a volume file: {supported_formats()}"
+            )
+        return ZarrVolume(path, variable, time, fill_nonfinite)
+    if not path.is_file():
+        raise ApmgsrnError(f"{path}: not a regular file; give a volume file: {supported_formats()}")
+
+    if suffix in SUPPORTED_SUFFIXES["NetCDF"]:
+        from apmgsrn.data.netcdf import open_netcdf
+
+        return open_netcdf(path, variable, time, fill_nonfinite)
+    if suffix in SUPPORTED_SUFFIXES["HDF5"]:
+        from apmgsrn.data.hdf5 import HDF5Volume
+
+        return HDF5Volume(path, variable, time, fill_nonfinite)
+    if suffix in SUPPORTED_SUFFIXES["Zarr"]:
+        from apmgsrn.data.zarr_store import ZarrVolume
+
+        return ZarrVolume(path, variable, time, fill_nonfinite)
+    if suffix in SUPPORTED_SUFFIXES["raw"]:
+        from apmgsrn.data.raw import RawVolume
+
+        _refuse(path, "raw files (they hold a single array)", "--variable", variable)
+        _refuse(path, "raw files (they have no time dimension)", "--time", time)
+        if isinstance(shape, str):
+            shape = parse_shape(shape)
+        return RawVolume(path, shape, dtype, fill_nonfinite)
+    if suffix in SUPPORTED_SUFFIXES["NumPy"]:
+        from apmgsrn.data.numpy_file import NumpyVolume
+
+        _refuse(path, ".npy files (they hold a single array)", "--variable", variable)
+        _refuse(path, ".npy files (they have no time dimension)", "--time", time)
+        return NumpyVolume(path, fill_nonfinite)
+    if suffix in SUPPORTED_SUFFIXES["VTK XML"]:
+        from apmgsrn.data.vtk_xml import VTKVolume
+
+        _refuse(path, "VTK XML files (they have no time dimension)", "--time", time)
+        return VTKVolume(path, variable, fill_nonfinite)
+    raise ApmgsrnError(
+        f"{path}: unknown volume format {suffix or '(no suffix)'!r}; supported: {supported_formats()}"
+    )

@@ -1,0 +1,226 @@
+"""`VolumeWriter`: write a float32 volume slab by slab (``.nc``, ``.raw``/``.bin``, ``.npy``).
+
+Used by ``apmgsrn decode``, which produces the volume chunk by chunk, so outputs larger than
+memory work. The file is written under a temporary name beside the target and renamed into place
+only when every slab has been written and the writer closes without error: a crash or an
+interrupted run never leaves a half-written file under the requested name.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import uuid
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from apmgsrn.errors import ApmgsrnError
+
+#: Output suffixes and their format names, as listed to users.
+WRITABLE_SUFFIXES = {".nc": "NetCDF-4", ".raw": "raw float32", ".bin": "raw float32", ".npy": "NumPy"}
+
+
+def _attribute_value(value: Any) -> Any:
+    """A NetCDF-storable form of an attribute: numbers, strings and numeric lists as they are,
+    booleans as 0/1, anything else (dicts, None, nested lists) as JSON text."""
+    if isinstance(value, (bool, np.bool_)):
+        return int(value)
+    if isinstance(value, (str, int, float, np.integer, np.floating)):
+        return value
+    if isinstance(value, (list, tuple, np.ndarray)):
+        array = np.asarray(value)
+        if array.ndim == 1 and array.size and array.dtype.kind in "iuf":
+            return array
+    return json.dumps(value, default=str)
+
+
+class VolumeWriter:
+    """Write a ``[D, H, W]`` float32 volume to ``.nc``, ``.raw``/``.bin`` or ``.npy``, by z-slabs.
+
+    Use it as a context manager; slabs may come in any order, but all of z must be written
+    before a clean exit, which renames the temporary file into place. An exception inside the
+    ``with`` block removes the temporary file and leaves any existing target untouched.
+
+    Formats: ``.nc`` NetCDF-4 with dims ``(z, y, x)``, one float32 variable and `attributes`
+    as global attributes; ``.raw``/``.bin`` headerless little-endian float32, x fastest (no
+    attributes); ``.npy`` a float32 array (no attributes).
+
+    Args:
+        path: Output file; its folder must exist.
+        shape: ``(D, H, W) = (z, y, x)``, as `Volume.shape`.
+        variable: Variable name in a NetCDF output.
+        attributes: Global attributes of a NetCDF output (numbers, strings, numeric lists;
+            anything else is stored as JSON text).
+
+    Raises:
+        ApmgsrnError: For an unknown suffix, a missing or unwritable output folder, or a
+            failed write (e.g. a full disk).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        shape: tuple[int, int, int],
+        variable: str = "value",
+        attributes: dict | None = None,
+    ) -> None:
+        self.path = Path(path).expanduser()
+        self.shape = tuple(int(n) for n in shape)
+        if len(self.shape) != 3 or min(self.shape) <= 0:
+            raise ValueError(f"VolumeWriter needs a shape (D, H, W) of positive sizes, got {shape}")
+        self.variable = variable
+        self.suffix = self.path.suffix.lower()
+        if self.suffix not in WRITABLE_SUFFIXES:
+            listed = ", ".join(f"{s} ({name})" for s, name in WRITABLE_SUFFIXES.items())
+            raise ApmgsrnError(
+                f"{self.path}: cannot write format {self.suffix or '(no suffix)'!r}; use one of {listed}"
+            )
+        folder = self.path.parent
+        if not folder.is_dir():
+            raise ApmgsrnError(f"{self.path}: output folder {folder} does not exist; create it or choose another path")
+        if self.path.is_dir():
+            example = self.path / ("volume" + self.suffix)
+            raise ApmgsrnError(f"{self.path}: is a directory; give a file name such as {example}")
+        # Same folder as the target, so the final rename is atomic (same file system); the real
+        # suffix is kept so libraries that look at it behave.
+        self._temporary = folder / f".{self.path.stem}.{uuid.uuid4().hex[:12]}.partial{self.suffix}"
+        self._written = np.zeros(self.shape[0], dtype=bool)
+        self._handle: Any = None
+        self._closed = False
+        try:
+            self._handle = self._create(attributes or {})
+        except BaseException as exc:
+            self._remove_temporary()
+            if isinstance(exc, (OSError, RuntimeError, ValueError, TypeError, AttributeError)):
+                raise ApmgsrnError(
+                    f"{self.path}: cannot create the output file ({exc}); check that the folder is writable "
+                    "and the variable and attribute names are valid"
+                ) from exc
+            raise
+
+    # ----------------------------------------------------------------- per format
+    def _create(self, attributes: dict) -> Any:
+        depth, height, width = self.shape
+        if self.suffix == ".nc":
+            import netCDF4
+
+            dataset = netCDF4.Dataset(self._temporary, "w", format="NETCDF4")
+            try:
+                # Every voxel gets written, so skip netCDF's pre-fill (it would write the file twice).
+                dataset.set_fill_off()
+                for name, size in zip(("z", "y", "x"), self.shape):
+                    dataset.createDimension(name, size)
+                dataset.createVariable(self.variable, "f4", ("z", "y", "x"), contiguous=True)
+                for key, value in attributes.items():
+                    dataset.setncattr(str(key), _attribute_value(value))
+            except BaseException:
+                dataset.close()
+                raise
+            return dataset
+        if self.suffix == ".npy":
+            return np.lib.format.open_memmap(self._temporary, mode="w+", dtype=np.float32, shape=self.shape)
+        handle = open(self._temporary, "wb")
+        try:
+            # Size the file up front (sparse) so slabs can be written in any order.
+            handle.truncate(depth * height * width * 4)
+        except BaseException:
+            handle.close()
+            raise
+        return handle
+
+    def _store(self, z: slice, block: np.ndarray) -> None:
+        if self.suffix == ".nc":
+            self._handle[self.variable][z.start:z.stop, :, :] = block
+        elif self.suffix == ".npy":
+            self._handle[z.start:z.stop] = block
+        else:
+            _, height, width = self.shape
+            self._handle.seek(z.start * height * width * 4)
+            self._handle.write(np.ascontiguousarray(block, dtype="<f4").data)
+
+    def _finish(self) -> None:
+        if self.suffix == ".npy":
+            self._handle.flush()
+        else:
+            self._handle.close()
+        self._handle = None
+
+    # ----------------------------------------------------------------- public
+    def write(self, z: slice, block: np.ndarray) -> None:
+        """Write the slab ``z`` of the volume.
+
+        Args:
+            z: Range of z-slices, step 1, within ``[0, D)``.
+            block: float32 (or convertible) array ``[dz, H, W]`` with ``dz`` = length of `z`.
+
+        Raises:
+            ApmgsrnError: If the disk write fails (full disk, lost folder).
+        """
+        if self._closed:
+            raise ValueError(f"VolumeWriter for {self.path} is closed")
+        start, stop, step = z.indices(self.shape[0])
+        if step != 1 or stop <= start:
+            raise ValueError(f"VolumeWriter.write needs a non-empty z slice with step 1, got {z}")
+        block = np.asarray(block, dtype=np.float32)
+        expected = (stop - start, self.shape[1], self.shape[2])
+        if block.shape != expected:
+            raise ValueError(
+                f"VolumeWriter.write: block shape {block.shape} does not match z={start}:{stop} -> {expected}"
+            )
+        try:
+            self._store(slice(start, stop), block)
+        except (OSError, RuntimeError) as exc:
+            raise ApmgsrnError(f"{self.path}: writing failed ({exc}); check free disk space and the folder") from exc
+        self._written[start:stop] = True
+
+    def close(self) -> None:
+        """Finish the file and rename it into place (all of z must have been written).
+
+        Raises:
+            ValueError: If some z-slices were never written (the temporary file is removed).
+            ApmgsrnError: If flushing or renaming fails.
+        """
+        if self._closed:
+            return
+        if not self._written.all():
+            missing = np.flatnonzero(~self._written)
+            self.abort()
+            raise ValueError(
+                f"VolumeWriter for {self.path}: {missing.size} z-slices were never written "
+                f"(first missing: z={missing[0]}); nothing was saved"
+            )
+        try:
+            self._finish()
+            os.replace(self._temporary, self.path)
+        except (OSError, RuntimeError) as exc:
+            self.abort()
+            raise ApmgsrnError(f"{self.path}: cannot finish the output file ({exc}); check free disk space") from exc
+        self._closed = True
+
+    def abort(self) -> None:
+        """Drop the temporary file without touching the target."""
+        handle, self._handle = self._handle, None
+        if handle is not None and self.suffix != ".npy":
+            try:
+                handle.close()
+            except Exception:  # noqa: BLE001 - the handle may already be broken; cleanup goes on
+                pass
+        self._closed = True
+        self._remove_temporary()
+
+    def _remove_temporary(self) -> None:
+        try:
+            self._temporary.unlink()
+        except FileNotFoundError:
+            pass
+
+    def __enter__(self) -> VolumeWriter:
+        return self
+
+    def __exit__(self, exc_type: type | None, exc: BaseException | None, traceback: Any) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()

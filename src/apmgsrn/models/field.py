@@ -1,0 +1,60 @@
+"""A neural field ``f(p) = d(e(p))`` with min/max output scaling and the inverse value transform."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from apmgsrn.models.decoder import Decoder
+from apmgsrn.models.registry import ENCODERS, FieldConfig
+from apmgsrn.models.value_transform import ValueTransform
+
+
+class NeuralField(nn.Module):
+    """Maps points ``[N, 3]`` in ``[-1, 1]^3`` to values ``[N, 1]`` in data units.
+
+    The decoder learns ``m(y)`` in about ``[0, 1]``; the output is ``m(y) * (max - min) + min`` in the
+    fitted (transformed) units, then the inverse value transform gives data units.
+
+    Attributes:
+        config: what was built.
+        fit_min, fit_max: value range in fitted units (after the value transform).
+        value_min, value_max: value range of the training data in data units.
+        volume_shape: ``(D, H, W)`` of the training volume.
+        transform: the value transform.
+    """
+
+    def __init__(
+        self,
+        config: FieldConfig,
+        fit_min: float = 0.0,
+        fit_max: float = 1.0,
+        value_min: float | None = None,
+        value_max: float | None = None,
+        transform: ValueTransform = ValueTransform(),
+        volume_shape: tuple[int, int, int] = (0, 0, 0),
+        generator: torch.Generator | None = None,
+    ):
+        super().__init__()
+        self.config = config
+        encoder_class = ENCODERS[config.model][1]
+        self.encoder = encoder_class(config.encoder, generator=generator)
+        self.decoder = Decoder(self.encoder.out_features, config.decoder, generator=generator)
+        self.fit_min = float(fit_min)
+        self.fit_max = float(fit_max)
+        self.value_min = float(fit_min if value_min is None else value_min)
+        self.value_max = float(fit_max if value_max is None else value_max)
+        self.transform = transform
+        self.volume_shape = tuple(int(s) for s in volume_shape)
+
+    def normalized(self, points: torch.Tensor, detach_transforms: bool = False) -> torch.Tensor:
+        """Decoder output ``m(y)`` ``[N, 1]`` (about ``[0, 1]``), the quantity the trainer fits."""
+        return self.decoder(self.encoder(points, detach_transforms=detach_transforms))
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        """Values in data units ``[N, 1]`` at ``points`` ``[N, 3]``."""
+        fitted = self.normalized(points) * (self.fit_max - self.fit_min) + self.fit_min
+        return self.transform.inverse(fitted)
+
+    def parameter_count(self) -> int:
+        return sum(p.numel() for p in self.parameters())

@@ -1,0 +1,66 @@
+"""Model kinds users type (``apmgsrn``, ...), their encoder classes and size presets (SPEC section 5)."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from apmgsrn.models.decoder import DecoderConfig
+from apmgsrn.models.encoders.adaptive_multigrid import AdaptiveMultiGridConfig, AdaptiveMultiGridEncoder
+
+# model name -> (encoder config class, encoder class)
+ENCODERS: dict[str, tuple[type, type]] = {
+    "apmgsrn": (AdaptiveMultiGridConfig, AdaptiveMultiGridEncoder),
+}
+
+# model name -> preset name -> encoder config fields (SPEC section 5, paper Table 1 sizes)
+PRESETS: dict[str, dict[str, dict]] = {
+    "apmgsrn": {
+        "small": dict(grids=16, features=1, resolution=(16, 16, 16)),
+        "medium": dict(grids=16, features=2, resolution=(32, 32, 32)),
+        "large": dict(grids=16, features=4, resolution=(64, 64, 64)),
+    },
+}
+
+
+@dataclass(frozen=True)
+class FieldConfig:
+    """Everything needed to rebuild a field's modules (saved in every model file)."""
+
+    model: str
+    encoder: object
+    decoder: DecoderConfig = DecoderConfig()
+
+    def to_dict(self) -> dict:
+        return {"model": self.model, "encoder": dataclasses.asdict(self.encoder), "decoder": dataclasses.asdict(self.decoder)}
+
+    @staticmethod
+    def from_dict(data: dict) -> "FieldConfig":
+        model = data["model"]
+        if model not in ENCODERS:
+            raise ValueError(f"unknown model kind {model!r}")
+        config_class = ENCODERS[model][0]
+        encoder_fields = {k: tuple(v) if isinstance(v, list) else v for k, v in data["encoder"].items()}
+        return FieldConfig(model, config_class(**encoder_fields), DecoderConfig(**data["decoder"]))
+
+
+def preset_config(model: str, preset: str, **overrides) -> FieldConfig:
+    """A field config from a size preset, with explicit encoder/decoder fields overriding it.
+
+    Args:
+        model: model kind (a key of :data:`ENCODERS`).
+        preset: ``"small"``, ``"medium"`` or ``"large"``.
+        overrides: encoder config fields, plus ``hidden_layers``/``width`` for the decoder; None is ignored.
+    """
+    if model not in ENCODERS:
+        raise ValueError(f"unknown model {model!r}; choose from {sorted(ENCODERS)}")
+    if preset not in PRESETS[model]:
+        raise ValueError(f"unknown preset {preset!r}; choose from {sorted(PRESETS[model])}")
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    decoder = DecoderConfig(
+        hidden_layers=overrides.pop("hidden_layers", DecoderConfig.hidden_layers),
+        width=overrides.pop("width", DecoderConfig.width),
+    )
+    config_class = ENCODERS[model][0]
+    fields = {**PRESETS[model][preset], **overrides}
+    return FieldConfig(model, config_class(**fields), decoder)

@@ -1,0 +1,701 @@
+"""CPU backend of the multi-grid encoder: one fused C/OpenMP kernel, built once with the system compiler.
+
+Why a hand-written kernel: the reference materialises the ``[M, N, 3]`` local coordinates, runs ``M`` zero
+padded ``grid_sample`` look-ups and, in backward, ``grid_sampler_3d_backward`` (the bulk of a training
+step). The kernel here does transform, bounds test, trilinear weights, gather and concatenation in one
+pass per point and grid, in registers, and skips grids that do not cover the point. Its backward scatters
+into the feature grids with one thread per grid (no atomics, no per-thread copies of the grids) when there
+are at least as many grids as threads, and with per-thread gradient buffers otherwise.
+
+Build: plain C (no PyTorch headers, so it compiles in about a second), called through :mod:`ctypes`
+(which releases the GIL), linked with ``-fopenmp``. PyTorch ships ``libgomp.so.1`` under the same soname
+and loads it first, so the kernel runs on PyTorch's own OpenMP thread pool. The shared object is cached
+under ``$APMGSRN_CACHE`` (default ``~/.cache/apmgsrn``) keyed by the hash of the source, the flags and the
+CPU, so it compiles once per machine. Any failure (no compiler, read-only cache) is reported by
+:func:`load_library` returning ``None``; the dispatcher then falls back to the reference.
+
+Semantics are those of :func:`apmgsrn.ops.multigrid.multigrid_features_reference`: corner-aligned,
+zero-padded trilinear sampling (a corner outside the grid contributes zero), grid-major concatenation.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import threading
+from pathlib import Path
+
+import torch
+
+# The C source. Coordinates are folded into index space once per grid: ``f = A' p + t'`` with
+# ``A' = A (size - 1) / 2`` and ``t' = (t + 1) (size - 1) / 2`` (corner-aligned unnormalisation), so a
+# point costs 9 multiply-adds per grid before the bounds test.
+C_SOURCE = r"""
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+#include <omp.h>
+
+typedef int64_t i64;
+
+/* Points are processed in tiles: every loop below runs over the points of one tile for one grid, so
+   the compiler vectorises it (8 points per AVX2 instruction), and the tile's scratch stays in L1. */
+#define TILE 128
+
+typedef struct {
+    float px[TILE], py[TILE], pz[TILE];   /* the tile's points */
+    float fx[TILE], fy[TILE], fz[TILE];   /* index-space coordinates in the current grid */
+    float cx[TILE], cy[TILE], cz[TILE];   /* the same, compacted to the points that touch the grid */
+    int inside[TILE];                     /* 1 where the point touches the grid */
+    int idx[TILE];                        /* tile position of each compacted point */
+    int off[8][TILE];                     /* corner offsets (elements), compacted */
+    float wt[8][TILE];                    /* corner weights, compacted; 0 for corners outside */
+    float res[TILE];                      /* gathered feature of one channel, compacted */
+} Scratch;
+
+typedef struct { int d, h, w, sz, sy, sx; } Shape;
+
+static inline void load_tile(Scratch *s, const float *points, i64 i0, int nt) {
+    const float *p = points + 3 * i0;
+    for (int i = 0; i < nt; ++i) { s->px[i] = p[3 * i]; s->py[i] = p[3 * i + 1]; s->pz[i] = p[3 * i + 2]; }
+}
+
+/* Map the tile into one grid (index units), keep the points that touch it, and compute their eight
+   corners. Returns how many points touch the grid; s->idx maps compacted slots back to the tile
+   (identity when all do). Branch-free forms throughout (ternaries, float masks), since gcc vectorises
+   neither && chains nor fminf/fmaxf without fast-math. */
+static inline int select_and_weigh(Scratch *s, const float *a, int nt, Shape g) {
+    const float fw = (float)g.w, fh = (float)g.h, fd = (float)g.d;
+    const float a0 = a[0], a1 = a[1], a2 = a[2], a3 = a[3], a4 = a[4], a5 = a[5];
+    const float a6 = a[6], a7 = a[7], a8 = a[8], a9 = a[9], a10 = a[10], a11 = a[11];
+    const float *restrict px = s->px, *restrict py = s->py, *restrict pz = s->pz;
+    float *restrict fxs = s->fx, *restrict fys = s->fy, *restrict fzs = s->fz;
+    int *restrict inside = s->inside, *restrict idx = s->idx;
+    int total = 0;
+    #pragma omp simd reduction(+:total)
+    for (int i = 0; i < nt; ++i) {
+        const float fx = a0 * px[i] + a1 * py[i] + a2 * pz[i] + a9;
+        const float fy = a3 * px[i] + a4 * py[i] + a5 * pz[i] + a10;
+        const float fz = a6 * px[i] + a7 * py[i] + a8 * pz[i] + a11;
+        /* some corner is inside iff floor(f) is in [-1, size - 1] on every axis; NaN compares false */
+        const float in = (fx > -1.0f ? 1.0f : 0.0f) * (fx < fw ? 1.0f : 0.0f) * (fy > -1.0f ? 1.0f : 0.0f)
+                       * (fy < fh ? 1.0f : 0.0f) * (fz > -1.0f ? 1.0f : 0.0f) * (fz < fd ? 1.0f : 0.0f);
+        inside[i] = (int)in;
+        total += (int)in;
+        fxs[i] = fx; fys[i] = fy; fzs[i] = fz;
+    }
+    const float *cx = fxs, *cy = fys, *cz = fzs;
+    int cnt = nt;
+    if (total == 0) return 0;
+    if (total < nt) {
+        /* skip the points this grid does not cover: branch-free compaction (always write, advance
+           only for inside points) */
+        float *restrict ox = s->cx, *restrict oy = s->cy, *restrict oz = s->cz;
+        cnt = 0;
+        for (int i = 0; i < nt; ++i) {
+            idx[cnt] = i; ox[cnt] = fxs[i]; oy[cnt] = fys[i]; oz[cnt] = fzs[i];
+            cnt += inside[i];
+        }
+        cx = ox; cy = oy; cz = oz;
+    } else {
+        for (int i = 0; i < nt; ++i) idx[i] = i;
+    }
+    int *restrict o0 = s->off[0], *restrict o1 = s->off[1], *restrict o2 = s->off[2], *restrict o3 = s->off[3];
+    int *restrict o4 = s->off[4], *restrict o5 = s->off[5], *restrict o6 = s->off[6], *restrict o7 = s->off[7];
+    float *restrict w0 = s->wt[0], *restrict w1 = s->wt[1], *restrict w2 = s->wt[2], *restrict w3 = s->wt[3];
+    float *restrict w4 = s->wt[4], *restrict w5 = s->wt[5], *restrict w6 = s->wt[6], *restrict w7 = s->wt[7];
+    #pragma omp simd
+    for (int k = 0; k < cnt; ++k) {
+        const float fx = cx[k], fy = cy[k], fz = cz[k];
+        const float flx = floorf(fx), fly = floorf(fy), flz = floorf(fz);
+        const float tx = fx - flx, ty = fy - fly, tz = fz - flz;
+        /* zero padding: a corner outside the grid gets weight 0 and a clamped, valid address */
+        const float wx0 = flx >= 0.0f ? 1.0f - tx : 0.0f, wx1 = flx + 1.0f < fw ? tx : 0.0f;
+        const float wy0 = fly >= 0.0f ? 1.0f - ty : 0.0f, wy1 = fly + 1.0f < fh ? ty : 0.0f;
+        const float wz0 = flz >= 0.0f ? 1.0f - tz : 0.0f, wz1 = flz + 1.0f < fd ? tz : 0.0f;
+        const int ox0 = (int)(flx > 0.0f ? flx : 0.0f) * g.sx;
+        const int ox1 = (int)(flx + 1.0f < fw ? flx + 1.0f : fw - 1.0f) * g.sx;
+        const int oy0 = (int)(fly > 0.0f ? fly : 0.0f) * g.sy;
+        const int oy1 = (int)(fly + 1.0f < fh ? fly + 1.0f : fh - 1.0f) * g.sy;
+        const int oz0 = (int)(flz > 0.0f ? flz : 0.0f) * g.sz;
+        const int oz1 = (int)(flz + 1.0f < fd ? flz + 1.0f : fd - 1.0f) * g.sz;
+        const float wyz00 = wy0 * wz0, wyz10 = wy1 * wz0, wyz01 = wy0 * wz1, wyz11 = wy1 * wz1;
+        /* corner order of grid_sample: x fastest, then y, then z */
+        w0[k] = wx0 * wyz00; o0[k] = oz0 + oy0 + ox0;
+        w1[k] = wx1 * wyz00; o1[k] = oz0 + oy0 + ox1;
+        w2[k] = wx0 * wyz10; o2[k] = oz0 + oy1 + ox0;
+        w3[k] = wx1 * wyz10; o3[k] = oz0 + oy1 + ox1;
+        w4[k] = wx0 * wyz01; o4[k] = oz1 + oy0 + ox0;
+        w5[k] = wx1 * wyz01; o5[k] = oz1 + oy0 + ox1;
+        w6[k] = wx0 * wyz11; o6[k] = oz1 + oy1 + ox0;
+        w7[k] = wx1 * wyz11; o7[k] = oz1 + oy1 + ox1;
+    }
+    return cnt;
+}
+
+/* res[k] = sum_j b[off_j[k]] w_j[k] for the compacted points (vectorised gathers). */
+static inline void gather_tile(const float *restrict b, Scratch *s, int cnt) {
+    const int *restrict o0 = s->off[0], *restrict o1 = s->off[1], *restrict o2 = s->off[2], *restrict o3 = s->off[3];
+    const int *restrict o4 = s->off[4], *restrict o5 = s->off[5], *restrict o6 = s->off[6], *restrict o7 = s->off[7];
+    const float *restrict w0 = s->wt[0], *restrict w1 = s->wt[1], *restrict w2 = s->wt[2], *restrict w3 = s->wt[3];
+    const float *restrict w4 = s->wt[4], *restrict w5 = s->wt[5], *restrict w6 = s->wt[6], *restrict w7 = s->wt[7];
+    float *restrict res = s->res;
+    #pragma omp simd
+    for (int k = 0; k < cnt; ++k) {
+        float acc = b[o0[k]] * w0[k];
+        acc += b[o1[k]] * w1[k];
+        acc += b[o2[k]] * w2[k];
+        acc += b[o3[k]] * w3[k];
+        acc += b[o4[k]] * w4[k];
+        acc += b[o5[k]] * w5[k];
+        acc += b[o6[k]] * w6[k];
+        acc += b[o7[k]] * w7[k];
+        res[k] = acc;
+    }
+}
+
+/* out[n, g*C + c] = zero-padded trilinear sample of grid g, channel c, at A'_g p_n + t'_g.
+   aff: [M, 12] index-space maps; grid strides (elements) sm, sc, sz, sy, sx, so channel-first and
+   channel-last grids both work. Points are split over threads; every output element is written. */
+void mg_forward(const float *points, i64 n, const float *aff, i64 m, const float *grids,
+                i64 c, i64 d, i64 h, i64 w, i64 sm, i64 sc, i64 sz, i64 sy, i64 sx,
+                float *out, int nthreads) {
+    const i64 mc = m * c;
+    const i64 ntiles = (n + TILE - 1) / TILE;
+    const Shape shape = {(int)d, (int)h, (int)w, (int)sz, (int)sy, (int)sx};
+    #pragma omp parallel num_threads(nthreads)
+    {
+        Scratch s;
+        #pragma omp for schedule(static)
+        for (i64 t = 0; t < ntiles; ++t) {
+            const i64 i0 = t * TILE;
+            const int nt = (int)(n - i0 < TILE ? n - i0 : TILE);
+            float *o = out + i0 * mc;
+            load_tile(&s, points, i0, nt);
+            memset(o, 0, sizeof(float) * (size_t)nt * (size_t)mc);  /* grids missing a point give 0 */
+            for (i64 g = 0; g < m; ++g) {
+                const int cnt = select_and_weigh(&s, aff + 12 * g, nt, shape);
+                for (i64 ch = 0; ch < c; ++ch) {
+                    gather_tile(grids + g * sm + ch * sc, &s, cnt);
+                    float *oc = o + g * c + ch;
+                    for (int k = 0; k < cnt; ++k) oc[(i64)s.idx[k] * mc] = s.res[k];
+                }
+            }
+        }
+    }
+}
+
+/* gg (one grid's gradient) += trilinear scatter of grad_out's columns of grid g over points [lo, hi). */
+static void scatter_range(const float *points, i64 lo, i64 hi, const float *aff_g, const float *grad_out,
+                          i64 mc, i64 g, i64 c, i64 sc, Shape shape, float *gg, Scratch *s) {
+    for (i64 i0 = lo; i0 < hi; i0 += TILE) {
+        const int nt = (int)(hi - i0 < TILE ? hi - i0 : TILE);
+        load_tile(s, points, i0, nt);
+        const int cnt = select_and_weigh(s, aff_g, nt, shape);
+        for (i64 ch = 0; ch < c; ++ch) {
+            float *b = gg + ch * sc;
+            const float *go = grad_out + i0 * mc + g * c + ch;
+            for (int k = 0; k < cnt; ++k) {
+                const float v = go[(i64)s->idx[k] * mc];
+                for (int j = 0; j < 8; ++j) b[s->off[j][k]] += s->wt[j][k] * v;
+            }
+        }
+    }
+}
+
+/* grad_grids (zeroed by the caller, strides sm..sx) += scatter of grad_out [N, M*C].
+   buffers: NULL when m >= nthreads, else (nthreads - 1) zeroed dense copies of the gradient. */
+void mg_backward(const float *points, i64 n, const float *aff, i64 m, const float *grad_out,
+                 i64 c, i64 d, i64 h, i64 w, i64 sm, i64 sc, i64 sz, i64 sy, i64 sx,
+                 float *grad_grids, float *buffers, int nthreads) {
+    const i64 mc = m * c;
+    const Shape shape = {(int)d, (int)h, (int)w, (int)sz, (int)sy, (int)sx};
+    if (buffers == NULL || nthreads <= 1) {
+        /* Each grid belongs to one thread: no races, no atomics, no copies. Dynamic, since grids
+           cover different numbers of points once they have moved. */
+        #pragma omp parallel num_threads(nthreads)
+        {
+            Scratch s;
+            #pragma omp for schedule(dynamic, 1)
+            for (i64 g = 0; g < m; ++g)
+                scatter_range(points, 0, n, aff + 12 * g, grad_out, mc, g, c, sc, shape, grad_grids + g * sm, &s);
+        }
+        return;
+    }
+    /* Fewer grids than threads: split the points, one private gradient per extra thread, then sum. */
+    const i64 total = m * sm;
+    #pragma omp parallel num_threads(nthreads)
+    {
+        Scratch s;
+        const int t = omp_get_thread_num(), nt = omp_get_num_threads();
+        const i64 lo = n * t / nt, hi = n * (t + 1) / nt;
+        float *dst = t == 0 ? grad_grids : buffers + (size_t)(t - 1) * (size_t)total;
+        for (i64 g = 0; g < m; ++g)
+            scatter_range(points, lo, hi, aff + 12 * g, grad_out, mc, g, c, sc, shape, dst + g * sm, &s);
+        #pragma omp barrier
+        for (int b = 0; b < nt - 1; ++b) {
+            const float *src = buffers + (size_t)b * (size_t)total;
+            #pragma omp for schedule(static)
+            for (i64 e = 0; e < total; ++e) grad_grids[e] += src[e];
+        }
+    }
+}
+
+/* ---- Feature density (SPEC section 3): rho[n] = sum_g det[g] exp(-sum_d G_g(p_n)_d^(2P)) ---- */
+
+/* exp(x) for x <= 0, vectorisable (glibc's expf is not, without fast-math): 2^k e^r with
+   |r| <= ln2/2 and a degree-6 polynomial (the classic single-precision minimax coefficients);
+   within 2 ulp of expf, and exactly 0 below -87 where expf underflows to denormals. */
+static inline float exp_nonpositive(float x) {
+    const float xc = x > -87.0f ? x : -87.0f;
+    const float k = floorf(xc * 1.44269504088896341f + 0.5f);
+    float r = xc - k * 0.693359375f;  /* ln 2 split in two for an exact first product */
+    r = r + k * 2.12194440e-4f;
+    float y = 1.9875691500e-4f;
+    y = y * r + 1.3981999507e-3f;
+    y = y * r + 8.3334519073e-3f;
+    y = y * r + 4.1665795894e-2f;
+    y = y * r + 1.6666665459e-1f;
+    y = y * r + 5.0000001201e-1f;
+    y = y * r * r + r + 1.0f;
+    const int32_t bits = ((int32_t)k + 127) << 23;  /* 2^k, k in [-126, 0] */
+    float scale;
+    memcpy(&scale, &bits, sizeof scale);
+    return x > -87.0f ? y * scale : 0.0f;
+}
+
+/* x^e for 0 <= e < 128 by squaring, with a fixed trip count and selects instead of branches, so the
+   loops that call it vectorise whatever e is (the caller checks the range). */
+static inline float pow_int(float x, int e) {
+    float r = 1.0f;
+    for (int bit = 0; bit < 7; ++bit) {
+        r = (e >> bit) & 1 ? r * x : r;
+        x = x * x;
+    }
+    return r;
+}
+
+#define DTILE 256
+
+static void density_forward_impl(
+        const float *points, i64 n, const float *aff, const float *det, i64 m, const int two_p,
+        float *rho, int nthreads) {
+    const i64 ntiles = (n + DTILE - 1) / DTILE;
+    #pragma omp parallel for schedule(static) num_threads(nthreads)
+    for (i64 t = 0; t < ntiles; ++t) {
+        const i64 i0 = t * DTILE;
+        const int nt = (int)(n - i0 < DTILE ? n - i0 : DTILE);
+        float px[DTILE], py[DTILE], pz[DTILE], acc[DTILE];
+        for (int i = 0; i < nt; ++i) {
+            px[i] = points[3 * (i0 + i)]; py[i] = points[3 * (i0 + i) + 1]; pz[i] = points[3 * (i0 + i) + 2];
+            acc[i] = 0.0f;
+        }
+        for (i64 g = 0; g < m; ++g) {
+            const float *a = aff + 12 * g;
+            const float a0 = a[0], a1 = a[1], a2 = a[2], a3 = a[3], a4 = a[4], a5 = a[5];
+            const float a6 = a[6], a7 = a[7], a8 = a[8], a9 = a[9], a10 = a[10], a11 = a[11];
+            const float dg = det[g];
+            #pragma omp simd
+            for (int i = 0; i < nt; ++i) {
+                const float lx = a0 * px[i] + a1 * py[i] + a2 * pz[i] + a9;
+                const float ly = a3 * px[i] + a4 * py[i] + a5 * pz[i] + a10;
+                const float lz = a6 * px[i] + a7 * py[i] + a8 * pz[i] + a11;
+                const float sum = pow_int(lx, two_p) + pow_int(ly, two_p) + pow_int(lz, two_p);
+                acc[i] += dg * exp_nonpositive(-sum);
+            }
+        }
+        for (int i = 0; i < nt; ++i) rho[i0 + i] = acc[i];
+    }
+}
+
+static void density_backward_impl(
+        const float *points, i64 n, const float *aff, const float *det, i64 m, const int two_p,
+        const float *grad_rho, double *partial, int nthreads) {
+    #pragma omp parallel num_threads(nthreads)
+    {
+        const int t = omp_get_thread_num(), nt_ = omp_get_num_threads();
+        double *own = partial + (size_t)t * (size_t)(13 * m);
+        const i64 lo = n * t / nt_, hi = n * (t + 1) / nt_;
+        float px[DTILE], py[DTILE], pz[DTILE], gr[DTILE];
+        for (i64 i0 = lo; i0 < hi; i0 += DTILE) {
+            const int nt = (int)(hi - i0 < DTILE ? hi - i0 : DTILE);
+            for (int i = 0; i < nt; ++i) {
+                px[i] = points[3 * (i0 + i)]; py[i] = points[3 * (i0 + i) + 1]; pz[i] = points[3 * (i0 + i) + 2];
+                gr[i] = grad_rho[i0 + i];
+            }
+            for (i64 g = 0; g < m; ++g) {
+                const float *a = aff + 12 * g;
+                const float a0 = a[0], a1 = a[1], a2 = a[2], a3 = a[3], a4 = a[4], a5 = a[5];
+                const float a6 = a[6], a7 = a[7], a8 = a[8], a9 = a[9], a10 = a[10], a11 = a[11];
+                const float scale = -(float)two_p * det[g];
+                float r0 = 0, rxx = 0, rxy = 0, rxz = 0, ryx = 0, ryy = 0, ryz = 0;
+                float rzx = 0, rzy = 0, rzz = 0, rx = 0, ry = 0, rz = 0;
+                #pragma omp simd reduction(+:r0, rxx, rxy, rxz, ryx, ryy, ryz, rzx, rzy, rzz, rx, ry, rz)
+                for (int i = 0; i < nt; ++i) {
+                    const float lx = a0 * px[i] + a1 * py[i] + a2 * pz[i] + a9;
+                    const float ly = a3 * px[i] + a4 * py[i] + a5 * pz[i] + a10;
+                    const float lz = a6 * px[i] + a7 * py[i] + a8 * pz[i] + a11;
+                    const float qx = pow_int(lx, two_p - 1), qy = pow_int(ly, two_p - 1), qz = pow_int(lz, two_p - 1);
+                    const float e = exp_nonpositive(-(qx * lx + qy * ly + qz * lz));
+                    /* d rho / d det = e; d rho / d l_k = -2P det e l_k^(2P-1); zero where e is 0, so a
+                       far-away point cannot give 0 * inf */
+                    const float ge = gr[i] * e;
+                    const float s = e > 0.0f ? scale * ge : 0.0f;
+                    const float sx = e > 0.0f ? s * qx : 0.0f;
+                    const float sy = e > 0.0f ? s * qy : 0.0f;
+                    const float sz = e > 0.0f ? s * qz : 0.0f;
+                    r0 += ge;
+                    rxx += sx * px[i]; rxy += sx * py[i]; rxz += sx * pz[i]; rx += sx;
+                    ryx += sy * px[i]; ryy += sy * py[i]; ryz += sy * pz[i]; ry += sy;
+                    rzx += sz * px[i]; rzy += sz * py[i]; rzz += sz * pz[i]; rz += sz;
+                }
+                double *r = own + 13 * g;  /* d det, d A (row-major: dl_k/dA_kj = p_j), d t */
+                r[0] += r0;
+                r[1] += rxx; r[2] += rxy; r[3] += rxz;
+                r[4] += ryx; r[5] += ryy; r[6] += ryz;
+                r[7] += rzx; r[8] += rzy; r[9] += rzz;
+                r[10] += rx; r[11] += ry; r[12] += rz;
+            }
+        }
+    }
+}
+
+/* aff: [M, 12] plain maps (A row-major, then t), local units; 1 <= power <= 63. */
+void mg_density(const float *points, i64 n, const float *aff, const float *det, i64 m, int power,
+                float *rho, int nthreads) {
+    density_forward_impl(points, n, aff, det, m, 2 * power, rho, nthreads);
+}
+
+/* partial: [nthreads, M, 13] zeroed doubles; each thread sums its points into its own block. */
+void mg_density_backward(const float *points, i64 n, const float *aff, const float *det, i64 m,
+                         int power, const float *grad_rho, double *partial, int nthreads) {
+    density_backward_impl(points, n, aff, det, m, 2 * power, grad_rho, partial, nthreads);
+}
+"""
+
+# -fno-trapping-math lets gcc if-convert the float selects (else no loop vectorises); neither flag
+# changes a result: the kernel never reads errno or floating-point exception flags.
+COMPILE_FLAGS = ["-O3", "-march=native", "-fopenmp", "-fPIC", "-shared", "-fno-math-errno", "-fno-trapping-math"]
+
+_lock = threading.Lock()
+_library: ctypes.CDLL | None = None
+_load_error: str | None = None
+_tried = False
+
+
+def _cpu_signature() -> str:
+    """What the machine code depends on (``-march=native``): the CPU's model and flags."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+        lines = [ln for ln in text.splitlines() if ln.startswith(("model name", "flags"))][:2]
+        return "\n".join(lines)
+    except OSError:
+        return platform.processor() or platform.machine()
+
+
+def cache_dir() -> Path:
+    """Folder of built kernels: ``$APMGSRN_CACHE`` or ``~/.cache/apmgsrn``."""
+    root = os.environ.get("APMGSRN_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "apmgsrn")
+    return Path(root) / "kernels"
+
+
+def _build(target: Path, compiler: str) -> None:
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
+        src = Path(tmp) / "multigrid_cpu.c"
+        src.write_text(C_SOURCE)
+        out = Path(tmp) / target.name
+        proc = subprocess.run(
+            [compiler, *COMPILE_FLAGS, str(src), "-o", str(out), "-lm"],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        if proc.returncode != 0:
+            raise RuntimeError(f"{compiler} failed:\n{proc.stderr[-2000:]}")
+        # Atomic: a concurrent process either sees no file or a complete one.
+        os.replace(out, target)
+
+
+def _declare(lib: ctypes.CDLL) -> None:
+    p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+    sizes = [i64] * 9  # c, d, h, w, then strides sm, sc, sz, sy, sx
+    lib.mg_forward.argtypes = [p, i64, p, i64, p, *sizes, p, i32]
+    lib.mg_backward.argtypes = [p, i64, p, i64, p, *sizes, p, p, i32]
+    lib.mg_density.argtypes = [p, i64, p, p, i64, i32, p, i32]
+    lib.mg_density_backward.argtypes = [p, i64, p, p, i64, i32, p, p, i32]
+    for fn in (lib.mg_forward, lib.mg_backward, lib.mg_density, lib.mg_density_backward):
+        fn.restype = None
+
+
+def load_library() -> ctypes.CDLL | None:
+    """Build (once per machine) and load the kernel library.
+
+    Returns:
+        The loaded library, or ``None`` when it cannot be built here (see :func:`load_error`).
+    """
+    global _library, _load_error, _tried
+    with _lock:
+        if _tried:
+            return _library
+        _tried = True
+        try:
+            compiler = os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc")
+            if compiler is None:
+                raise RuntimeError("no C compiler (gcc or cc) on PATH")
+            key = hashlib.sha256(
+                "\0".join([C_SOURCE, " ".join(COMPILE_FLAGS), compiler, _cpu_signature()]).encode()
+            ).hexdigest()[:16]
+            target = cache_dir() / f"multigrid_cpu_{key}.so"
+            if not target.exists():
+                _build(target, compiler)
+            lib = ctypes.CDLL(str(target))
+            _declare(lib)
+            _library = lib
+        except Exception as err:  # noqa: BLE001 - any build problem means "use the reference"
+            _load_error = f"{type(err).__name__}: {err}"
+            _library = None
+        return _library
+
+
+def load_error() -> str | None:
+    """Why :func:`load_library` returned ``None`` (``None`` when it has not failed)."""
+    return _load_error
+
+
+def is_available() -> bool:
+    """True when the kernel library builds and loads on this machine."""
+    return load_library() is not None
+
+
+def _library_or_raise() -> ctypes.CDLL:
+    lib = load_library()
+    if lib is None:
+        raise RuntimeError(f"the CPU multigrid kernel is not available: {load_error()}")
+    return lib
+
+
+def index_space_affine(
+    matrices: torch.Tensor, translations: torch.Tensor, size: tuple[int, int, int]
+) -> torch.Tensor:
+    """Fold corner-aligned unnormalisation into the maps: rows (x, y, z) in voxel index units.
+
+    Args:
+        matrices: ``[M, 3, 3]`` the ``A_i`` (row ``k`` gives local coordinate ``k`` = x, y, z).
+        translations: ``[M, 3]`` the ``t_i``.
+        size: grid ``(D, H, W)``.
+
+    Returns:
+        ``[M, 12]`` float32 contiguous: ``A'`` row-major then ``t'``, ``f = A' p + t'`` in index units.
+    """
+    d, h, w = size
+    # Folded in float64 so the only float32 rounding is the kernel's own.
+    half = torch.tensor([(w - 1) / 2, (h - 1) / 2, (d - 1) / 2], dtype=torch.float64)  # x, y, z
+    a = matrices.detach().cpu().double() * half[None, :, None]  # [M, 3, 3]
+    t = (translations.detach().cpu().double() + 1) * half[None, :]  # [M, 3]
+    return torch.cat([a.reshape(-1, 9), t], dim=1).float().contiguous()  # [M, 12]
+
+
+def forward_features(points: torch.Tensor, aff: torch.Tensor, grids: torch.Tensor) -> torch.Tensor:
+    """Fused forward pass on float32 CPU tensors.
+
+    Args:
+        points: ``[N, 3]`` contiguous.
+        aff: ``[M, 12]`` from :func:`index_space_affine`.
+        grids: ``[M, C, D, H, W]``, any strides (channel-first or a channel-last view).
+
+    Returns:
+        ``[N, M * C]`` features, as the reference.
+    """
+    lib = _library_or_raise()
+    m, c, d, h, w = grids.shape
+    n = points.shape[0]
+    out = torch.empty(n, m * c, dtype=torch.float32)  # every element is written by the kernel
+    lib.mg_forward(
+        points.data_ptr(), n, aff.data_ptr(), m, grids.data_ptr(), c, d, h, w, *grids.stride(),
+        out.data_ptr(), torch.get_num_threads(),
+    )
+    return out
+
+
+def backward_grids(
+    points: torch.Tensor,
+    aff: torch.Tensor,
+    grad_out: torch.Tensor,
+    shape: tuple[int, ...],
+    stride: tuple[int, ...] | None = None,
+) -> torch.Tensor:
+    """Gradient of the features w.r.t. the grids: a scatter of ``grad_out`` with trilinear weights.
+
+    Args:
+        points: ``[N, 3]`` contiguous float32.
+        aff: ``[M, 12]`` from :func:`index_space_affine`.
+        grad_out: ``[N, M * C]``.
+        shape: the grids' shape ``(M, C, D, H, W)``.
+        stride: the grids' strides when dense (the gradient gets the same layout), else ``None``
+            (contiguous).
+
+    Returns:
+        ``[M, C, D, H, W]`` float32 gradient.
+    """
+    lib = _library_or_raise()
+    m, c, d, h, w = shape
+    go = grad_out.to(torch.float32).contiguous()
+    if stride is None:
+        grad = torch.zeros(shape, dtype=torch.float32)
+    else:
+        grad = torch.empty_strided(shape, stride, dtype=torch.float32).zero_()
+    threads = torch.get_num_threads()
+    buffers = None
+    if m < threads:
+        # Fewer grids than threads: per-thread private copies of the gradient, reduced in the kernel.
+        buffers = torch.zeros(threads - 1, grad.numel(), dtype=torch.float32)
+    lib.mg_backward(
+        points.data_ptr(), points.shape[0], aff.data_ptr(), m, go.data_ptr(), c, d, h, w,
+        *grad.stride(), grad.data_ptr(), None if buffers is None else buffers.data_ptr(), threads,
+    )
+    return grad
+
+
+def _grid_major_dense(t: torch.Tensor) -> bool:
+    """True when ``t`` fills its memory without gaps and grid ``i`` occupies block ``i`` (any order
+    inside a grid), the layouts the backward kernel writes to directly."""
+    if t.stride(0) * t.shape[0] != t.numel() and t.shape[0] > 1:
+        return False
+    expected = 1
+    for i in sorted(range(1, t.dim()), key=lambda i: t.stride(i)):
+        if t.shape[i] == 1:
+            continue
+        if t.stride(i) != expected:
+            return False
+        expected *= t.shape[i]
+    return t.shape[0] == 1 or expected == t.stride(0)
+
+
+def channel_last(grids: torch.Tensor) -> torch.Tensor:
+    """A channel-last copy of ``grids`` viewed as ``[M, C, D, H, W]`` (the kernels read any strides).
+
+    Args:
+        grids: ``[M, C, D, H, W]``.
+
+    Returns:
+        The same values, stored ``[M, D, H, W, C]``: a corner's ``C`` features share a cache line.
+    """
+    return grids.permute(0, 2, 3, 4, 1).contiguous().permute(0, 4, 1, 2, 3)  # [M, C, D, H, W] view
+
+
+def _sampling_layout(grids: torch.Tensor, samples: int) -> torch.Tensor:
+    """The grids as the forward kernel should read them.
+
+    Channel-first grids with ``C > 1`` put a corner's channels ``D H W`` elements apart, one cache miss
+    each; a channel-last copy costs one pass over the grids, so it is made when there are at least as
+    many samples (points x grids x channels) as grid elements (decoding; medium training batches).
+    """
+    c = grids.shape[1]
+    if c > 1 and grids.stride(1) != 1 and samples >= grids.numel():
+        return channel_last(grids)
+    return grids
+
+
+class _MultigridFunction(torch.autograd.Function):
+    """Autograd wrapper: gradients for the grids only (points and maps are constants here)."""
+
+    @staticmethod
+    def forward(ctx, points, matrices, translations, grids):  # type: ignore[override]
+        m, c, d, h, w = grids.shape
+        pts = points.detach().to(torch.float32).contiguous()
+        aff = index_space_affine(matrices, translations, (d, h, w))
+        g = grids.detach()
+        out = forward_features(pts, aff, _sampling_layout(g, pts.shape[0] * m * c))
+        ctx.save_for_backward(pts, aff)
+        # Only the layout is kept (not the grids): the gradient is scattered straight into it.
+        ctx.grid_layout = (tuple(g.shape), tuple(g.stride()) if _grid_major_dense(g) else None)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):  # type: ignore[override]
+        pts, aff = ctx.saved_tensors
+        grad_grids = None
+        if ctx.needs_input_grad[3]:
+            grad_grids = backward_grids(pts, aff, grad_out, *ctx.grid_layout)
+        return None, None, None, grad_grids
+
+
+def multigrid_features_cpu(
+    points: torch.Tensor, matrices: torch.Tensor, translations: torch.Tensor, grids: torch.Tensor
+) -> torch.Tensor:
+    """Fused CPU multi-grid features with gradients for ``grids`` only (float32 CPU tensors).
+
+    Args:
+        points: ``[N, 3]``.
+        matrices: ``[M, 3, 3]`` (no gradient flows to them).
+        translations: ``[M, 3]`` (no gradient flows to them).
+        grids: ``[M, C, D, H, W]``.
+
+    Returns:
+        ``[N, M * C]`` features, as :func:`~apmgsrn.ops.multigrid.multigrid_features_reference`.
+    """
+    return _MultigridFunction.apply(points, matrices, translations, grids)
+
+
+class _DensityFunction(torch.autograd.Function):
+    """Feature density with gradients for ``det`` and the maps (``points`` are constants)."""
+
+    @staticmethod
+    def forward(ctx, points, matrices, translations, det, power):  # type: ignore[override]
+        lib = _library_or_raise()
+        pts = points.detach().to(torch.float32).contiguous()
+        m = matrices.shape[0]
+        aff = torch.cat(
+            [matrices.detach().reshape(m, 9), translations.detach().reshape(m, 3)], dim=1
+        ).to(torch.float32).contiguous()  # [M, 12]: A row-major, then t
+        det_c = det.detach().to(torch.float32).contiguous()
+        rho = torch.empty(pts.shape[0], dtype=torch.float32)
+        lib.mg_density(
+            pts.data_ptr(), pts.shape[0], aff.data_ptr(), det_c.data_ptr(), m, int(power),
+            rho.data_ptr(), torch.get_num_threads(),
+        )
+        ctx.save_for_backward(pts, aff, det_c)
+        ctx.power = int(power)
+        return rho
+
+    @staticmethod
+    def backward(ctx, grad_rho):  # type: ignore[override]
+        pts, aff, det_c = ctx.saved_tensors
+        lib = _library_or_raise()
+        m = aff.shape[0]
+        g = grad_rho.to(torch.float32).contiguous()
+        threads = torch.get_num_threads()
+        partial = torch.zeros(threads, m, 13, dtype=torch.float64)  # per-thread sums, no races
+        lib.mg_density_backward(
+            pts.data_ptr(), pts.shape[0], aff.data_ptr(), det_c.data_ptr(), m, ctx.power,
+            g.data_ptr(), partial.data_ptr(), threads,
+        )
+        sums = partial.sum(0).to(torch.float32)  # [M, 13]
+        grad_det = sums[:, 0]
+        grad_a = sums[:, 1:10].reshape(m, 3, 3)  # [M, 3, 3]
+        grad_t = sums[:, 10:]  # [M, 3]
+        return None, grad_a, grad_t, grad_det, None
+
+
+def feature_density_cpu(
+    points: torch.Tensor, matrices: torch.Tensor, translations: torch.Tensor, power: int = 10
+) -> torch.Tensor:
+    """Fused CPU feature density with gradients for ``matrices`` and ``translations``.
+
+    Args:
+        points: ``[N, 3]`` float32.
+        matrices: ``[M, 3, 3]`` float32.
+        translations: ``[M, 3]`` float32.
+        power: super-Gaussian power ``P``.
+
+    Returns:
+        ``[N]`` density, as :func:`~apmgsrn.ops.multigrid.feature_density`.
+    """
+    det = torch.linalg.det(matrices)  # [M]; autograd takes d det / d A from here
+    return _DensityFunction.apply(points, matrices, translations, det, power)

@@ -1,0 +1,169 @@
+"""Model construction, initialisation, gradient routing and save/load round trips."""
+
+import pickle
+
+import pytest
+import torch
+
+import apmgsrn
+from apmgsrn.errors import ApmgsrnError
+from apmgsrn.models.field import NeuralField
+from apmgsrn.models.registry import preset_config
+from apmgsrn.models.value_transform import ValueTransform
+from apmgsrn.ops.trilinear import sample_volume, voxel_coordinates
+from apmgsrn.training.checkpoint import is_model_file, save_field
+from apmgsrn.training.losses import feature_density_loss
+
+
+def small_field(**kw):
+    return NeuralField(preset_config("apmgsrn", "small", **kw), fit_min=-2.0, fit_max=3.0,
+                       volume_shape=(8, 9, 10), generator=torch.Generator().manual_seed(0))
+
+
+def test_preset_parameter_counts_are_the_real_ones():
+    # SPEC section 5 counts 70,976 / 1,055,040: the reference code stores each transform as a 4x4
+    # homogeneous matrix (16 numbers). Ours stores A (9) and t (3): 64 fewer for 16 grids.
+    grids, transforms = 16 * 16**3, 16 * 12
+    decoder = 16 * 64 + 64 * 64 + 64
+    assert small_field().parameter_count() == grids + transforms + decoder == 70_976 - 64
+    medium = NeuralField(preset_config("apmgsrn", "medium"))
+    assert medium.parameter_count() == 16 * 2 * 32**3 + transforms + 32 * 64 + 64 * 64 + 64 == 1_055_040 - 64
+
+
+def test_explicit_flags_override_the_preset():
+    config = preset_config("apmgsrn", "small", grids=4, resolution=(8, 16, 32), width=32, hidden_layers=3)
+    field = NeuralField(config)
+    assert field.encoder.grids.shape == (4, 1, 8, 16, 32)
+    assert sum(isinstance(m, torch.nn.Linear) for m in field.decoder) == 4
+    assert field.decoder[0].in_features == 4 and field.decoder[0].out_features == 32
+
+
+def test_initialisation_follows_spec():
+    gen = torch.Generator().manual_seed(3)
+    field = NeuralField(preset_config("apmgsrn", "small", grids=512), generator=gen)
+    enc = field.encoder
+    diag = torch.diagonal(enc.matrices, dim1=1, dim2=2)
+    off = enc.matrices[~torch.eye(3, dtype=bool).expand(512, 3, 3)]
+    assert abs(float(diag.mean()) - 1.0) < 0.01 and abs(float(diag.std()) - 0.05) < 0.01
+    assert abs(float(off.std()) - 0.05) < 0.01 and abs(float(enc.translations.std()) - 0.05) < 0.01
+    assert float(enc.grids.abs().max()) <= 1e-4
+    for layer in field.decoder:
+        if isinstance(layer, torch.nn.Linear):
+            assert layer.bias is None
+
+
+def test_large_and_small_grid_inits():
+    large = small_field(init="large").encoder.grid_boxes()
+    default = small_field().encoder.grid_boxes()
+    extent = lambda b: (b.max(1).values - b.min(1).values).mean()  # noqa: E731
+    assert extent(large) > 1.15 * extent(default)
+    small = small_field(init="small").encoder.grid_boxes()
+    assert extent(small) < 0.6
+
+
+def test_output_scaling_and_inverse_transform():
+    field = NeuralField(preset_config("apmgsrn", "small"), fit_min=1.0, fit_max=3.0,
+                        transform=ValueTransform("log10"))
+    points = torch.rand(7, 3) * 2 - 1
+    normalized = field.normalized(points)
+    expected = torch.pow(10.0, normalized * 2.0 + 1.0)
+    torch.testing.assert_close(field(points), expected)
+
+
+def test_reconstruction_gradients_reach_only_grids_and_decoder():
+    field = small_field()
+    points = torch.rand(256, 3) * 2 - 1
+    field.normalized(points, detach_transforms=True).square().mean().backward()
+    assert field.encoder.matrices.grad is None and field.encoder.translations.grad is None
+    assert field.encoder.grids.grad is not None and field.encoder.grids.grad.abs().sum() > 0
+    assert all(layer.weight.grad is not None for layer in field.decoder if isinstance(layer, torch.nn.Linear))
+
+
+def test_density_gradients_reach_only_transforms():
+    field = small_field()
+    points = torch.rand(256, 3) * 2 - 1
+    error = torch.rand(256)
+    feature_density_loss(field.encoder.feature_density(points), error).backward()
+    assert field.encoder.matrices.grad.abs().sum() > 0 and field.encoder.translations.grad.abs().sum() > 0
+    assert field.encoder.grids.grad is None
+    assert all(layer.weight.grad is None for layer in field.decoder if isinstance(layer, torch.nn.Linear))
+
+
+def test_save_load_round_trip_gives_identical_outputs(tmp_path):
+    field = small_field()
+    with torch.no_grad():
+        field.encoder.grids.normal_()  # make the output non-trivial
+    path = tmp_path / "m.apmgsrn"
+    save_field(path, field, training={"iterations": 5}, source={"path": "x.nc"})
+    loaded = apmgsrn.load(path)
+    points = torch.rand(1000, 3) * 2 - 1
+    assert torch.equal(field(points), loaded(points))
+    assert loaded.volume_shape == (8, 9, 10) and loaded.training_summary["iterations"] == 5
+    assert loaded.file_bytes == path.stat().st_size
+    assert is_model_file(path)
+    assert not list(tmp_path.glob(".*tmp"))  # atomic write left no temp file
+
+
+def test_corrupt_truncated_and_foreign_model_files_are_refused(tmp_path):
+    field = small_field()
+    good = tmp_path / "good.apmgsrn"
+    save_field(good, field)
+    data = good.read_bytes()
+    cases = {
+        "truncated": data[: len(data) // 2],
+        "garbage": b"\x00\x01garbage" * 50,
+        "empty": b"",
+        "broken_header": data[:8] + b"[" + data[9:],
+    }
+    for name, content in cases.items():
+        path = tmp_path / f"{name}.apmgsrn"
+        path.write_bytes(content)
+        with pytest.raises(ApmgsrnError, match="not an apmgsrn model file"):
+            apmgsrn.load(path)
+        assert not is_model_file(path)
+
+
+def test_model_from_a_newer_format_version_is_refused(tmp_path):
+    from apmgsrn.training import checkpoint
+
+    path = tmp_path / "future.apmgsrn"
+    original = checkpoint.FORMAT_VERSION
+    checkpoint.FORMAT_VERSION = original + 1
+    try:
+        save_field(path, small_field())
+    finally:
+        checkpoint.FORMAT_VERSION = original
+    with pytest.raises(ApmgsrnError, match="newer apmgsrn"):
+        apmgsrn.load(path)
+
+
+class _Exploit:
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def test_pickle_crafted_to_run_code_is_refused_without_running(tmp_path):
+    marker = tmp_path / "pwned"
+    path = tmp_path / "evil.apmgsrn"
+    path.write_bytes(pickle.dumps({"state": _Exploit(str(marker))}))
+    torch_style = tmp_path / "evil.pt"
+    torch.save({"x": _Exploit(str(marker))}, torch_style)
+    for candidate in (path, torch_style):
+        with pytest.raises(ApmgsrnError):
+            apmgsrn.load(candidate)
+    assert not marker.exists()
+
+
+def test_sample_volume_is_exact_on_linear_fields():
+    # Trilinear interpolation reproduces any affine function of the coordinates exactly.
+    shape = (5, 7, 9)
+    coords = voxel_coordinates(shape)  # [n, 3] (x, y, z)
+    values = (0.5 + 2 * coords[:, 0] - 3 * coords[:, 1] + 0.25 * coords[:, 2]).reshape(shape)
+    points = torch.rand(500, 3) * 2 - 1
+    expected = 0.5 + 2 * points[:, 0] - 3 * points[:, 1] + 0.25 * points[:, 2]
+    torch.testing.assert_close(sample_volume(values, points), expected, atol=1e-5, rtol=1e-5)
+    # Voxel positions give the voxel values back.
+    torch.testing.assert_close(sample_volume(values, coords), values.reshape(-1), atol=1e-5, rtol=1e-5)

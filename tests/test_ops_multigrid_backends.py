@@ -1,0 +1,372 @@
+"""Every multi-grid backend against the PyTorch reference, forward and backward, on random inputs.
+
+The CPU kernel is compiled once per machine (about a second with gcc) and cached; the Triton kernels
+are checked on CPU under ``TRITON_INTERPRET=1`` (in a subprocess, since the flag is read when Triton
+decorates the kernels) and on CUDA by the ``gpu`` tests.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+
+from apmgsrn.ops import multigrid
+from apmgsrn.ops.multigrid import (
+    feature_density,
+    feature_density_reference,
+    multigrid_features,
+    multigrid_features_reference,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+HAS_COMPILER = bool(os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc"))
+HAS_TRITON = importlib.util.find_spec("triton") is not None
+
+# (M, C, (D, H, W)): the presets' shapes (smaller), odd sizes, one grid (fewer grids than threads),
+# channels > 1 and a 2-voxel axis.
+SHAPES = [(16, 1, (16, 16, 16)), (4, 2, (5, 7, 9)), (1, 3, (4, 4, 4)), (3, 4, (2, 6, 3))]
+
+
+def random_case(m, c, size, n=3000, seed=0, spread=0.25, dtype=torch.float32):
+    """Random maps and grids; points in [-1.6, 1.6]^3 so many fall outside or on a grid's border."""
+    g = torch.Generator().manual_seed(seed)
+    matrices = (torch.eye(3) + torch.randn(m, 3, 3, generator=g) * spread).to(dtype)
+    translations = (torch.randn(m, 3, generator=g) * spread).to(dtype)
+    grids = torch.randn(m, c, *size, generator=g).to(dtype)
+    points = (torch.rand(n, 3, generator=g) * 3.2 - 1.6).to(dtype)
+    # exact corner and border hits, where floor and the bounds test meet
+    special = torch.tensor([[1.0, 1.0, 1.0], [-1.0, -1.0, -1.0], [1.0, 0.0, -1.0], [0.0, 0.0, 0.0],
+                           [2.0, 0.0, 0.0], [-3.0, 0.5, 0.5], [0.3, 1.0, -0.2], [0.0, -1.0, 0.0]], dtype=dtype)
+    points[: len(special)] = special[:n]
+    return points, matrices, translations, grids
+
+
+def forward_backward(fn, points, matrices, translations, grids, seed=1, fused=None):
+    """Features and the gradient of a random projection of them w.r.t. the grids.
+
+    ``fused``: when true, check that the output came from a fused kernel, not the reference.
+    """
+    leaf = grids.detach().clone().requires_grad_(True)
+    out = fn(points, matrices, translations, leaf)
+    if fused is not None:
+        assert ("MultigridFunction" in type(out.grad_fn).__name__) == fused, type(out.grad_fn).__name__
+    weights = torch.randn(out.shape, generator=torch.Generator().manual_seed(seed), dtype=out.dtype).to(out.device)
+    (out * weights).sum().backward()
+    return out.detach(), leaf.grad
+
+
+def cpu_backend(points, matrices, translations, grids):
+    return multigrid_features(points, matrices, translations, grids, backend="cpu")
+
+
+@pytest.fixture(scope="module")
+def cpu_kernel():
+    if not HAS_COMPILER:
+        pytest.skip("no C compiler: the CPU backend falls back to the reference")
+    from apmgsrn.ops import multigrid_cpu
+
+    assert multigrid_cpu.is_available(), multigrid_cpu.load_error()
+    return multigrid_cpu
+
+
+@pytest.mark.parametrize("m,c,size", SHAPES)
+@pytest.mark.parametrize("threads", [1, 2])
+def test_cpu_matches_reference(cpu_kernel, m, c, size, threads):
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        case = random_case(m, c, size, seed=m * 10 + c)
+        out, grad = forward_backward(cpu_backend, *case, fused=True)
+    finally:
+        torch.set_num_threads(before)
+    ref_out, ref_grad = forward_backward(multigrid_features_reference, *case)
+    assert out.shape == ref_out.shape
+    torch.testing.assert_close(out, ref_out, atol=2e-5, rtol=1e-5)
+    torch.testing.assert_close(grad, ref_grad, atol=2e-5, rtol=1e-5)
+    assert (ref_out == 0).any()  # some points miss some grid: the skip path is exercised
+
+
+def test_cpu_reads_channel_last_and_strided_inputs(cpu_kernel):
+    points, matrices, translations, grids = random_case(5, 3, (6, 5, 4), seed=3)
+    channel_last = cpu_kernel.channel_last(grids)
+    assert channel_last.stride(1) == 1
+    wide = torch.zeros(points.shape[0], 5)
+    wide[:, 1:4] = points
+    strided_points = wide[:, 1:4]  # not contiguous
+    out, grad = forward_backward(cpu_backend, strided_points, matrices, translations, channel_last, fused=True)
+    ref_out, ref_grad = forward_backward(multigrid_features_reference, points, matrices, translations, grids)
+    torch.testing.assert_close(out, ref_out, atol=2e-5, rtol=1e-5)
+    torch.testing.assert_close(grad, ref_grad, atol=2e-5, rtol=1e-5)
+
+
+def test_cpu_channel_last_copy_for_many_samples(cpu_kernel):
+    # Enough samples per grid element that the forward pass reads a channel-last copy.
+    points, matrices, translations, grids = random_case(2, 2, (4, 4, 4), n=200, seed=4)
+    assert cpu_kernel._sampling_layout(grids, points.shape[0] * 2 * 2).stride(1) == 1
+    out, grad = forward_backward(cpu_backend, points, matrices, translations, grids, fused=True)
+    ref_out, ref_grad = forward_backward(multigrid_features_reference, points, matrices, translations, grids)
+    torch.testing.assert_close(out, ref_out, atol=2e-5, rtol=1e-5)
+    torch.testing.assert_close(grad, ref_grad, atol=2e-5, rtol=1e-5)
+    assert grad.stride() == grids.stride()  # the gradient keeps the parameter's layout
+
+
+def test_cpu_moved_grids_skip_points(cpu_kernel):
+    # Small grids far apart (grids that moved to features): most (point, grid) pairs are skipped.
+    m = 6
+    matrices = torch.eye(3).repeat(m, 1, 1) * 4
+    centres = torch.linspace(-0.8, 0.8, m)[:, None] * torch.tensor([1.0, -1.0, 0.5])
+    translations = -4 * centres
+    grids = torch.randn(m, 2, 8, 8, 8)
+    points = torch.rand(4000, 3) * 2 - 1
+    out, grad = forward_backward(cpu_backend, points, matrices, translations, grids, fused=True)
+    ref_out, ref_grad = forward_backward(multigrid_features_reference, points, matrices, translations, grids)
+    assert (ref_out == 0).float().mean() > 0.8
+    torch.testing.assert_close(out, ref_out, atol=2e-5, rtol=1e-5)
+    torch.testing.assert_close(grad, ref_grad, atol=2e-5, rtol=1e-5)
+
+
+def test_empty_batch(cpu_kernel):
+    points, matrices, translations, grids = random_case(3, 2, (4, 4, 4), n=0)
+    out, grad = forward_backward(cpu_backend, points, matrices, translations, grids)
+    assert out.shape == (0, 6) and torch.count_nonzero(grad) == 0
+
+
+def test_transform_gradients_fall_back_to_reference(cpu_kernel):
+    # The density path may need d features / d maps: the dispatcher must keep autograd exact.
+    points, matrices, translations, grids = random_case(4, 2, (5, 5, 5), n=500, seed=5)
+    grads = []
+    for backend in ("cpu", "torch"):
+        a = matrices.clone().requires_grad_(True)
+        t = translations.clone().requires_grad_(True)
+        p = points.clone().requires_grad_(True)
+        out = multigrid_features(p, a, t, grids, backend=backend)
+        assert "MultigridFunction" not in type(out.grad_fn).__name__  # the reference ran
+        out.square().sum().backward()
+        grads.append((a.grad, t.grad, p.grad))
+    for got, want in zip(grads[0], grads[1]):
+        torch.testing.assert_close(got, want)
+        assert got.abs().sum() > 0
+
+
+def test_float64_falls_back_to_reference(cpu_kernel):
+    case = random_case(2, 1, (4, 4, 4), n=300, dtype=torch.float64)
+    out = multigrid_features(*case, backend="cpu")
+    assert out.dtype == torch.float64
+    torch.testing.assert_close(out, multigrid_features_reference(*case))
+
+
+def test_auto_picks_the_cpu_kernel(cpu_kernel):
+    assert multigrid.resolve_backend("auto", "cpu") == "cpu"
+    assert multigrid.resolve_backend("torch", "cpu") == "torch"
+    case = random_case(3, 1, (6, 6, 6), n=400)
+    out, _ = forward_backward(multigrid_features, *case, fused=True)
+    torch.testing.assert_close(out, multigrid_features_reference(*case), atol=2e-5, rtol=1e-5)
+
+
+def test_unknown_or_unusable_backend_names():
+    case = random_case(1, 1, (3, 3, 3), n=10)
+    with pytest.raises(ValueError, match="unknown multigrid backend"):
+        multigrid_features(*case, backend="cuda-magic")
+    with pytest.raises(RuntimeError, match="triton"):
+        multigrid_features(*case, backend="triton")  # CPU tensors
+    assert multigrid.backend_available("triton", "cpu") is False
+
+
+@pytest.mark.parametrize("power", [10, 1, 3])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_cpu_feature_density_matches_reference(cpu_kernel, power, threads):
+    g = torch.Generator().manual_seed(power)
+    m = 7
+    matrices = torch.eye(3) + torch.randn(m, 3, 3, generator=g) * 0.3
+    translations = torch.randn(m, 3, generator=g) * 0.3
+    points = torch.rand(2000, 3, generator=g) * 2.4 - 1.2
+    upstream = torch.rand(2000, generator=g)
+    results = []
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for fn in (feature_density, feature_density_reference):
+            a = matrices.clone().requires_grad_(True)
+            t = translations.clone().requires_grad_(True)
+            rho = fn(points, a, t, power)
+            assert ("Density" in type(rho.grad_fn).__name__) == (fn is feature_density)
+            (rho * upstream).sum().backward()
+            results.append((rho.detach(), a.grad, t.grad))
+    finally:
+        torch.set_num_threads(before)
+    (rho, ga, gt), (ref_rho, ref_ga, ref_gt) = results
+    torch.testing.assert_close(rho, ref_rho, rtol=1e-5, atol=1e-6)
+    scale = ref_ga.abs().max()
+    torch.testing.assert_close(ga / scale, ref_ga / scale, rtol=0, atol=2e-5)
+    torch.testing.assert_close(gt / scale, ref_gt / scale, rtol=0, atol=2e-5)
+
+
+def test_cpu_feature_density_far_points_give_zero_not_nan(cpu_kernel):
+    matrices, translations = torch.eye(3)[None] * 3, torch.zeros(1, 3)
+    points = torch.tensor([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [1e20, 1e20, 0.0]])
+    a = matrices.clone().requires_grad_(True)
+    rho = feature_density(points, a, translations, backend="cpu")
+    rho.sum().backward()
+    assert rho[0].item() == pytest.approx(27.0) and rho[1].item() == 0 and rho[2].item() == 0
+    assert torch.isfinite(a.grad).all()
+
+
+def test_feature_density_point_gradients_fall_back(cpu_kernel):
+    points = (torch.rand(100, 3) * 2 - 1).requires_grad_(True)
+    matrices, translations = torch.eye(3).repeat(2, 1, 1), torch.zeros(2, 3)
+    feature_density(points, matrices, translations).sum().backward()
+    assert points.grad is not None and points.grad.abs().sum() > 0
+
+
+def run_python(code: str, env: dict[str, str] | None = None, timeout: float = 120) -> str:
+    full_env = dict(os.environ)
+    full_env.update(env or {})
+    full_env["PYTHONPATH"] = str(REPO / "src") + os.pathsep + full_env.get("PYTHONPATH", "")
+    proc = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, env=full_env,
+        timeout=timeout,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return proc.stdout
+
+
+def test_import_builds_nothing():
+    out = run_python(
+        """
+        import sys
+        import apmgsrn
+        import apmgsrn.ops.multigrid
+        import apmgsrn.models.encoders.adaptive_multigrid
+        loaded = [name for name in ("triton", "apmgsrn.ops.multigrid_cpu", "apmgsrn.ops.multigrid_triton")
+                  if name in sys.modules]
+        print("loaded:", loaded)
+        """
+    )
+    assert "loaded: []" in out
+
+
+def test_falls_back_without_a_compiler(tmp_path):
+    # A build that cannot happen (no such compiler, empty cache): auto uses the reference, an explicit
+    # "cpu" says why it cannot run.
+    out = run_python(
+        """
+        import torch
+        from apmgsrn.ops.multigrid import multigrid_features, multigrid_features_reference, resolve_backend
+        points = torch.rand(50, 3) * 2 - 1
+        maps = torch.eye(3)[None], torch.zeros(1, 3)
+        grids = torch.randn(1, 1, 4, 4, 4)
+        assert resolve_backend("auto", "cpu") == "torch"
+        assert torch.equal(multigrid_features(points, *maps, grids), multigrid_features_reference(points, *maps, grids))
+        try:
+            multigrid_features(points, *maps, grids, backend="cpu")
+        except RuntimeError as err:
+            print("refused:", err)
+        """,
+        env={"CC": str(tmp_path / "no-such-compiler"), "APMGSRN_CACHE": str(tmp_path / "cache")},
+    )
+    assert "refused:" in out and "no-such-compiler" in out
+
+
+@pytest.mark.skipif(not HAS_COMPILER, reason="no C compiler")
+def test_kernel_is_built_once_into_the_cache(tmp_path):
+    code = """
+        from apmgsrn.ops import multigrid_cpu
+        assert multigrid_cpu.is_available(), multigrid_cpu.load_error()
+        print(sorted(p.name for p in multigrid_cpu.cache_dir().iterdir()))
+        """
+    env = {"APMGSRN_CACHE": str(tmp_path)}
+    first = run_python(code, env)
+    kernels = list((tmp_path / "kernels").glob("multigrid_cpu_*.so"))
+    assert len(kernels) == 1
+    stamp = kernels[0].stat().st_mtime_ns
+    assert run_python(code, env) == first
+    assert kernels[0].stat().st_mtime_ns == stamp  # loaded, not rebuilt
+
+
+@pytest.mark.skipif(not HAS_TRITON, reason="triton is not installed")
+def test_triton_kernels_match_reference_in_interpreter():
+    out = run_python(
+        """
+        import torch
+        from apmgsrn.ops import multigrid_triton as mt
+        from apmgsrn.ops.multigrid import multigrid_features_reference as ref
+        worst = 0.0
+        for seed, (m, c, size) in enumerate([(3, 1, (4, 5, 6)), (2, 3, (5, 4, 3)), (5, 2, (2, 3, 3))]):
+            g = torch.Generator().manual_seed(seed)
+            points = torch.rand(150, 3, generator=g) * 3.2 - 1.6
+            points[:3] = torch.tensor([[1.0, 1.0, 1.0], [-1.0, -1.0, -1.0], [2.0, 0.0, 0.0]])
+            matrices = torch.eye(3) + torch.randn(m, 3, 3, generator=g) * 0.25
+            translations = torch.randn(m, 3, generator=g) * 0.25
+            grids = torch.randn(m, c, *size, generator=g)
+            upstream = torch.randn(150, m * c, generator=g)
+            results = []
+            for fn in (mt.multigrid_features_triton, ref):
+                leaf = grids.clone().requires_grad_(True)
+                out = fn(points, matrices, translations, leaf)
+                (out * upstream).sum().backward()
+                results.append((out.detach(), leaf.grad))
+            (out, grad), (ref_out, ref_grad) = results
+            torch.testing.assert_close(out, ref_out, atol=2e-5, rtol=1e-5)
+            torch.testing.assert_close(grad, ref_grad, atol=2e-5, rtol=1e-5)
+            # half-precision grids and a channel-last view: same values as the reference on them
+            half = grids.half()
+            lastc = grids.permute(0, 2, 3, 4, 1).contiguous().permute(0, 4, 1, 2, 3)
+            torch.testing.assert_close(mt.forward_features(points, matrices, translations, half),
+                                       ref(points, matrices, translations, half.float()), atol=2e-5, rtol=1e-5)
+            torch.testing.assert_close(mt.forward_features(points, matrices, translations, lastc),
+                                       ref_out, atol=2e-5, rtol=1e-5)
+            worst = max(worst, (out - ref_out).abs().max().item())
+        print("ok", worst)
+        """,
+        env={"TRITON_INTERPRET": "1"},
+    )
+    assert out.startswith("ok")
+
+
+# ---- CUDA (skipped without a GPU) ----
+
+
+def _cuda_case(m, c, size, n=20000, seed=0):
+    return [t.cuda() for t in random_case(m, c, size, n=n, seed=seed)]
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("m,c,size", SHAPES + [(16, 2, (32, 32, 32))])
+def test_triton_matches_reference_on_cuda(m, c, size):
+    case = _cuda_case(m, c, size)
+    out, grad = forward_backward(lambda *a: multigrid_features(*a, backend="triton"), *case, fused=True)
+    ref_out, ref_grad = forward_backward(multigrid_features_reference, *case)
+    torch.testing.assert_close(out, ref_out, atol=2e-5, rtol=1e-5)
+    # atomics add in a different order: allow for float32 summation differences
+    torch.testing.assert_close(grad, ref_grad, atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_triton_half_precision_grids_on_cuda(dtype):
+    points, matrices, translations, grids = _cuda_case(8, 2, (16, 16, 16), seed=3)
+    half = grids.to(dtype)
+    out, grad = forward_backward(
+        lambda *a: multigrid_features(*a, backend="triton"), points, matrices, translations, half, fused=True
+    )
+    ref_out, _ = forward_backward(multigrid_features_reference, points, matrices, translations, half.float())
+    torch.testing.assert_close(out, ref_out, atol=2e-5, rtol=1e-5)
+    assert out.dtype == torch.float32 and grad.dtype == dtype
+
+
+@pytest.mark.gpu
+def test_auto_picks_triton_on_cuda():
+    if not HAS_TRITON:
+        pytest.skip("triton is not installed")
+    assert multigrid.resolve_backend("auto", "cuda") == "triton"
+    case = _cuda_case(4, 2, (8, 8, 8), n=1000)
+    out, _ = forward_backward(multigrid_features, *case, fused=True)
+    torch.testing.assert_close(out, multigrid_features_reference(*case), atol=2e-5, rtol=1e-5)

@@ -1,0 +1,129 @@
+"""Transfer functions: colour spaces, ParaView's opacity curve, the baked table and its zero test."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from apmgsrn.errors import ApmgsrnError
+from apmgsrn.render.color_spaces import hsv_to_rgb, lab_to_rgb, rgb_to_hsv, rgb_to_lab
+from apmgsrn.render.colormaps import COOL_TO_WARM, builtin_colormap, make_transfer_function
+from apmgsrn.render.transfer_function import (
+    ColorMap,
+    OpacityMap,
+    TransferFunction,
+    opacity_from_normalized,
+)
+
+
+def test_lab_and_hsv_round_trip_and_reference_values():
+    rng = np.random.default_rng(0)
+    rgb = rng.random((200, 3))
+    np.testing.assert_allclose(lab_to_rgb(rgb_to_lab(rgb)), rgb, atol=1e-6)
+    np.testing.assert_allclose(hsv_to_rgb(rgb_to_hsv(rgb)), rgb, atol=1e-9)
+    # Published CIE Lab (D65) values of sRGB white, red and a mid grey.
+    np.testing.assert_allclose(rgb_to_lab(np.array([1.0, 1.0, 1.0])), [100.0, 0.0, 0.0], atol=0.01)
+    np.testing.assert_allclose(rgb_to_lab(np.array([1.0, 0.0, 0.0])), [53.24, 80.09, 67.20], atol=0.05)
+    np.testing.assert_allclose(rgb_to_lab(np.array([0.5, 0.5, 0.5]))[0], 53.39, atol=0.05)
+
+
+def test_rgb_interpolation_is_linear_and_clamps_outside():
+    cmap = ColorMap(points=((0.0, 0.0, 0.0, 0.0), (2.0, 1.0, 0.5, 0.0)), color_space="RGB")
+    out = cmap.evaluate(np.array([-1.0, 0.0, 0.5, 1.0, 2.0, 3.0]))
+    np.testing.assert_allclose(out[:, 0], [0.0, 0.0, 0.25, 0.5, 1.0, 1.0])
+    np.testing.assert_allclose(out[:, 1], [0.0, 0.0, 0.125, 0.25, 0.5, 0.5])
+
+
+def test_lab_interpolation_is_linear_in_lab_not_rgb():
+    cmap = ColorMap(points=((0.0, 0.0, 0.0, 1.0), (1.0, 1.0, 1.0, 0.0)), color_space="Lab")
+    mid = cmap.evaluate(np.array([0.5]))[0]
+    expected = lab_to_rgb((rgb_to_lab(np.array([0.0, 0.0, 1.0])) + rgb_to_lab(np.array([1.0, 1.0, 0.0]))) / 2)
+    np.testing.assert_allclose(mid, expected, atol=1e-9)
+    assert np.abs(mid - 0.5).max() > 0.05  # differs from the RGB midpoint
+
+
+def test_cool_to_warm_matches_paraview():
+    # ParaView's default map: blue (59, 76, 192) to red (180, 4, 38) through a light grey centre.
+    ends = COOL_TO_WARM.evaluate(np.array([0.0, 1.0]))
+    np.testing.assert_allclose(ends * 255, [[59, 76, 192], [180, 4, 38]], atol=0.5)
+    mid = COOL_TO_WARM.evaluate(np.array([0.5]))[0]
+    np.testing.assert_allclose(mid, [0.865, 0.865, 0.865], atol=0.01)
+    # The diverging path stays saturated on each side: the quarter point is clearly blue.
+    quarter = COOL_TO_WARM.evaluate(np.array([0.25]))[0]
+    assert quarter[2] > quarter[0] + 0.15
+
+
+def test_hsv_interpolation_takes_the_short_way_round():
+    cmap = ColorMap(points=((0.0, 1.0, 0.0, 0.2), (1.0, 1.0, 0.0, 0.0)), color_space="HSV")
+    # Hues 0.967 -> 0.0: the short path stays red-magenta and never passes through green.
+    out = cmap.evaluate(np.linspace(0.0, 1.0, 11))
+    assert (out[:, 1] < 0.01).all()
+
+
+def test_builtin_colormaps_exist_and_span_unit_interval():
+    for name in ("viridis", "plasma", "coolwarm", "grayscale", "jet", "Cool to Warm", "Viridis (matplotlib)"):
+        cmap = builtin_colormap(name)
+        assert cmap.span == (0.0, 1.0)
+        colors = cmap.evaluate(np.linspace(0, 1, 5))
+        assert colors.shape == (5, 3) and (colors >= 0).all() and (colors <= 1).all()
+    np.testing.assert_allclose(builtin_colormap("viridis").evaluate(np.array([0.0]))[0], [0.267, 0.005, 0.329], atol=2e-3)
+    with pytest.raises(ApmgsrnError, match="unknown colour map"):
+        builtin_colormap("no-such-map")
+
+
+def test_opacity_midpoint_and_sharpness_follow_vtk():
+    linear = OpacityMap(((0.0, 0.0, 0.5, 0.0), (1.0, 1.0, 0.5, 0.0)))
+    np.testing.assert_allclose(linear.evaluate(np.array([0.0, 0.3, 1.0])), [0.0, 0.3, 1.0])
+    shifted = OpacityMap(((0.0, 0.0, 0.25, 0.0), (1.0, 1.0, 0.5, 0.0)))
+    # Half way reached at the midpoint 0.25, linear on each side of it.
+    np.testing.assert_allclose(shifted.evaluate(np.array([0.125, 0.25, 0.625])), [0.25, 0.5, 0.75])
+    step = OpacityMap(((0.0, 0.2, 0.5, 1.0), (1.0, 0.8, 0.5, 0.0)))
+    np.testing.assert_allclose(step.evaluate(np.array([0.1, 0.49, 0.51, 0.9])), [0.2, 0.2, 0.8, 0.8])
+    soft = OpacityMap(((0.0, 0.0, 0.5, 0.5), (1.0, 1.0, 0.5, 0.0)))
+    values = soft.evaluate(np.linspace(0, 1, 101))
+    assert np.all(np.diff(values) >= -1e-12)  # monotone between nodes
+    assert values[50] == pytest.approx(0.5, abs=1e-9)
+    assert values[25] < 0.25  # flatter near the ends than linear
+
+
+def test_rescale_moves_colour_and_opacity_nodes_together():
+    tf = TransferFunction(
+        color_map=builtin_colormap("grayscale"),
+        opacity_map=opacity_from_normalized(((0.0, 0.0), (0.5, 0.2), (1.0, 1.0)), (0.0, 1.0)),
+    ).rescaled(10.0, 30.0)
+    assert tf.value_range == (10.0, 30.0)
+    assert [p[0] for p in tf.opacity_map.points] == [10.0, 20.0, 30.0]
+    np.testing.assert_allclose(tf.color_map.evaluate(np.array([20.0])), [[0.5, 0.5, 0.5]])
+
+
+def test_table_lookup_matches_the_transfer_function_at_its_entries():
+    tf = make_transfer_function("Cool to Warm", (-2.0, 6.0), opacity=((0.0, 0.0), (0.4, 0.0), (1.0, 0.7)))
+    table = tf.table(size=257)
+    xs = np.linspace(-2.0, 6.0, 257)
+    colors, opacity = table.lookup(torch.tensor(xs, dtype=torch.float32))
+    np.testing.assert_allclose(colors.numpy(), tf.color_map.evaluate(xs), atol=1e-5)
+    np.testing.assert_allclose(opacity.numpy(), tf.opacity_map.evaluate(xs), atol=1e-5)
+    # Clamped beyond the range, NaN gets the NaN colour and opacity.
+    colors, opacity = table.lookup(torch.tensor([-100.0, 100.0, float("nan")]))
+    np.testing.assert_allclose(colors[0].numpy(), tf.color_map.evaluate(np.array([-2.0]))[0], atol=1e-5)
+    assert opacity[1] == pytest.approx(0.7)
+    assert opacity[2] == 0.0 and torch.allclose(colors[2], torch.tensor([1.0, 1.0, 0.0]))
+
+
+def test_zero_opacity_test_never_misses_a_visible_value():
+    tf = make_transfer_function("viridis", (0.0, 1.0), opacity=((0.0, 0.0), (0.3, 0.0), (0.5, 0.4), (0.6, 0.0), (1.0, 0.0)))
+    table = tf.table(size=512)
+    gen = torch.Generator().manual_seed(1)
+    lows = torch.rand(4000, generator=gen) * 1.2 - 0.1
+    highs = lows + torch.rand(4000, generator=gen) * 0.3
+    visible = table.opacity_nonzero_between(lows, highs)
+    # Brute force: dense values in each interval through the very lookup the renderer uses.
+    t = torch.linspace(0, 1, 200)
+    values = lows[:, None] + (highs - lows)[:, None] * t  # [4000, 200]
+    _, alpha = table.lookup(values.reshape(-1))
+    truly_visible = (alpha.view(4000, 200) > 0).any(dim=1)
+    assert not (truly_visible & ~visible).any()  # no false "transparent"
+    # ...and the test is tight: intervals well inside the transparent band are skipped.
+    assert not table.opacity_nonzero_between(torch.tensor([0.05, 0.7]), torch.tensor([0.25, 0.95])).any()
+    assert table.opacity_nonzero_between(torch.tensor([0.25]), torch.tensor([0.35])).all()
