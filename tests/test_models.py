@@ -167,3 +167,21 @@ def test_sample_volume_is_exact_on_linear_fields():
     torch.testing.assert_close(sample_volume(values, points), expected, atol=1e-5, rtol=1e-5)
     # Voxel positions give the voxel values back.
     torch.testing.assert_close(sample_volume(values, coords), values.reshape(-1), atol=1e-5, rtol=1e-5)
+
+
+def test_value_transforms_round_trip_and_fit_statistics():
+    import numpy as np
+
+    from apmgsrn.models.value_transform import fit_value_transform
+
+    data = np.random.default_rng(0).gamma(2.0, 3.0, size=(6, 7, 8)).astype(np.float32) + 0.5
+    zscore = fit_value_transform("zscore", [data[:3], data[3:]], float(data.min()))
+    assert zscore.mean == pytest.approx(float(data.mean()), rel=1e-6)
+    assert zscore.std == pytest.approx(float(data.std()), rel=1e-5)
+    for transform in (zscore, fit_value_transform("log10", [], float(data.min()))):
+        back = transform.inverse(torch.from_numpy(transform.apply(data)))
+        torch.testing.assert_close(back, torch.from_numpy(data), rtol=1e-5, atol=1e-5)
+    with pytest.raises(ApmgsrnError, match="log-offset"):
+        fit_value_transform("log10", [], 0.0, source="x.nc")
+    shifted = fit_value_transform("log10", [], 0.0, offset=1.0)
+    assert shifted.apply_scalar(0.0) == 0.0

@@ -11,6 +11,7 @@ from apmgsrn.errors import ApmgsrnError
 
 
 def register(subparsers) -> None:
+    from apmgsrn.cli.train_bricks import add_brick_arguments
     from apmgsrn.models.encoders.adaptive_multigrid import GRID_INITS
     from apmgsrn.models.registry import ENCODERS
     from apmgsrn.models.value_transform import TRANSFORMS
@@ -30,19 +31,26 @@ def register(subparsers) -> None:
     model.add_argument("--model", choices=sorted(ENCODERS), default="apmgsrn")
     model.add_argument("--preset", choices=["small", "medium", "large"], default="small")
     model.add_argument("--grids", type=int, help="number of grids M")
-    model.add_argument("--features", type=int, help="features per grid C")
+    model.add_argument("--features", type=int, help="features per grid C (per level for ngp)")
     model.add_argument("--resolution", help="grid resolution R or D,H,W")
     model.add_argument("--hidden-layers", type=int, help="decoder hidden layers (default 2)")
     model.add_argument("--width", type=int, help="decoder width (default 64)")
     model.add_argument("--grid-init", choices=GRID_INITS, help="grid initialisation")
-    model.add_argument("--backend", help="multi-grid sampling backend (default auto)")
+    model.add_argument("--backend", help="sampling backend: auto (default), torch, cpu, triton; ngp: torch "
+                       "(default), tcnn (tiny-cuda-nn on a GPU) or auto")
+    model.add_argument("--levels", type=int, help="ngp: resolution levels L")
+    model.add_argument("--log2-table-size", type=int, help="ngp: log2 of the hash table entries per level T")
+    model.add_argument("--base-resolution", type=int, help="ngp: coarsest level resolution")
+    model.add_argument("--finest-resolution", type=int, help="ngp: finest level resolution")
+    model.add_argument("--frequencies", type=int, help="fvsrn: Fourier frequencies (default 6)")
     training = parser.add_argument_group("training")
     training.add_argument("--iterations", type=int, help="default: 3000 on CPU, 50000 on GPU")
     training.add_argument("--batch-size", type=int, help="points per iteration (default: 32768 CPU, 100000 GPU)")
     training.add_argument("--lr", type=float, default=0.01)
     training.add_argument("--transform-lr", type=float, default=0.001, help="learning rate of the grid transforms")
-    training.add_argument("--lr-schedule", choices=LR_SCHEDULES, default="cosine",
-                          help="cosine (default): anneal after the grids stop; constant; plateau (paper)")
+    training.add_argument("--lr-schedule", choices=LR_SCHEDULES,
+                          help="cosine: anneal after the grids stop (default for every model); constant; "
+                               "plateau (paper); steps: x0.33 at 40/60/80%% (NGP/fVSRN reference code)")
     training.add_argument("--density-start", type=int,
                           help="iteration where the grids start moving (default: 5%% of the budget; paper 500)")
     training.add_argument("--freeze-fraction", type=float, default=0.5,
@@ -52,6 +60,7 @@ def register(subparsers) -> None:
     training.add_argument("--seed", type=int, default=0)
     training.add_argument("--checkpoint-every", type=int, default=250)
     training.add_argument("--resume", action="store_true", help="continue an interrupted run from MODEL.ckpt")
+    add_brick_arguments(parser)
     add_device_argument(parser)
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
     parser.set_defaults(func=run)
@@ -59,7 +68,7 @@ def register(subparsers) -> None:
 
 def build_configs(args: argparse.Namespace, device):
     """(FieldConfig, TrainConfig) from the command line, presets overridden by explicit flags."""
-    from apmgsrn.models.registry import preset_config
+    from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
     from apmgsrn.training.trainer import TrainConfig, default_budget
 
     iterations, batch_size = default_budget(device)
@@ -71,6 +80,11 @@ def build_configs(args: argparse.Namespace, device):
         "backend": args.backend,
         "hidden_layers": args.hidden_layers,
         "width": args.width,
+        "levels": getattr(args, "levels", None),
+        "log2_table_size": getattr(args, "log2_table_size", None),
+        "base_resolution": getattr(args, "base_resolution", None),
+        "finest_resolution": getattr(args, "finest_resolution", None),
+        "frequencies": getattr(args, "frequencies", None),
     }
     try:
         field_config = preset_config(args.model, args.preset, **overrides)
@@ -79,7 +93,7 @@ def build_configs(args: argparse.Namespace, device):
             batch_size=args.batch_size or batch_size,
             lr=args.lr,
             transform_lr=args.transform_lr,
-            lr_schedule=args.lr_schedule,
+            lr_schedule=args.lr_schedule or DEFAULT_LR_SCHEDULES.get(args.model, "cosine"),
             density_start=args.density_start,
             freeze_fraction=args.freeze_fraction,
             density_normalization=args.density_normalization,
@@ -92,6 +106,10 @@ def build_configs(args: argparse.Namespace, device):
 
 
 def run(args: argparse.Namespace) -> int:
+    if getattr(args, "bricks", None):
+        from apmgsrn.cli.train_bricks import run_bricks
+
+        return run_bricks(args)
     from apmgsrn.device import resolve_device
     from apmgsrn.training.fit import fit_volume
     from apmgsrn.training.trainer import TrainingInterrupted

@@ -133,7 +133,7 @@ def load_tensors(path: Path) -> dict[str, torch.Tensor]:
 def is_model_file(path) -> bool:
     """True if ``path`` is an apmgsrn model file (single field or brick model)."""
     try:
-        return read_header(Path(path))["kind"] in MODEL_LOADERS
+        return read_model_header(Path(path))["kind"] in MODEL_LOADERS
     except ApmgsrnError:
         return False
 
@@ -185,8 +185,24 @@ def _load_field(path: Path, description: dict, device):
     return field.to(device).eval()
 
 
-# model kind -> loader(path, description, device); brick models register theirs here.
-MODEL_LOADERS = {"field": _load_field}
+def _load_bricks(path: Path, description: dict, device):
+    from apmgsrn.decomposition.brick_model import load_brick_model
+
+    return load_brick_model(path, description, device)
+
+
+# model kind -> loader(path, description, device); a brick model is a folder with a manifest.
+MODEL_LOADERS = {"field": _load_field, "bricks": _load_bricks}
+
+
+def read_model_header(path: Path) -> dict:
+    """Header of a model file, or of a brick model folder's ``manifest.json`` (JSON only)."""
+    path = Path(path)
+    if path.is_dir():
+        from apmgsrn.decomposition.brick_model import read_manifest_header
+
+        return read_manifest_header(path)
+    return read_header(path)
 
 
 def load_model(path, device="cpu"):
@@ -196,10 +212,11 @@ def load_model(path, device="cpu"):
         ApmgsrnError: the file is missing, corrupt, foreign, hostile or from a newer version.
     """
     path = Path(path)
-    header = read_header(path)
+    header = read_model_header(path)
     loader = MODEL_LOADERS.get(header["kind"])
     if loader is None:
         raise ApmgsrnError(f"{path}: is a {header['kind'] or 'unknown'} file, not a model; pass a model file")
     model = loader(path, header["description"], torch.device(device) if isinstance(device, str) else device)
-    model.file_bytes = path.stat().st_size
+    if not path.is_dir():  # a brick model folder counts its files itself
+        model.file_bytes = path.stat().st_size
     return model

@@ -17,7 +17,7 @@ from apmgsrn.models.field import NeuralField
 from apmgsrn.ops.trilinear import sample_volume
 from apmgsrn.training.losses import feature_density_loss
 
-LR_SCHEDULES = ("cosine", "constant", "plateau")
+LR_SCHEDULES = ("cosine", "constant", "plateau", "steps")
 DENSITY_NORMALIZATIONS = ("mass", "batch")
 
 
@@ -44,10 +44,13 @@ class TrainConfig:
         lr_schedule: ``"cosine"`` (ours: constant while the grids move, then a half-cosine to
             ``final_lr_fraction`` over the remaining budget), ``"constant"``, or ``"plateau"`` (paper: x0.1
             when ``L_rec`` stops falling by 0.01 % over 500 iterations, after the grids froze).
+            ``"steps"``: x0.33 at 40, 60 and 80 % of the budget (the NGP/fVSRN reference code).
         final_lr_fraction: learning rate at the end of the cosine schedule, relative to ``lr``.
         seed: seeds initialisation and point sampling.
         checkpoint_every: iterations between atomic training checkpoints.
         history_every: iterations between recorded loss-curve points; None: about 500 points in all.
+        stop_after_lr_cuts: with ``lr_schedule="plateau"``, end training once the plateau scheduler has cut
+            the learning rate this many times (paper, per brick: 3); None: run the whole budget.
     """
 
     iterations: int = 2000
@@ -66,6 +69,7 @@ class TrainConfig:
     seed: int = 0
     checkpoint_every: int = 250
     history_every: int | None = None
+    stop_after_lr_cuts: int | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "betas", tuple(self.betas))
@@ -167,6 +171,10 @@ class Trainer:
             return cfg.lr
         if cfg.lr_schedule == "plateau":
             return cfg.lr * self.state.lr_scale
+        if cfg.lr_schedule == "steps":
+            # NGP/fVSRN reference code: x0.33 at 40, 60 and 80 % of the budget.
+            cuts = sum(iteration >= int(f * cfg.iterations) for f in (0.4, 0.6, 0.8))
+            return cfg.lr * 0.33**cuts
         # cosine: hold the rate while the grids may still move, then anneal over what is left.
         hold = self._freeze_deadline() if self.transform_optimizer is not None else 0
         if self.state.frozen_at is not None:
@@ -264,6 +272,12 @@ class Trainer:
             st.lr_scale *= 0.1
             st.plateau_best, st.plateau_since = reconstruction, st.iteration
 
+    def stopped_early(self) -> bool:
+        """True once the plateau scheduler made ``stop_after_lr_cuts`` cuts (each cut is x0.1)."""
+        cuts = self.config.stop_after_lr_cuts
+        # lr_scale is exactly 0.1 ** cuts; the half-step margin absorbs its rounding.
+        return cuts is not None and self.state.lr_scale < 10.0 ** (0.5 - cuts)
+
     # ----------------------------------------------------------------------------- loop
     def run(self, resume: bool = False) -> TrainingState:
         """Train to ``config.iterations``; resume from the checkpoint if asked and present.
@@ -282,8 +296,13 @@ class Trainer:
             bar = tqdm(total=cfg.iterations, initial=st.iteration, unit="it", dynamic_ncols=True, leave=True)
         recent: deque[float] = deque(maxlen=5)
         start = time.perf_counter() - st.elapsed
+        stop = _StopRequest() if self.checkpoint_path is not None else None
         try:
-            while st.iteration < cfg.iterations:
+            while st.iteration < cfg.iterations and not self.stopped_early():
+                if stop is not None and stop.requested:
+                    # Ctrl-C lands between iterations, so the checkpoint is an exact state to resume.
+                    self.save_checkpoint(self.checkpoint_path)
+                    raise TrainingInterrupted(st.iteration, self.checkpoint_path)
                 reconstruction, density = self.step()
                 self._update_freeze(density)
                 if st.iteration % cfg.history_every == 0:
@@ -312,12 +331,9 @@ class Trainer:
                         )
                 if self.checkpoint_path and st.iteration % cfg.checkpoint_every == 0 and st.iteration < cfg.iterations:
                     self.save_checkpoint(self.checkpoint_path)
-        except KeyboardInterrupt:
-            if self.checkpoint_path is None:
-                raise
-            self.save_checkpoint(self.checkpoint_path)
-            raise TrainingInterrupted(st.iteration, self.checkpoint_path) from None
         finally:
+            if stop is not None:
+                stop.restore()
             if bar is not None:
                 bar.close()
         self.field.eval()
@@ -388,6 +404,28 @@ class Trainer:
         if self.state.frozen_at is not None:
             for p in self.field.encoder.transform_parameters():
                 p.requires_grad_(False)
+
+
+class _StopRequest:
+    """Turns Ctrl-C (SIGINT) into a flag the loop reads between iterations (main thread only)."""
+
+    def __init__(self) -> None:
+        import signal
+        import threading
+
+        self.requested = False
+        self._previous = None
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+
+    def _handle(self, signum, frame) -> None:
+        self.requested = True
+
+    def restore(self) -> None:
+        import signal
+
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
 
 
 def _jsonable(value):
