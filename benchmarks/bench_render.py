@@ -87,7 +87,7 @@ def _train(data: Path, out: Path, size: str, iterations: int, device: str) -> No
     subprocess.run(command, check=True)
 
 
-def bench_volume(args, spec: BenchVolume, device: torch.device) -> list[dict]:
+def bench_volume(args, spec: BenchVolume, device: torch.device, batch_size: int, first_batch: bool) -> list[dict]:
     import apmgsrn
     from apmgsrn.data import open_volume
     from apmgsrn.render import (
@@ -111,7 +111,7 @@ def bench_volume(args, spec: BenchVolume, device: torch.device) -> list[dict]:
     warm_camera = Camera.orbit(spec.azimuth, spec.elevation, None, 30.0, 32, 32, extent)
 
     def config(skipping: bool) -> RendererConfig:
-        return RendererConfig(samples_per_ray=args.spp, batch_size=args.batch_size, empty_space_skipping=skipping)
+        return RendererConfig(samples_per_ray=args.spp, batch_size=batch_size, empty_space_skipping=skipping)
 
     rows = []
     images = {}
@@ -126,7 +126,7 @@ def bench_volume(args, spec: BenchVolume, device: torch.device) -> list[dict]:
         if skipping:
             reference = result.image
             images["raw volume"] = reference
-            row = dict(volume=spec.name, field="raw volume", params="-", bounds_s=setup_s, first_s=first_s,
+            row = dict(volume=spec.name, field="raw volume", params="-", batch=batch_size, bounds_s=setup_s, first_s=first_s,
                        frame_skip_s=frame_s, evals_skip=result.statistics.field_evaluations,
                        samples=result.statistics.samples_in_box, visible=renderer.visible_fraction)
         else:
@@ -136,7 +136,7 @@ def bench_volume(args, spec: BenchVolume, device: torch.device) -> list[dict]:
 
     for size in SIZES:
         model_path = Path(args.models_dir) / f"{spec.name}_{size}.apm"
-        if not model_path.exists() and args.train_iterations:
+        if not model_path.exists() and args.train_iterations and first_batch:
             model_path.parent.mkdir(parents=True, exist_ok=True)
             _train(data_path, model_path, size, args.train_iterations, str(device))
         if not model_path.exists():
@@ -155,7 +155,8 @@ def bench_volume(args, spec: BenchVolume, device: torch.device) -> list[dict]:
         plain, frame_plain_s = _best_of(args.repeats, device, lambda: plain_renderer.render(camera))
         images[f"{size} model"] = skipped.image
         rows.append(dict(
-            volume=spec.name, field=f"{size} model", params=f"{params:,}", bounds_s=bounds_s, first_s=first_s,
+            volume=spec.name, field=f"{size} model", params=f"{params:,}", batch=batch_size, bounds_s=bounds_s,
+            first_s=first_s,
             frame_skip_s=frame_skip_s, frame_plain_s=frame_plain_s,
             evals_skip=skipped.statistics.field_evaluations, evals_plain=plain.statistics.field_evaluations,
             samples=skipped.statistics.samples_in_box, visible=skip_renderer.visible_fraction,
@@ -164,7 +165,7 @@ def bench_volume(args, spec: BenchVolume, device: torch.device) -> list[dict]:
             iterations=training.get("iterations"), volume_psnr=training.get("psnr"),
             trained_on=training.get("device"),
         ))
-    if args.images:
+    if args.images and first_batch:
         _save_panel(images, Path(args.images) / f"render_{spec.name}.png", tf_name=spec.colormap)
     return rows
 
@@ -200,28 +201,33 @@ def _fmt(value, digits=2) -> str:
 def _tables(rows: list[dict], args, device: torch.device) -> tuple[str, str]:
     command = "python benchmarks/bench_render.py " + " ".join(args.argv)
     head = (f"Device: {_device_name(device)}. Image {args.width}x{args.height}, {args.spp} samples per ray across the "
-            f"box, batch {args.batch_size} points, early termination at transmittance 1e-3, 32^3 macro cells; "
-            f"best of {args.repeats}. Command: `{command}`.\n\n")
+            f"box, early termination at transmittance 1e-3, 32^3 macro cells; best of {args.repeats}. "
+            f"Command: `{command}`.\n\n")
     bench = [head,
-             "| volume | field | parameters | bounds, once (s) | first progressive image (s) | frame, skipping (s) "
-             "| frame, no skipping (s) | skipping speed-up | field evaluations skipping / not | visible cells |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| volume | field | parameters | batch | bounds, once (s) | first progressive image (s) "
+             "| frame, skipping (s) | frame, no skipping (s) | skipping speed-up | field evaluations skipping / not "
+             "| visible cells |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         speed = r["frame_plain_s"] / r["frame_skip_s"] if r.get("frame_plain_s") else None
         bench.append(
-            f"| {r['volume']} | {r['field']} | {r['params']} | {_fmt(r['bounds_s'])} | {_fmt(r['first_s'], 3)} "
+            f"| {r['volume']} | {r['field']} | {r['params']} | 2^{r['batch'].bit_length() - 1} | {_fmt(r['bounds_s'])} "
+            f"| {_fmt(r['first_s'], 3)} "
             f"| {_fmt(r['frame_skip_s'])} | {_fmt(r.get('frame_plain_s'))} | {_fmt(speed)}x "
             f"| {r['evals_skip'] / 1e6:.1f} M / {r['evals_plain'] / 1e6:.1f} M | {100 * (r['visible'] or 0):.0f}% |"
         )
     bench.append("")
     bench.append("Largest per-channel difference between the skipping and non-skipping images: "
-                 + ", ".join(f"{r['volume']} {r['field']} {r['max_diff']:.1e}" for r in rows) + ".")
+                 + ", ".join(f"{r['volume']} {r['field']} {r['max_diff']:.1e}" for r in rows if r["batch"] == rows[0]["batch"])
+                 + ".")
     results = [head,
                "| volume | model | parameters | training iterations | volume PSNR (dB) | image PSNR (dB) | image SSIM |",
                "|---|---|---|---|---|---|---|"]
+    seen = set()
     for r in rows:
-        if "psnr" not in r:
+        if "psnr" not in r or (r["volume"], r["field"]) in seen:
             continue
+        seen.add((r["volume"], r["field"]))
         results.append(
             f"| {r['volume']} | {r['field']} | {r['params']} | {_fmt(r.get('iterations'))} "
             f"(on {_fmt(r.get('trained_on'))}) | {_fmt(r.get('volume_psnr'))} | {_fmt(r['psnr'])} | {_fmt(r['ssim'], 4)} |"
@@ -251,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--width", type=int, default=512)
     parser.add_argument("--height", type=int, default=512)
     parser.add_argument("--spp", type=int, default=256)
-    parser.add_argument("--batch-size", type=int, default=1 << 18)
+    parser.add_argument("--batch-sizes", default=str(1 << 18), help="comma-separated points per field call")
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--images", default=str(REPO / "docs" / "images"), help="folder for images ('' for none)")
     parser.add_argument("--docs", default=str(REPO / "docs"), help="folder of the markdown files ('' for none)")
@@ -262,9 +268,11 @@ def main(argv: list[str] | None = None) -> int:
     device = resolve_device(args.device)
     wanted = args.volumes.split(",")
     rows = []
+    batches = [int(b) for b in args.batch_sizes.split(",")]
     for spec in VOLUMES:
         if spec.name in wanted:
-            rows.extend(bench_volume(args, spec, device))
+            for i, batch in enumerate(batches):
+                rows.extend(bench_volume(args, spec, device, batch, first_batch=i == 0))
     bench, results = _tables(rows, args, device)
     print(bench)
     print(results)
@@ -272,7 +280,7 @@ def main(argv: list[str] | None = None) -> int:
         key = device.type
         title = f"Rendering on {'the GPU' if device.type == 'cuda' else 'the CPU'}: {_device_name(device)}"
         write_section(Path(args.docs) / "benchmarks_render.md", key, title, bench)
-        write_section(Path(args.docs) / "results_render.md", key, f"Model renders against the raw-volume render ({device.type})", results)
+        write_section(Path(args.docs) / "results_render.md", "results", "Model renders against the raw-volume render", results)
     return 0
 
 

@@ -115,7 +115,8 @@ def test_render_a_trained_model_against_its_volume(shared_data, tmp_path, capsys
     model = tmp_path / "neghip.apm"
     data = str(shared_data / NEGHIP)
     code, _, err = _run(
-        capsys, "train", data, "--out", str(model), "--preset", "small", "--iterations", "200", "--device", "cpu"
+        capsys, "train", data, "--out", str(model), "--preset", "small", "--iterations", "100", "--batch-size", "4096",
+        "--device", "cpu",
     )
     assert code == 0, err
     out = tmp_path / "model.png"
@@ -125,6 +126,6 @@ def test_render_a_trained_model_against_its_volume(shared_data, tmp_path, capsys
     )
     assert code == 0, err
     report = json.loads(text)
-    # A 200-iteration small model already gives a recognisable image (bar measured once: see the docs).
-    assert report["psnr"] > 25.0 and report["ssim"] > 0.85  # measured 33.4 dB, 0.967
+    # A 100-iteration small model already gives a recognisable image (measured once: 30.9 dB, SSIM 0.937).
+    assert report["psnr"] > 25.0 and report["ssim"] > 0.85
     assert report["visible_cells"] < 1.0  # bounds sampled from the model let it skip space

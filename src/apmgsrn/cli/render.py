@@ -53,7 +53,8 @@ def register(subparsers) -> None:
                        help="samples per ray across the box's longest side (default 256)")
     march.add_argument("--reference-samples", type=int, default=256,
                        help="opacities are per step of (longest side / this) (default 256)")
-    march.add_argument("--batch-size", type=int, default=1 << 18, help="most points per forward pass (default 262144)")
+    march.add_argument("--batch-size", type=int,
+                       help="most points per forward pass; bounds memory (default 262144 on CPU, 1048576 on GPU)")
     march.add_argument("--early-termination", type=float, default=1e-3,
                        help="stop a ray once its transmittance falls below this; 0 never (default 1e-3)")
     march.add_argument("--no-skipping", action="store_true", help="turn empty-space skipping off")
@@ -79,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     from apmgsrn.render.colormaps import make_transfer_function
     from apmgsrn.render.images import error_image, save_image, side_by_side
     from apmgsrn.render.metrics import image_psnr, image_ssim
-    from apmgsrn.render.raymarch import RendererConfig
+    from apmgsrn.render.raymarch import RendererConfig, default_batch_size
 
     _check_numbers(args)
     out = Path(args.out)
@@ -94,6 +95,8 @@ def run(args: argparse.Namespace) -> int:
         raise ApmgsrnError(f"{out}: folder {out.parent} does not exist; create it first")
 
     device = resolve_device(args.device)
+    if args.batch_size is None:
+        args.batch_size = default_batch_size(device)
     config = RendererConfig(
         samples_per_ray=args.spp,
         reference_samples=args.reference_samples,
@@ -223,7 +226,7 @@ def _check_numbers(args: argparse.Namespace) -> None:
     for name in ("width", "height", "spp", "reference_samples", "macro_cells"):
         if getattr(args, name) < 1:
             raise ApmgsrnError(f"--{name.replace('_', '-')} must be a positive integer")
-    if args.batch_size < 16:
+    if args.batch_size is not None and args.batch_size < 16:
         raise ApmgsrnError("--batch-size must be at least 16")
     if not 0.0 <= args.early_termination < 1.0:
         raise ApmgsrnError("--early-termination must be in [0, 1)")

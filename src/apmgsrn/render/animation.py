@@ -7,7 +7,6 @@ Pillow.
 from __future__ import annotations
 
 import os
-from dataclasses import replace
 from pathlib import Path
 from typing import Iterable, Iterator
 
@@ -117,7 +116,3 @@ def _write_mp4(frames: Iterable[np.ndarray], path: Path, fps: float) -> Path:
         writer.close()
     return path
 
-
-def with_size(camera: Camera, width: int, height: int) -> Camera:
-    """The same view at another image size."""
-    return replace(camera, width=width, height=height)

@@ -89,6 +89,18 @@ class RenderResult:
         return to_uint8(self.image)
 
 
+def default_batch_size(device: torch.device | str) -> int:
+    """Points per field call suited to a device: 2^18 on a CPU, 2^20 on a GPU (fewer, larger rounds).
+
+    Args:
+        device: where the renderer runs.
+
+    Returns:
+        The batch size.
+    """
+    return 1 << 20 if torch.device(device).type == "cuda" else 1 << 18
+
+
 def to_uint8(image: torch.Tensor) -> np.ndarray:
     """Quantise an ``[H, W, 3]`` image in [0, 1] to uint8 (rounding to nearest)."""
     return (image.detach().clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
@@ -237,6 +249,20 @@ class VolumeRenderer:
             out[start : start + chunk] = colors
             stats.add(chunk_stats)
         return out, stats
+
+    def render_progressive(self, camera: Camera, strides: tuple[int, ...] = (8, 4, 2, 1)):
+        """Coarse-to-fine rendering; see :func:`apmgsrn.render.progressive.render_progressive`.
+
+        Args:
+            camera: the view and image size.
+            strides: lattice strides of the passes, decreasing to 1.
+
+        Returns:
+            An iterator of ``ProgressiveImage``, the last one the full image.
+        """
+        from apmgsrn.render.progressive import render_progressive
+
+        return render_progressive(self, camera, strides)
 
     @property
     def rays_per_chunk(self) -> int:

@@ -247,6 +247,8 @@ class TransferTable:
     def __post_init__(self) -> None:
         # Colour and opacity side by side, so a lookup gathers one row per neighbouring entry.
         self._rgba = torch.cat([self.colors, self.opacity[:, None]], dim=1).contiguous()  # [T, 4]
+        nan_opacity = torch.tensor([self.nan_opacity], dtype=torch.float32, device=self.colors.device)
+        self._nan_rgba = torch.cat([self.nan_color, nan_opacity])  # [4]
 
     @classmethod
     def from_transfer_function(
@@ -294,16 +296,13 @@ class TransferTable:
         """
         position = self.entry_position(values)
         nan = torch.isnan(position)
-        has_nan = bool(nan.any())
-        if has_nan:
-            position = torch.where(nan, torch.zeros_like(position), position)
+        # Branch-free NaN handling: asking whether any NaN is present would stall a GPU every call.
+        position = torch.where(nan, torch.zeros_like(position), position)
         low = position.to(torch.int64).clamp_(max=self.size - 2)  # truncation is floor: position >= 0
         frac = (position - low.to(position.dtype))[:, None]  # [N, 1]
         rgba = torch.lerp(self._rgba[low], self._rgba[low + 1], frac)  # [N, 4]
+        rgba = torch.where(nan[:, None], self._nan_rgba, rgba)
         colors, opacity = rgba[:, :3], rgba[:, 3]
-        if has_nan:
-            opacity = torch.where(nan, torch.full_like(opacity, self.nan_opacity), opacity)
-            colors = torch.where(nan[:, None], self.nan_color.expand_as(colors), colors)
         return colors, opacity
 
     def opacity_nonzero_between(self, low: torch.Tensor, high: torch.Tensor) -> torch.Tensor:
