@@ -84,18 +84,21 @@ def _mallopt(param: int, value: int) -> None:
         pass
 
 
-M_MMAP_THRESHOLD = -3
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
 
 
-@contextlib.contextmanager
-def exact_resident_memory():
+def exact_memory_mode() -> None:
     """Make every block over 64 KiB its own mmap, so a free returns it to the OS at once and the
-    resident-set high-water mark is the true peak of live memory (timings use the opposite setting)."""
+    resident-set high-water mark is the true peak of live memory. Set before any large allocation:
+    a large free block already in the heap would be reused without counting."""
     _mallopt(M_MMAP_THRESHOLD, 64 << 10)
-    try:
-        yield
-    finally:
-        _mallopt(M_MMAP_THRESHOLD, 1 << 30)
+    _mallopt(M_TRIM_THRESHOLD, 64 << 10)
+
+
+def fast_allocation_mode() -> None:
+    """As the trainer: freed blocks stay mapped, so large allocations do not page-fault every time."""
+    _mallopt(M_MMAP_THRESHOLD, 1 << 30)
+    _mallopt(M_TRIM_THRESHOLD, 1 << 31)
 
 
 def _status_kib(field: str) -> int:
@@ -115,15 +118,14 @@ def peak_memory_mib(fn, device: torch.device) -> float:
         del result
         return peak / 2**20
     fn()  # warm: lazily built kernels and caches are not the op's memory
-    with exact_resident_memory():
-        try:
-            Path("/proc/self/clear_refs").write_text("5")  # reset the high-water mark
-        except OSError:
-            return float("nan")
-        base = _status_kib("VmRSS")
-        result = fn()
-        peak = _status_kib("VmHWM") - base
-        del result
+    try:
+        Path("/proc/self/clear_refs").write_text("5")  # reset the high-water mark
+    except OSError:
+        return float("nan")
+    base = _status_kib("VmRSS")
+    result = fn()
+    peak = _status_kib("VmHWM") - base
+    del result
     return peak / 1024
 
 
@@ -197,7 +199,33 @@ def machine_description(device: torch.device) -> str:
 # ------------------------------------------------------------------------------------- measurements
 
 
-def encoder_table(device, backends, repeats, sizes):
+def measure_memory(device, backends, sizes, counts, scaling_n):
+    """Forward peak memory of every configuration, before any timing (see :func:`exact_memory_mode`)."""
+    memory = {}
+    for preset in ("small", "medium"):
+        m, c, res = PRESETS[preset]
+        model = Model.build(m, c, res, device)
+        for n in sizes:
+            points = random_points(n, device)
+            for backend in backends:
+                memory[(backend, preset, n)] = peak_memory_mib(encode_fn(model, points, backend), device)
+    points = random_points(scaling_n, device)
+    for m in counts:
+        model = Model.build(m, 1, 16, device)
+        for backend in backends:
+            memory[("M", backend, m)] = peak_memory_mib(encode_fn(model, points, backend), device)
+    return memory
+
+
+def encode_fn(model: "Model", points: torch.Tensor, backend: str):
+    def forward():
+        with torch.no_grad():
+            return model.encode(points, backend)
+
+    return forward
+
+
+def encoder_table(device, backends, repeats, sizes, memory):
     rows = []
     print("\nencoder: backend x preset x N")
     for preset in ("small", "medium"):
@@ -207,18 +235,14 @@ def encoder_table(device, backends, repeats, sizes):
             points = random_points(n, device)
             for backend in backends:
 
-                def forward():
-                    with torch.no_grad():
-                        return model.encode(points, backend)
-
                 def forward_backward():
                     out = model.encode(points, backend)
                     out.backward(torch.ones_like(out))
                     model.grids.grad = None
 
-                fwd = time_ms(forward, device, repeats)
+                fwd = time_ms(encode_fn(model, points, backend), device, repeats)
                 fwd_bwd = time_ms(forward_backward, device, repeats)
-                mem = peak_memory_mib(forward, device)
+                mem = memory[(backend, preset, n)]
                 out_mib = n * m * c * 4 / 2**20
                 row = [backend, preset, f"{n:,}", fmt(fwd), fmt(fwd_bwd), fmt(n / fwd / 1e3), fmt(mem, 1), fmt(out_mib, 1)]
                 print("  " + " | ".join(row))
@@ -302,7 +326,7 @@ def decode_table(device, backends, repeats, batch, batches):
     return markdown_table(header, rows)
 
 
-def scaling(device, backends, repeats, n, counts):
+def scaling(device, backends, repeats, n, counts, memory):
     """Training step time and forward peak memory against M (C = 1, 16^3 grids)."""
     results = {b: {"ms": [], "mib": []} for b in backends}
     print(f"\nscaling with M, {n:,} points, 1 x 16^3 grids")
@@ -312,12 +336,7 @@ def scaling(device, backends, repeats, n, counts):
         for backend in backends:
             model = Model.build(m, 1, 16, device)
             ms = time_ms(train_step_fn(model, points, target, backend), device, repeats)
-
-            def forward():
-                with torch.no_grad():
-                    return model.encode(points, backend)
-
-            mib = peak_memory_mib(forward, device)
+            mib = memory[("M", backend, m)]
             results[backend]["ms"].append(ms)
             results[backend]["mib"].append(mib)
             print(f"  M={m:3d} {backend:7s} step {ms:8.2f} ms  forward peak {mib:8.1f} MiB")
@@ -552,19 +571,34 @@ def main(argv: list[str] | None = None) -> int:
     device = torch.device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
-    _mallopt(M_MMAP_THRESHOLD, 1 << 30)  # as the trainer: no page faults on every large allocation
+    if device.type == "cpu":
+        exact_memory_mode()
     repeats = 5 if args.quick else 20
     fast = multigrid.resolve_backend("auto", device)
     backends = ["torch", fast] if fast != "torch" else ["torch"]
     machine = machine_description(device)
     print(f"machine: {machine}\nbackends: {backends}")
+    if device.type == "cpu":
+        sizes, counts, scaling_n = [32_768, 262_144], [4, 8, 16, 32, 64], 32_768
+    else:
+        sizes, counts, scaling_n = [1 << 20, 1 << 22], [4, 8, 16, 32, 64], 100_000
+    if args.quick:
+        counts = []
+    memory = measure_memory(device, backends, sizes, counts, scaling_n)
+    if device.type == "cpu":
+        fast_allocation_mode()
 
     sections = [f"### {'GPU' if device.type == 'cuda' else 'CPU'}: {machine}", ""]
     sections.append(f"Command: `python benchmarks/bench_encoder.py --device {args.device}`. Medians of {repeats} runs.")
     sections.append("")
+    sections += [
+        "Encoder alone (forward: no gradients; fwd+bwd: gradient for the grids; peak: one forward pass, "
+        "its output included):",
+        "",
+        encoder_table(device, backends, repeats, sizes, memory),
+        "",
+    ]
     if device.type == "cpu":
-        sizes = [32_768, 262_144]
-        sections += ["Encoder alone (forward: no gradients; fwd+bwd: gradient for the grids):", "", encoder_table(device, backends, repeats, sizes), ""]
         sections += [
             f"Training steps, 32,768 points (the authors' code: about {AUTHORS_ITERATION_MS:.0f} ms per iteration for the "
             "small preset on this CPU, ground-truth sampling included):",
@@ -572,20 +606,24 @@ def main(argv: list[str] | None = None) -> int:
             training_table(device, backends, repeats, 32_768),
             "",
         ]
-        sections += ["Decode throughput, whole model (encoder + 2 x 64 decoder), batches of 262,144:", "", decode_table(device, backends, max(3, repeats // 4), 262_144, 4), ""]
-        counts = [4, 8, 16, 32, 64]
-        scaling_n = 32_768
-    else:
-        sizes = [1 << 20, 1 << 22]
-        sections += ["Encoder alone:", "", encoder_table(device, backends, repeats, sizes), ""]
-        if "triton" in backends:
-            sections += ["Triton block sweep:", "", triton_block_sweep(device, repeats), ""]
-            sections += [cuda_extras(device, repeats), ""]
-        counts = [4, 8, 16, 32, 64]
-        scaling_n = 100_000
-    if not args.quick:
-        table, results = scaling(device, backends, repeats, scaling_n, counts)
-        sections += [f"Scaling with the number of grids M (1 x 16^3 grids, {scaling_n:,} points; training step as above):", "", table, ""]
+        sections += [
+            "Decode throughput, whole model (encoder + 2 x 64 decoder), batches of 262,144:",
+            "",
+            decode_table(device, backends, max(3, repeats // 4), 262_144, 4),
+            "",
+        ]
+    elif "triton" in backends:
+        sections += ["Triton block sweep:", "", triton_block_sweep(device, repeats), ""]
+        sections += [cuda_extras(device, repeats), ""]
+    if counts:
+        table, results = scaling(device, backends, repeats, scaling_n, counts, memory)
+        sections += [
+            f"Scaling with the number of grids M (1 x 16^3 grids, {scaling_n:,} points; training step as above; "
+            "forward peak memory):",
+            "",
+            table,
+            "",
+        ]
         if not args.no_chart:
             label = "GPU" if device.type == "cuda" else "CPU"
             chart = args.chart if device.type == "cpu" else args.chart.with_name(args.chart.stem + "_gpu.png")
@@ -593,6 +631,8 @@ def main(argv: list[str] | None = None) -> int:
             rel = os.path.relpath(chart, args.output.parent)
             sections += [f"![time and memory against M]({rel})", ""]
             print(f"chart: {chart}")
+    if device.type == "cpu":
+        sections.append(f"1-minute load average at the end: {os.getloadavg()[0]:.2f} (other jobs share this machine).")
     write_section(args.output, "gpu" if device.type == "cuda" else "cpu", "\n".join(sections))
     print(f"wrote {args.output}")
     return 0

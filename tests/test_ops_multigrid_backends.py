@@ -253,42 +253,42 @@ def test_import_builds_nothing():
     assert "loaded: []" in out
 
 
-def test_falls_back_without_a_compiler(tmp_path):
-    # A build that cannot happen (no such compiler, empty cache): auto uses the reference, an explicit
-    # "cpu" says why it cannot run.
-    out = run_python(
-        """
-        import torch
-        from apmgsrn.ops.multigrid import multigrid_features, multigrid_features_reference, resolve_backend
-        points = torch.rand(50, 3) * 2 - 1
-        maps = torch.eye(3)[None], torch.zeros(1, 3)
-        grids = torch.randn(1, 1, 4, 4, 4)
-        assert resolve_backend("auto", "cpu") == "torch"
-        assert torch.equal(multigrid_features(points, *maps, grids), multigrid_features_reference(points, *maps, grids))
-        try:
-            multigrid_features(points, *maps, grids, backend="cpu")
-        except RuntimeError as err:
-            print("refused:", err)
-        """,
-        env={"CC": str(tmp_path / "no-such-compiler"), "APMGSRN_CACHE": str(tmp_path / "cache")},
-    )
-    assert "refused:" in out and "no-such-compiler" in out
+@pytest.fixture
+def fresh_kernel_state(monkeypatch, tmp_path):
+    """The CPU kernel module as if never loaded, with an empty cache; restored afterwards."""
+    from apmgsrn.ops import multigrid_cpu
+
+    monkeypatch.setenv("APMGSRN_CACHE", str(tmp_path / "cache"))
+    for name, value in (("_tried", False), ("_library", None), ("_load_error", None)):
+        monkeypatch.setattr(multigrid_cpu, name, value)
+    return multigrid_cpu
+
+
+def test_falls_back_without_a_compiler(fresh_kernel_state, monkeypatch, tmp_path):
+    # A build that cannot happen: auto uses the reference, an explicit "cpu" says why it cannot run.
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))
+    points = torch.rand(50, 3) * 2 - 1
+    maps = torch.eye(3)[None], torch.zeros(1, 3)
+    grids = torch.randn(1, 1, 4, 4, 4)
+    assert multigrid.resolve_backend("auto", "cpu") == "torch"
+    assert torch.equal(multigrid_features(points, *maps, grids), multigrid_features_reference(points, *maps, grids))
+    with pytest.raises(RuntimeError, match="no-such-compiler"):
+        multigrid_features(points, *maps, grids, backend="cpu")
+    density = feature_density(points, *maps)  # the density op falls back too
+    torch.testing.assert_close(density, feature_density_reference(points, *maps))
 
 
 @pytest.mark.skipif(not HAS_COMPILER, reason="no C compiler")
-def test_kernel_is_built_once_into_the_cache(tmp_path):
-    code = """
-        from apmgsrn.ops import multigrid_cpu
-        assert multigrid_cpu.is_available(), multigrid_cpu.load_error()
-        print(sorted(p.name for p in multigrid_cpu.cache_dir().iterdir()))
-        """
-    env = {"APMGSRN_CACHE": str(tmp_path)}
-    first = run_python(code, env)
-    kernels = list((tmp_path / "kernels").glob("multigrid_cpu_*.so"))
+def test_kernel_is_built_once_into_the_cache(fresh_kernel_state, tmp_path):
+    module = fresh_kernel_state
+    assert module.load_library() is not None, module.load_error()
+    kernels = list((tmp_path / "cache" / "kernels").glob("multigrid_cpu_*.so"))
     assert len(kernels) == 1
     stamp = kernels[0].stat().st_mtime_ns
-    assert run_python(code, env) == first
-    assert kernels[0].stat().st_mtime_ns == stamp  # loaded, not rebuilt
+    module._tried = False  # as a new process would: finds the cached file, does not rebuild
+    assert module.load_library() is not None
+    assert kernels[0].stat().st_mtime_ns == stamp
+    assert list((tmp_path / "cache" / "kernels").iterdir()) == kernels  # no temporary files left
 
 
 @pytest.mark.skipif(not HAS_TRITON, reason="triton is not installed")
@@ -329,6 +329,40 @@ def test_triton_kernels_match_reference_in_interpreter():
         env={"TRITON_INTERPRET": "1"},
     )
     assert out.startswith("ok")
+
+
+@pytest.mark.skipif(not HAS_TRITON, reason="triton is not installed")
+@pytest.mark.parametrize("grid_type", ["*fp32", "*fp16", "*bf16"])
+def test_triton_kernels_compile_for_hopper_without_a_gpu(grid_type):
+    # Ahead-of-time lowering to sm_90 machine code (Triton's bundled ptxas), so kernels that only the
+    # interpreter ran are known to compile; the GPU tests below also run them.
+    import inspect
+
+    import triton
+    from apmgsrn.ops import multigrid_triton as mt
+
+    try:
+        from triton.backends.compiler import GPUTarget
+        from triton.compiler import ASTSource
+    except ImportError:
+        pytest.skip("this triton has no ahead-of-time compile API")
+    constants = {"M": 16, "C": 2, "CP": 2, "BLOCK": 512}
+    for kernel, data in ((mt._forward_kernel, "grids_ptr"), (mt._backward_kernel, "grad_ptr")):
+        signature = {}
+        for name in inspect.signature(kernel.fn).parameters:
+            if name in constants:
+                signature[name] = "constexpr"
+            elif name.endswith("_ptr"):
+                signature[name] = "*fp32"
+            else:
+                signature[name] = "i32"
+        if data == "grids_ptr":
+            signature[data] = grid_type
+        compiled = triton.compile(
+            ASTSource(kernel, signature, constexprs=constants), target=GPUTarget("cuda", 90, 32),
+            options={"num_warps": 4},
+        )
+        assert len(compiled.asm["cubin"]) > 1000
 
 
 # ---- CUDA (skipped without a GPU) ----

@@ -175,7 +175,10 @@ def multigrid_features(
     if name == "triton":
         half = grids.dtype in (torch.float16, torch.bfloat16)
         if _needs_reference(points, matrices, translations) or not (half or grids.dtype == torch.float32):
-            return multigrid_features_reference(points, matrices, translations, grids.float())
+            # grid_sample wants one dtype: half grids are read at the points' precision
+            return multigrid_features_reference(
+                points, matrices, translations, grids.to(points.dtype) if half else grids
+            )
         from apmgsrn.ops.multigrid_triton import multigrid_features_triton
 
         return multigrid_features_triton(points, matrices, translations, grids)

@@ -7,12 +7,18 @@ pass per point and grid, in registers, and skips grids that do not cover the poi
 into the feature grids with one thread per grid (no atomics, no per-thread copies of the grids) when there
 are at least as many grids as threads, and with per-thread gradient buffers otherwise.
 
-Build: plain C (no PyTorch headers, so it compiles in about a second), called through :mod:`ctypes`
+Vectorisation: points are processed in tiles of 128; for each grid the tile is mapped, tested, compacted
+to the points that touch the grid, weighed and gathered by loops that gcc vectorises (AVX2 gathers with
+``-march=native``), and the gathered values are written into the output rows.
+
+Build: plain C (no PyTorch headers, so it compiles in one to two seconds), called through :mod:`ctypes`
 (which releases the GIL), linked with ``-fopenmp``. PyTorch ships ``libgomp.so.1`` under the same soname
-and loads it first, so the kernel runs on PyTorch's own OpenMP thread pool. The shared object is cached
-under ``$APMGSRN_CACHE`` (default ``~/.cache/apmgsrn``) keyed by the hash of the source, the flags and the
-CPU, so it compiles once per machine. Any failure (no compiler, read-only cache) is reported by
-:func:`load_library` returning ``None``; the dispatcher then falls back to the reference.
+and loads it first, so the kernel runs on PyTorch's own OpenMP thread pool and honours
+``torch.set_num_threads``. The shared object is cached under ``$APMGSRN_CACHE/kernels`` (default
+``~/.cache/apmgsrn/kernels``, a temporary folder if that is not writable) keyed by the hash of the
+source, the flags, the compiler and the CPU, so it compiles once per machine. ``$CC`` picks the compiler
+(default gcc, then cc). If it cannot be built (no compiler, no OpenMP is fine: it then runs on one thread),
+:func:`load_library` returns ``None`` and the dispatcher falls back to the reference.
 
 Semantics are those of :func:`apmgsrn.ops.multigrid.multigrid_features_reference`: corner-aligned,
 zero-padded trilinear sampling (a corner outside the grid contributes zero), grid-major concatenation.
@@ -39,7 +45,12 @@ C_SOURCE = r"""
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
+#ifdef _OPENMP
 #include <omp.h>
+#else  /* built without OpenMP (a compiler that lacks it): one thread, the pragmas are ignored */
+static int omp_get_thread_num(void) { return 0; }
+static int omp_get_num_threads(void) { return 1; }
+#endif
 
 typedef int64_t i64;
 
@@ -171,7 +182,8 @@ void mg_forward(const float *points, i64 n, const float *aff, i64 m, const float
     #pragma omp parallel num_threads(nthreads)
     {
         Scratch s;
-        #pragma omp for schedule(static)
+        /* dynamic: on a shared machine a preempted thread must not hold back a fixed half of the work */
+        #pragma omp for schedule(dynamic, 8)
         for (i64 t = 0; t < ntiles; ++t) {
             const i64 i0 = t * TILE;
             const int nt = (int)(n - i0 < TILE ? n - i0 : TILE);
@@ -282,105 +294,122 @@ static inline float pow_int(float x, int e) {
 
 #define DTILE 256
 
-static void density_forward_impl(
-        const float *points, i64 n, const float *aff, const float *det, i64 m, const int two_p,
-        float *rho, int nthreads) {
-    const i64 ntiles = (n + DTILE - 1) / DTILE;
-    #pragma omp parallel for schedule(static) num_threads(nthreads)
-    for (i64 t = 0; t < ntiles; ++t) {
-        const i64 i0 = t * DTILE;
-        const int nt = (int)(n - i0 < DTILE ? n - i0 : DTILE);
-        float px[DTILE], py[DTILE], pz[DTILE], acc[DTILE];
-        for (int i = 0; i < nt; ++i) {
-            px[i] = points[3 * (i0 + i)]; py[i] = points[3 * (i0 + i) + 1]; pz[i] = points[3 * (i0 + i) + 2];
-            acc[i] = 0.0f;
-        }
-        for (i64 g = 0; g < m; ++g) {
-            const float *a = aff + 12 * g;
-            const float a0 = a[0], a1 = a[1], a2 = a[2], a3 = a[3], a4 = a[4], a5 = a[5];
-            const float a6 = a[6], a7 = a[7], a8 = a[8], a9 = a[9], a10 = a[10], a11 = a[11];
-            const float dg = det[g];
-            #pragma omp simd
-            for (int i = 0; i < nt; ++i) {
-                const float lx = a0 * px[i] + a1 * py[i] + a2 * pz[i] + a9;
-                const float ly = a3 * px[i] + a4 * py[i] + a5 * pz[i] + a10;
-                const float lz = a6 * px[i] + a7 * py[i] + a8 * pz[i] + a11;
-                const float sum = pow_int(lx, two_p) + pow_int(ly, two_p) + pow_int(lz, two_p);
-                acc[i] += dg * exp_nonpositive(-sum);
-            }
-        }
-        for (int i = 0; i < nt; ++i) rho[i0 + i] = acc[i];
+/* rho for the points [i0, i0 + nt) of one tile. Inlined with a literal two_p (2P = 20, the paper's),
+   the powers fold to a few multiplies; OpenMP regions stay outside, since gcc does not propagate
+   constants into the functions it outlines for them. */
+static inline __attribute__((always_inline)) void density_tile(
+        const float *points, i64 i0, int nt, const float *aff, const float *det, i64 m, const int two_p,
+        float *rho) {
+    float px[DTILE], py[DTILE], pz[DTILE], acc[DTILE];
+    for (int i = 0; i < nt; ++i) {
+        px[i] = points[3 * (i0 + i)]; py[i] = points[3 * (i0 + i) + 1]; pz[i] = points[3 * (i0 + i) + 2];
+        acc[i] = 0.0f;
     }
+    for (i64 g = 0; g < m; ++g) {
+        const float *a = aff + 12 * g;
+        const float a0 = a[0], a1 = a[1], a2 = a[2], a3 = a[3], a4 = a[4], a5 = a[5];
+        const float a6 = a[6], a7 = a[7], a8 = a[8], a9 = a[9], a10 = a[10], a11 = a[11];
+        const float dg = det[g];
+        #pragma omp simd
+        for (int i = 0; i < nt; ++i) {
+            const float lx = a0 * px[i] + a1 * py[i] + a2 * pz[i] + a9;
+            const float ly = a3 * px[i] + a4 * py[i] + a5 * pz[i] + a10;
+            const float lz = a6 * px[i] + a7 * py[i] + a8 * pz[i] + a11;
+            const float sum = pow_int(lx, two_p) + pow_int(ly, two_p) + pow_int(lz, two_p);
+            acc[i] += dg * exp_nonpositive(-sum);
+        }
+    }
+    for (int i = 0; i < nt; ++i) rho[i0 + i] = acc[i];
 }
 
-static void density_backward_impl(
-        const float *points, i64 n, const float *aff, const float *det, i64 m, const int two_p,
-        const float *grad_rho, double *partial, int nthreads) {
-    #pragma omp parallel num_threads(nthreads)
-    {
-        const int t = omp_get_thread_num(), nt_ = omp_get_num_threads();
-        double *own = partial + (size_t)t * (size_t)(13 * m);
-        const i64 lo = n * t / nt_, hi = n * (t + 1) / nt_;
-        float px[DTILE], py[DTILE], pz[DTILE], gr[DTILE];
-        for (i64 i0 = lo; i0 < hi; i0 += DTILE) {
-            const int nt = (int)(hi - i0 < DTILE ? hi - i0 : DTILE);
-            for (int i = 0; i < nt; ++i) {
-                px[i] = points[3 * (i0 + i)]; py[i] = points[3 * (i0 + i) + 1]; pz[i] = points[3 * (i0 + i) + 2];
-                gr[i] = grad_rho[i0 + i];
-            }
-            for (i64 g = 0; g < m; ++g) {
-                const float *a = aff + 12 * g;
-                const float a0 = a[0], a1 = a[1], a2 = a[2], a3 = a[3], a4 = a[4], a5 = a[5];
-                const float a6 = a[6], a7 = a[7], a8 = a[8], a9 = a[9], a10 = a[10], a11 = a[11];
-                const float scale = -(float)two_p * det[g];
-                float r0 = 0, rxx = 0, rxy = 0, rxz = 0, ryx = 0, ryy = 0, ryz = 0;
-                float rzx = 0, rzy = 0, rzz = 0, rx = 0, ry = 0, rz = 0;
-                #pragma omp simd reduction(+:r0, rxx, rxy, rxz, ryx, ryy, ryz, rzx, rzy, rzz, rx, ry, rz)
-                for (int i = 0; i < nt; ++i) {
-                    const float lx = a0 * px[i] + a1 * py[i] + a2 * pz[i] + a9;
-                    const float ly = a3 * px[i] + a4 * py[i] + a5 * pz[i] + a10;
-                    const float lz = a6 * px[i] + a7 * py[i] + a8 * pz[i] + a11;
-                    const float qx = pow_int(lx, two_p - 1), qy = pow_int(ly, two_p - 1), qz = pow_int(lz, two_p - 1);
-                    const float e = exp_nonpositive(-(qx * lx + qy * ly + qz * lz));
-                    /* d rho / d det = e; d rho / d l_k = -2P det e l_k^(2P-1); zero where e is 0, so a
-                       far-away point cannot give 0 * inf */
-                    const float ge = gr[i] * e;
-                    const float s = e > 0.0f ? scale * ge : 0.0f;
-                    const float sx = e > 0.0f ? s * qx : 0.0f;
-                    const float sy = e > 0.0f ? s * qy : 0.0f;
-                    const float sz = e > 0.0f ? s * qz : 0.0f;
-                    r0 += ge;
-                    rxx += sx * px[i]; rxy += sx * py[i]; rxz += sx * pz[i]; rx += sx;
-                    ryx += sy * px[i]; ryy += sy * py[i]; ryz += sy * pz[i]; ry += sy;
-                    rzx += sz * px[i]; rzy += sz * py[i]; rzz += sz * pz[i]; rz += sz;
-                }
-                double *r = own + 13 * g;  /* d det, d A (row-major: dl_k/dA_kj = p_j), d t */
-                r[0] += r0;
-                r[1] += rxx; r[2] += rxy; r[3] += rxz;
-                r[4] += ryx; r[5] += ryy; r[6] += ryz;
-                r[7] += rzx; r[8] += rzy; r[9] += rzz;
-                r[10] += rx; r[11] += ry; r[12] += rz;
-            }
+/* Adds this tile's d rho / d (det, A, t) of every grid into own [M, 13] (det, A row-major, t). */
+static inline __attribute__((always_inline)) void density_backward_tile(
+        const float *points, i64 i0, int nt, const float *aff, const float *det, i64 m, const int two_p,
+        const float *grad_rho, double *own) {
+    float px[DTILE], py[DTILE], pz[DTILE], gr[DTILE];
+    for (int i = 0; i < nt; ++i) {
+        px[i] = points[3 * (i0 + i)]; py[i] = points[3 * (i0 + i) + 1]; pz[i] = points[3 * (i0 + i) + 2];
+        gr[i] = grad_rho[i0 + i];
+    }
+    for (i64 g = 0; g < m; ++g) {
+        const float *a = aff + 12 * g;
+        const float a0 = a[0], a1 = a[1], a2 = a[2], a3 = a[3], a4 = a[4], a5 = a[5];
+        const float a6 = a[6], a7 = a[7], a8 = a[8], a9 = a[9], a10 = a[10], a11 = a[11];
+        const float scale = -(float)two_p * det[g];
+        float r0 = 0, rxx = 0, rxy = 0, rxz = 0, ryx = 0, ryy = 0, ryz = 0;
+        float rzx = 0, rzy = 0, rzz = 0, rx = 0, ry = 0, rz = 0;
+        #pragma omp simd reduction(+:r0, rxx, rxy, rxz, ryx, ryy, ryz, rzx, rzy, rzz, rx, ry, rz)
+        for (int i = 0; i < nt; ++i) {
+            const float lx = a0 * px[i] + a1 * py[i] + a2 * pz[i] + a9;
+            const float ly = a3 * px[i] + a4 * py[i] + a5 * pz[i] + a10;
+            const float lz = a6 * px[i] + a7 * py[i] + a8 * pz[i] + a11;
+            const float qx = pow_int(lx, two_p - 1), qy = pow_int(ly, two_p - 1), qz = pow_int(lz, two_p - 1);
+            const float e = exp_nonpositive(-(qx * lx + qy * ly + qz * lz));
+            /* d rho / d det = e; d rho / d l_k = -2P det e l_k^(2P-1); zero where e is 0, so a far-away
+               point cannot give 0 * inf */
+            const float ge = gr[i] * e;
+            const float sg = e > 0.0f ? scale * ge : 0.0f;
+            const float sx = e > 0.0f ? sg * qx : 0.0f;
+            const float sy = e > 0.0f ? sg * qy : 0.0f;
+            const float sz = e > 0.0f ? sg * qz : 0.0f;
+            r0 += ge;
+            rxx += sx * px[i]; rxy += sx * py[i]; rxz += sx * pz[i]; rx += sx;
+            ryx += sy * px[i]; ryy += sy * py[i]; ryz += sy * pz[i]; ry += sy;
+            rzx += sz * px[i]; rzy += sz * py[i]; rzz += sz * pz[i]; rz += sz;
         }
+        double *r = own + 13 * g;  /* dl_k / dA_kj = p_j, dl_k / dt_k = 1 */
+        r[0] += r0;
+        r[1] += rxx; r[2] += rxy; r[3] += rxz;
+        r[4] += ryx; r[5] += ryy; r[6] += ryz;
+        r[7] += rzx; r[8] += rzy; r[9] += rzz;
+        r[10] += rx; r[11] += ry; r[12] += rz;
     }
 }
 
 /* aff: [M, 12] plain maps (A row-major, then t), local units; 1 <= power <= 63. */
 void mg_density(const float *points, i64 n, const float *aff, const float *det, i64 m, int power,
                 float *rho, int nthreads) {
-    density_forward_impl(points, n, aff, det, m, 2 * power, rho, nthreads);
+    const i64 ntiles = (n + DTILE - 1) / DTILE;
+    #pragma omp parallel for schedule(dynamic, 4) num_threads(nthreads)
+    for (i64 t = 0; t < ntiles; ++t) {
+        const i64 i0 = t * DTILE;
+        const int nt = (int)(n - i0 < DTILE ? n - i0 : DTILE);
+        if (power == 10)
+            density_tile(points, i0, nt, aff, det, m, 20, rho);
+        else
+            density_tile(points, i0, nt, aff, det, m, 2 * power, rho);
+    }
 }
 
-/* partial: [nthreads, M, 13] zeroed doubles; each thread sums its points into its own block. */
+/* partial: [nthreads, M, 13] zeroed doubles; each thread sums into its own block (no races). */
 void mg_density_backward(const float *points, i64 n, const float *aff, const float *det, i64 m,
                          int power, const float *grad_rho, double *partial, int nthreads) {
-    density_backward_impl(points, n, aff, det, m, 2 * power, grad_rho, partial, nthreads);
+    const i64 ntiles = (n + DTILE - 1) / DTILE;
+    #pragma omp parallel num_threads(nthreads)
+    {
+        double *own = partial + (size_t)omp_get_thread_num() * (size_t)(13 * m);
+        #pragma omp for schedule(dynamic, 4)
+        for (i64 t = 0; t < ntiles; ++t) {
+            const i64 i0 = t * DTILE;
+            const int nt = (int)(n - i0 < DTILE ? n - i0 : DTILE);
+            if (power == 10)
+                density_backward_tile(points, i0, nt, aff, det, m, 20, grad_rho, own);
+            else
+                density_backward_tile(points, i0, nt, aff, det, m, 2 * power, grad_rho, own);
+        }
+    }
 }
 """
 
-# -fno-trapping-math lets gcc if-convert the float selects (else no loop vectorises); neither flag
-# changes a result: the kernel never reads errno or floating-point exception flags.
-COMPILE_FLAGS = ["-O3", "-march=native", "-fopenmp", "-fPIC", "-shared", "-fno-math-errno", "-fno-trapping-math"]
+# Tried in order until one compiles: tuned for this CPU with OpenMP, then portable, then single-threaded.
+# -fno-trapping-math lets gcc if-convert the float selects (else no loop vectorises); neither it nor
+# -fno-math-errno changes a result, since the kernel never reads errno or floating-point exception flags.
+COMMON_FLAGS = ["-O3", "-fPIC", "-shared", "-fno-math-errno", "-fno-trapping-math", "-Wno-unknown-pragmas"]
+FLAG_SETS = (
+    ["-march=native", "-fopenmp"],
+    ["-fopenmp"],
+    [],
+)
 
 _lock = threading.Lock()
 _library: ctypes.CDLL | None = None
@@ -399,27 +428,46 @@ def _cpu_signature() -> str:
 
 
 def cache_dir() -> Path:
-    """Folder of built kernels: ``$APMGSRN_CACHE`` or ``~/.cache/apmgsrn``."""
+    """Folder of built kernels: ``$APMGSRN_CACHE/kernels``, default ``~/.cache/apmgsrn/kernels``."""
     root = os.environ.get("APMGSRN_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "apmgsrn")
     return Path(root) / "kernels"
 
 
-def _build(target: Path, compiler: str) -> None:
-    target.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
+def _compile(folder: Path, name: str, compiler: str) -> Path:
+    """Compile the source into ``folder / name``, trying :data:`FLAG_SETS` in order."""
+    folder.mkdir(parents=True, exist_ok=True)
+    errors = []
+    with tempfile.TemporaryDirectory(dir=folder) as tmp:
         src = Path(tmp) / "multigrid_cpu.c"
         src.write_text(C_SOURCE)
-        out = Path(tmp) / target.name
-        proc = subprocess.run(
-            [compiler, *COMPILE_FLAGS, str(src), "-o", str(out), "-lm"],
-            capture_output=True,
-            text=True,
-            timeout=300,
-        )
-        if proc.returncode != 0:
-            raise RuntimeError(f"{compiler} failed:\n{proc.stderr[-2000:]}")
-        # Atomic: a concurrent process either sees no file or a complete one.
-        os.replace(out, target)
+        out = Path(tmp) / name
+        for extra in FLAG_SETS:
+            proc = subprocess.run(
+                [compiler, *COMMON_FLAGS, *extra, str(src), "-o", str(out), "-lm"],
+                capture_output=True,
+                text=True,
+                timeout=300,
+            )
+            if proc.returncode == 0:
+                target = folder / name
+                # Atomic: a concurrent process sees either no file or a complete one.
+                os.replace(out, target)
+                return target
+            errors.append(f"{' '.join(extra) or 'plain'}: {proc.stderr.strip()[-800:]}")
+    raise RuntimeError(f"{compiler} could not build the kernel:\n" + "\n".join(errors))
+
+
+def _build(name: str, compiler: str) -> Path:
+    """The cached library, compiled on first use; a temporary folder if the cache is not writable."""
+    target = cache_dir() / name
+    if target.exists():
+        return target
+    try:
+        return _compile(cache_dir(), name, compiler)
+    except OSError:
+        fallback = Path(tempfile.gettempdir()) / f"apmgsrn-kernels-{os.getuid() if hasattr(os, 'getuid') else 0}"
+        target = fallback / name
+        return target if target.exists() else _compile(fallback, name, compiler)
 
 
 def _declare(lib: ctypes.CDLL) -> None:
@@ -445,16 +493,13 @@ def load_library() -> ctypes.CDLL | None:
             return _library
         _tried = True
         try:
-            compiler = os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc")
+            wanted = os.environ.get("CC")
+            compiler = shutil.which(wanted) if wanted else shutil.which("gcc") or shutil.which("cc")
             if compiler is None:
-                raise RuntimeError("no C compiler (gcc or cc) on PATH")
-            key = hashlib.sha256(
-                "\0".join([C_SOURCE, " ".join(COMPILE_FLAGS), compiler, _cpu_signature()]).encode()
-            ).hexdigest()[:16]
-            target = cache_dir() / f"multigrid_cpu_{key}.so"
-            if not target.exists():
-                _build(target, compiler)
-            lib = ctypes.CDLL(str(target))
+                raise RuntimeError(f"C compiler {wanted!r} not found" if wanted else "no C compiler (gcc or cc) on PATH")
+            flags = repr((COMMON_FLAGS, FLAG_SETS))
+            key = hashlib.sha256("\0".join([C_SOURCE, flags, compiler, _cpu_signature()]).encode()).hexdigest()[:16]
+            lib = ctypes.CDLL(str(_build(f"multigrid_cpu_{key}.so", compiler)))
             _declare(lib)
             _library = lib
         except Exception as err:  # noqa: BLE001 - any build problem means "use the reference"
