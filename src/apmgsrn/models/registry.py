@@ -7,10 +7,14 @@ from dataclasses import dataclass
 
 from apmgsrn.models.decoder import DecoderConfig
 from apmgsrn.models.encoders.adaptive_multigrid import AdaptiveMultiGridConfig, AdaptiveMultiGridEncoder
+from apmgsrn.models.encoders.dense_grid import DenseGridConfig, DenseGridEncoder
+from apmgsrn.models.encoders.hash_grid import HashGridConfig, HashGridEncoder
 
 # model name -> (encoder config class, encoder class)
 ENCODERS: dict[str, tuple[type, type]] = {
     "apmgsrn": (AdaptiveMultiGridConfig, AdaptiveMultiGridEncoder),
+    "fvsrn": (DenseGridConfig, DenseGridEncoder),
+    "ngp": (HashGridConfig, HashGridEncoder),
 }
 
 # model name -> preset name -> encoder config fields (SPEC section 5, paper Table 1 sizes)
@@ -20,7 +24,21 @@ PRESETS: dict[str, dict[str, dict]] = {
         "medium": dict(grids=16, features=2, resolution=(32, 32, 32)),
         "large": dict(grids=16, features=4, resolution=(64, 64, 64)),
     },
+    "fvsrn": {
+        "small": dict(features=2, resolution=(32, 32, 32)),
+        "medium": dict(features=4, resolution=(64, 64, 64)),
+        "large": dict(features=8, resolution=(128, 128, 128)),
+    },
+    "ngp": {
+        "small": dict(levels=17, features=2, log2_table_size=11, base_resolution=8, finest_resolution=256),
+        "medium": dict(levels=18, features=2, log2_table_size=15, base_resolution=16, finest_resolution=512),
+        "large": dict(levels=17, features=2, log2_table_size=20, base_resolution=16, finest_resolution=256),
+    },
 }
+
+# model name -> default learning-rate schedule of the trainer (see TrainConfig.lr_schedule). Measured under
+# the CPU protocol (docs/baselines.md): the budget-following cosine also suits the baselines.
+DEFAULT_LR_SCHEDULES: dict[str, str] = {"apmgsrn": "cosine", "fvsrn": "cosine", "ngp": "cosine"}
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,286 @@
+"""``bench compress``: the networks against SZ3 and ZFP on one volume.
+
+For each compressor and error bound, and for each network: compressed size and ratio, PSNR and largest
+error over every voxel, compression time (training time for a network), whole-volume decompression time
+and throughput, and the cost of answering random point queries. A compressor has to decompress the whole
+volume before it can interpolate at a single point; a network evaluates the points directly.
+
+Networks are trained through ``bench quality`` into the same folder (so ``quality.csv`` keeps them and a
+second run reuses them), or given as existing model files.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from apmgsrn.bench.datasets import DataSpec, open_spec
+from apmgsrn.bench.results import CompressRow, write_rows
+from apmgsrn.errors import ApmgsrnError
+
+DEFAULT_BOUNDS = (1e-1, 3e-2, 1e-2, 3e-3, 1e-3, 3e-4, 1e-4)
+
+
+@dataclass(frozen=True)
+class CompressPlan:
+    """What ``bench compress`` runs.
+
+    Attributes:
+        dataset: the volume.
+        models, sizes: networks to train (through ``bench quality``) when ``model_files`` is empty.
+        model_files: trained models of this volume to use instead.
+        compressors: names of :data:`apmgsrn.bench.compressors.COMPRESSORS`.
+        bounds: error bounds relative to the value range, one run per compressor and bound.
+        iterations, batch_size, seed: training budget of the networks.
+        query_points: random points of the query test.
+    """
+
+    dataset: DataSpec
+    models: tuple[str, ...] = ("apmgsrn", "fvsrn", "ngp")
+    sizes: tuple[str, ...] = ("small",)
+    model_files: tuple[Path, ...] = ()
+    compressors: tuple[str, ...] = ("sz3", "zfp")
+    bounds: tuple[float, ...] = DEFAULT_BOUNDS
+    iterations: int = 2000
+    batch_size: int = 32768
+    seed: int = 0
+    query_points: int = 2**20
+
+    def __post_init__(self) -> None:
+        if any(not 0 < b < 1 for b in self.bounds):
+            raise ApmgsrnError("--bounds must lie between 0 and 1 (fractions of the value range)")
+        if self.query_points < 1:
+            raise ApmgsrnError("--query-points must be positive")
+
+
+@dataclass(frozen=True)
+class CompressReport:
+    """Rows of one run and where they were written."""
+
+    rows: list[CompressRow]
+    skipped: list[str]
+    csv: Path
+    markdown: Path
+    chart: Path
+
+
+def compress_paths(out: Path, spec: DataSpec) -> dict[str, Path]:
+    """Files of a compression benchmark of ``spec`` in folder ``out``."""
+    return {
+        "csv": out / f"compress_{spec.stem}.csv",
+        "markdown": out / f"compress_{spec.stem}.md",
+        "chart": out / f"compress_{spec.stem}.png",
+    }
+
+
+def run_compress(
+    plan: CompressPlan, out: Path, device: torch.device, log: Callable[[str], None] = print
+) -> CompressReport:
+    """Run every compressor setting and network of ``plan``; write CSV, Markdown table and chart.
+
+    Args:
+        plan: the volume, compressors and networks.
+        out: results folder (created if missing).
+        device: where networks are trained and evaluated.
+        log: receives one line per result and per skipped compressor.
+
+    Returns:
+        The rows (compressors first, then networks) and the skipped compressors' reasons.
+    """
+    from apmgsrn.bench.charts import rate_distortion_chart
+    from apmgsrn.bench.compressors import get_compressor
+    from apmgsrn.bench.quality import QualityPlan, prepare_folder, run_quality
+    from apmgsrn.bench.tables import compress_table
+
+    prepare_folder(out)
+    paths = compress_paths(Path(out), plan.dataset)
+    volume = open_spec(plan.dataset)
+    data = volume.to_numpy()  # [D, H, W] float32: compressors need the whole array
+    label = plan.dataset.label
+    generator = torch.Generator().manual_seed(1234)
+    points = torch.rand(plan.query_points, 3, generator=generator) * 2 - 1  # [Q, 3]
+
+    rows: list[CompressRow] = []
+    skipped: list[str] = []
+    for name in plan.compressors:
+        compressor = get_compressor(name)
+        if not compressor.available():
+            skipped.append(compressor.unavailable_reason())
+            log(f"skipped {compressor.unavailable_reason()}")
+            continue
+        for bound in plan.bounds:
+            row = measure_compressor(compressor, data, bound, points, label)
+            rows.append(row)
+            log(f"{label} {name} bound {bound:g}: ratio {row.compression_ratio:.1f}, {row.psnr:.2f} dB")
+
+    model_files = list(plan.model_files)
+    settings = {}
+    if not model_files:
+        quality = QualityPlan(
+            datasets=(plan.dataset,), models=plan.models, sizes=plan.sizes, seeds=1,
+            iterations=plan.iterations, batch_size=plan.batch_size,
+        )
+        trained = run_quality(quality, Path(out), device, log=log)
+        for row in trained:
+            if row.dataset == label and row.model in plan.models and row.size in plan.sizes and row.seed == 0 \
+                    and row.iterations == plan.iterations and row.batch_size == plan.batch_size:
+                model_files.append(Path(row.model_file))
+                settings[str(row.model_file)] = (row.size, row.train_seconds)
+    for path in model_files:
+        size, seconds = settings.get(str(path), (None, None))
+        row = measure_model(path, data, points, label, device, size, seconds)
+        rows.append(row)
+        log(f"{label} {row.method} {row.setting}: ratio {row.compression_ratio:.1f}, {row.psnr:.2f} dB")
+
+    write_rows(paths["csv"], rows, CompressRow)
+    paths["markdown"].write_text(compress_table(rows))
+    if rows:
+        rate_distortion_chart(rows, paths["chart"], title=f"{label} {volume_shape_text(volume)}")
+    return CompressReport(rows, skipped, paths["csv"], paths["markdown"], paths["chart"])
+
+
+def volume_shape_text(volume) -> str:
+    return "x".join(str(n) for n in reversed(volume.shape))
+
+
+def measure_compressor(compressor, data: np.ndarray, bound: float, points: torch.Tensor, label: str) -> CompressRow:
+    """Compress, decompress and query one volume with one compressor at one relative error bound.
+
+    Args:
+        compressor: a :class:`~apmgsrn.bench.compressors.Compressor`.
+        data: ``[D, H, W]`` float32 volume.
+        bound: error bound relative to the value range.
+        points: ``[Q, 3]`` query points in ``[-1, 1]^3``.
+        label: volume name for the row.
+    """
+    from apmgsrn.ops.trilinear import sample_volume
+
+    start = time.perf_counter()
+    compressed = compressor.compress(data, bound)
+    compress_seconds = time.perf_counter() - start
+    start = time.perf_counter()
+    restored = compressor.decompress(compressed)
+    decompress_seconds = time.perf_counter() - start
+    psnr, max_error = _errors(restored, data)
+    # Point queries from the compressed form: decompress everything, then interpolate.
+    start = time.perf_counter()
+    values = sample_volume(torch.from_numpy(compressor.decompress(compressed)), points)
+    query_seconds = time.perf_counter() - start
+    del values
+    raw_bytes = data.size * 4
+    return CompressRow(
+        dataset=label,
+        method=compressor.name,
+        setting=f"{bound:g}",
+        compressed_bytes=len(compressed.data),
+        compression_ratio=raw_bytes / len(compressed.data),
+        psnr=psnr,
+        max_abs_error=max_error,
+        compress_seconds=compress_seconds,
+        decompress_seconds=decompress_seconds,
+        decompress_voxels_per_second=data.size / decompress_seconds,
+        query_points=points.shape[0],
+        query_seconds=query_seconds,
+        query_points_per_second=points.shape[0] / query_seconds,
+    )
+
+
+def measure_model(
+    path: Path,
+    data: np.ndarray,
+    points: torch.Tensor,
+    label: str,
+    device: torch.device,
+    size: str | None = None,
+    train_seconds: float | None = None,
+) -> CompressRow:
+    """Decode and query one trained model of ``data``'s volume.
+
+    Args:
+        path: model file.
+        data: ``[D, H, W]`` float32 ground truth.
+        points: ``[Q, 3]`` query points.
+        label: volume name for the row.
+        device: where to evaluate.
+        size: preset name for the row (else read from the file's training record, else ``custom``).
+        train_seconds: training time (else read from the file).
+
+    Raises:
+        ApmgsrnError: the model was trained on a volume of another shape.
+    """
+    import apmgsrn
+    from apmgsrn.inference.query import query
+    from apmgsrn.ops.trilinear import voxel_coordinates
+
+    field = apmgsrn.load(path, device=device)
+    if tuple(getattr(field, "volume_shape", data.shape)) != tuple(data.shape):
+        raise ApmgsrnError(f"{path}: model was trained on a volume of another shape; pass models of this volume")
+    summary = getattr(field, "training_summary", {}) or {}
+    if train_seconds is None:
+        train_seconds = float(summary.get("seconds", math.nan))
+    method = field.config.model if hasattr(field, "config") else "model"
+    query(field, points[:4096].to(device))  # warm-up: allocator, kernels, thread pool
+    _synchronize(device)
+    start = time.perf_counter()
+    d, h, w = data.shape
+    decoded = np.empty_like(data)
+    step = max(1, 2**22 // (h * w))
+    for z0 in range(0, d, step):
+        z = slice(z0, min(d, z0 + step))
+        decoded[z] = query(field, voxel_coordinates(data.shape, z)).numpy().reshape(-1, h, w)
+    decompress_seconds = time.perf_counter() - start
+    psnr, max_error = _errors(decoded, data)
+    _synchronize(device)
+    start = time.perf_counter()
+    query(field, points)
+    _synchronize(device)
+    query_seconds = time.perf_counter() - start
+    file_bytes = Path(path).stat().st_size
+    return CompressRow(
+        dataset=label,
+        method=method,
+        setting=size or _preset_of(field) or "custom",
+        compressed_bytes=file_bytes,
+        compression_ratio=data.size * 4 / file_bytes,
+        psnr=psnr,
+        max_abs_error=max_error,
+        compress_seconds=train_seconds,
+        decompress_seconds=decompress_seconds,
+        decompress_voxels_per_second=data.size / decompress_seconds,
+        query_points=points.shape[0],
+        query_seconds=query_seconds,
+        query_points_per_second=points.shape[0] / query_seconds,
+    )
+
+
+def _preset_of(field) -> str | None:
+    """The size preset whose encoder config the field has, if any."""
+    import dataclasses
+
+    from apmgsrn.models.registry import PRESETS
+
+    config = dataclasses.asdict(field.config.encoder)
+    for preset, fields in PRESETS.get(field.config.model, {}).items():
+        if all(config.get(k) == (tuple(v) if isinstance(v, list) else v) for k, v in fields.items()):
+            return preset
+    return None
+
+
+def _errors(restored: np.ndarray, data: np.ndarray) -> tuple[float, float]:
+    """(PSNR over every voxel with the ground truth's range, largest absolute error)."""
+    from apmgsrn.inference.evaluate import psnr_from_mse
+
+    diff = restored.astype(np.float64).reshape(-1) - data.astype(np.float64).reshape(-1)
+    mse = float(np.dot(diff, diff)) / diff.size
+    return psnr_from_mse(mse, float(data.max()) - float(data.min())), float(np.abs(diff).max())
+
+
+def _synchronize(device: torch.device) -> None:
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)

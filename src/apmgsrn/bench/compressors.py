@@ -1,0 +1,119 @@
+"""Error-bounded lossy compressors to compare the networks with: SZ3 (``pysz``) and ZFP (``zfpy``).
+
+Both are optional (``pip install 'apmgsrn[baselines]'``); each is imported only when used. Error bounds
+are relative to the volume's value range (``max - min``), the form both compressors can honour: SZ3's
+``REL`` mode and ZFP's fixed-accuracy mode with tolerance ``bound * range``. Either guarantees
+``max |x - x'| <= bound * range`` (ZFP's tolerance is a bound it meets with margin).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from apmgsrn.errors import ApmgsrnError
+
+INSTALL_HINT = "pip install 'apmgsrn[baselines]'"
+
+
+@dataclass(frozen=True)
+class Compressed:
+    """A compressed volume: the byte stream and what decompression needs besides it."""
+
+    data: bytes
+    shape: tuple[int, ...]
+
+
+class Compressor:
+    """One lossy compressor; subclasses name their package and implement the two directions."""
+
+    name = ""
+    package = ""
+
+    def available(self) -> bool:
+        """True when the compressor's package imports here."""
+        try:
+            self._module()
+        except ImportError:
+            return False
+        return True
+
+    def unavailable_reason(self) -> str:
+        """Why :meth:`available` is False, with the fix."""
+        return f"{self.name}: the {self.package!r} package is not installed; {INSTALL_HINT}"
+
+    def _module(self):
+        raise NotImplementedError
+
+    def compress(self, volume: np.ndarray, relative_bound: float) -> Compressed:
+        """Compress a float32 ``[D, H, W]`` volume so that every error is at most ``bound * range``."""
+        raise NotImplementedError
+
+    def decompress(self, compressed: Compressed) -> np.ndarray:
+        """The float32 ``[D, H, W]`` volume back."""
+        raise NotImplementedError
+
+
+class SZ3Compressor(Compressor):
+    """SZ3 (prediction + quantisation + entropy coding) through ``pysz``, value-range-relative bound."""
+
+    name = "sz3"
+    package = "pysz"
+
+    def _module(self):
+        import pysz
+
+        return pysz
+
+    def compress(self, volume: np.ndarray, relative_bound: float) -> Compressed:
+        pysz = self._module()
+        config = pysz.szConfig()
+        config.errorBoundMode = pysz.szErrorBoundMode.REL
+        config.relErrorBound = float(relative_bound)
+        stream, _ratio = pysz.sz.compress(np.ascontiguousarray(volume, dtype=np.float32), config)
+        return Compressed(stream.tobytes(), tuple(volume.shape))
+
+    def decompress(self, compressed: Compressed) -> np.ndarray:
+        pysz = self._module()
+        stream = np.frombuffer(compressed.data, dtype=np.uint8)
+        values, _config = pysz.sz.decompress(stream, np.float32, compressed.shape)
+        return values
+
+
+class ZFPCompressor(Compressor):
+    """ZFP (block transform coding) through ``zfpy`` in fixed-accuracy mode."""
+
+    name = "zfp"
+    package = "zfpy"
+
+    def _module(self):
+        import zfpy
+
+        return zfpy
+
+    def compress(self, volume: np.ndarray, relative_bound: float) -> Compressed:
+        zfpy = self._module()
+        volume = np.ascontiguousarray(volume, dtype=np.float32)
+        value_range = float(volume.max() - volume.min()) if volume.size else 0.0
+        # ZFP's tolerance is absolute; a constant volume (range 0) is coded losslessly by tolerance 0.
+        tolerance = float(relative_bound) * value_range
+        return Compressed(zfpy.compress_numpy(volume, tolerance=tolerance), tuple(volume.shape))
+
+    def decompress(self, compressed: Compressed) -> np.ndarray:
+        zfpy = self._module()
+        return zfpy.decompress_numpy(compressed.data)
+
+
+COMPRESSORS: dict[str, type[Compressor]] = {"sz3": SZ3Compressor, "zfp": ZFPCompressor}
+
+
+def get_compressor(name: str) -> Compressor:
+    """The compressor called ``name``.
+
+    Raises:
+        ApmgsrnError: unknown name.
+    """
+    if name not in COMPRESSORS:
+        raise ApmgsrnError(f"unknown compressor {name!r}; choose from {', '.join(COMPRESSORS)}")
+    return COMPRESSORS[name]()

@@ -1,0 +1,171 @@
+"""``bench quality``: train every (volume, model, size, seed) and tabulate PSNR, real size and time.
+
+Results go to ``OUT/quality.csv`` one row per finished run, so an interrupted or extended benchmark (more
+volumes, seeds or models) only runs what is missing. ``OUT/quality.md`` holds the tables in the form of the
+paper's Table 1 and ``OUT/quality.png`` the chart; both are rebuilt from every row in the CSV.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from apmgsrn.bench.datasets import DataSpec, open_spec
+from apmgsrn.bench.results import QualityRow, append_row, read_rows
+from apmgsrn.errors import ApmgsrnError
+
+
+@dataclass(frozen=True)
+class QualityPlan:
+    """What ``bench quality`` runs.
+
+    Attributes:
+        datasets: the volumes.
+        models: model names (keys of :data:`apmgsrn.models.registry.ENCODERS`).
+        sizes: size presets.
+        seeds: seeds ``0 .. seeds - 1`` per combination.
+        iterations, batch_size: training budget of every run.
+        lr_schedule: one schedule for every model, or None for each model's default.
+        transform, log_offset: value transform applied to every volume.
+    """
+
+    datasets: tuple[DataSpec, ...]
+    models: tuple[str, ...] = ("apmgsrn", "fvsrn", "ngp")
+    sizes: tuple[str, ...] = ("small", "medium")
+    seeds: int = 1
+    iterations: int = 2000
+    batch_size: int = 32768
+    lr_schedule: str | None = None
+    transform: str = "none"
+    log_offset: float = 0.0
+
+    def __post_init__(self) -> None:
+        from apmgsrn.models.registry import ENCODERS, PRESETS
+
+        for model in self.models:
+            if model not in ENCODERS:
+                raise ApmgsrnError(f"unknown model {model!r}; choose from {', '.join(ENCODERS)}")
+            for size in self.sizes:
+                if size not in PRESETS[model]:
+                    raise ApmgsrnError(f"unknown size {size!r}; choose from {', '.join(PRESETS[model])}")
+        if self.seeds < 1 or self.iterations < 1 or self.batch_size < 1:
+            raise ApmgsrnError("--seeds, --iterations and --batch-size must be positive")
+
+
+def quality_paths(out: Path) -> dict[str, Path]:
+    """Files of a quality benchmark in folder ``out``."""
+    return {
+        "csv": out / "quality.csv",
+        "markdown": out / "quality.md",
+        "chart": out / "quality.png",
+        "models": out / "models",
+    }
+
+
+def run_quality(
+    plan: QualityPlan,
+    out: Path,
+    device: torch.device,
+    log: Callable[[str], None] = print,
+) -> list[QualityRow]:
+    """Train what ``plan`` asks that ``out/quality.csv`` does not hold yet; then rebuild table and chart.
+
+    Args:
+        plan: the combinations and budget.
+        out: results folder (created if missing; its parent must exist).
+        device: training device.
+        log: receives one line per run.
+
+    Returns:
+        Every row of the CSV (earlier runs included).
+    """
+    from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
+    from apmgsrn.training.fit import fit_volume
+    from apmgsrn.training.trainer import TrainConfig
+
+    paths = prepare_folder(out)
+    rows = read_rows(paths["csv"], QualityRow)
+    done = {row.key() for row in rows}
+    cases = [
+        (spec, model, size, seed)
+        for spec in plan.datasets
+        for model in plan.models
+        for size in plan.sizes
+        for seed in range(plan.seeds)
+    ]
+    for number, (spec, model, size, seed) in enumerate(cases, 1):
+        schedule = plan.lr_schedule or DEFAULT_LR_SCHEDULES.get(model, "cosine")
+        key = (spec.label, model, size, seed, plan.iterations, plan.batch_size, schedule)
+        if key in done:
+            continue
+        volume = open_spec(spec)
+        train_config = TrainConfig(
+            iterations=plan.iterations, batch_size=plan.batch_size, lr_schedule=schedule, seed=seed,
+            checkpoint_every=max(250, plan.iterations // 4),
+        )
+        model_file = paths["models"] / f"{spec.stem}_{model}_{size}_s{seed}_i{plan.iterations}.apmgsrn"
+        result = fit_volume(
+            volume, preset_config(model, size), train_config, model_file, device,
+            transform=plan.transform, log_offset=plan.log_offset, resume=True,
+        )
+        parameters = result.field.parameter_count()
+        row = QualityRow(
+            dataset=spec.label,
+            shape="x".join(str(n) for n in reversed(volume.shape)),
+            model=model,
+            size=size,
+            seed=seed,
+            iterations=result.iterations,
+            batch_size=plan.batch_size,
+            lr_schedule=schedule,
+            parameters=parameters,
+            parameter_bytes=parameters * 4,
+            file_bytes=result.model_bytes,
+            raw_bytes=volume.raw_bytes,
+            compression_ratio=volume.raw_bytes / result.model_bytes,
+            psnr=result.psnr,
+            train_seconds=result.seconds,
+            ms_per_iteration=1000 * result.seconds / max(result.iterations, 1),
+            device=str(device),
+            model_file=str(model_file),
+        )
+        append_row(paths["csv"], row)
+        rows.append(row)
+        done.add(key)
+        log(
+            f"[{number}/{len(cases)}] {spec.label} {model} {size} seed {seed}: {row.psnr:.2f} dB, "
+            f"{parameters:,} parameters, {row.file_bytes / 1024:.0f} KB, {row.train_seconds:.1f} s"
+        )
+    write_quality_report(rows, out)
+    return rows
+
+
+def prepare_folder(out: Path) -> dict[str, Path]:
+    """Create the results folder and its ``models`` subfolder.
+
+    Raises:
+        ApmgsrnError: the parent folder does not exist or ``out`` is a file.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ApmgsrnError(f"{out}: is a file; --out needs a folder for the results")
+    if not out.absolute().parent.is_dir():
+        raise ApmgsrnError(f"{out}: parent folder {out.parent} does not exist; create it or choose another --out")
+    paths = quality_paths(out)
+    paths["models"].mkdir(parents=True, exist_ok=True)
+    return paths
+
+
+def write_quality_report(rows: list[QualityRow], out: Path) -> None:
+    """Write ``quality.md`` (tables) and ``quality.png`` (chart) into ``out`` from ``rows``."""
+    from apmgsrn.bench.charts import quality_chart
+    from apmgsrn.bench.tables import quality_tables
+
+    if not rows:
+        return
+    paths = quality_paths(Path(out))
+    paths["markdown"].write_text(quality_tables(rows))
+    quality_chart(rows, paths["chart"])

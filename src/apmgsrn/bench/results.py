@@ -1,0 +1,191 @@
+"""Benchmark result rows and their CSV files (one row per run; appended as runs finish)."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import statistics
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TypeVar
+
+from apmgsrn.errors import ApmgsrnError
+
+#: Model names as the paper prints them.
+MODEL_TITLES = {"apmgsrn": "APMGSRN", "fvsrn": "fVSRN", "ngp": "NGP"}
+SIZE_ORDER = ("small", "medium", "large")
+
+
+@dataclass(frozen=True)
+class QualityRow:
+    """One trained model of ``bench quality``.
+
+    Attributes:
+        dataset: ``file:variable`` label.
+        shape: ``XxYxZ`` of the volume.
+        model, size, seed: what was trained.
+        iterations, batch_size, lr_schedule: how.
+        parameters: real parameter count.
+        parameter_bytes: ``parameters * 4`` (float32).
+        file_bytes: size of the saved model file (weights + metadata).
+        raw_bytes: the volume as float32.
+        compression_ratio: ``raw_bytes / file_bytes``.
+        psnr: over every voxel (dB).
+        train_seconds: training loop wall time.
+        ms_per_iteration: ``train_seconds`` per iteration.
+        device: where it trained.
+        model_file: path of the model file.
+    """
+
+    dataset: str
+    shape: str
+    model: str
+    size: str
+    seed: int
+    iterations: int
+    batch_size: int
+    lr_schedule: str
+    parameters: int
+    parameter_bytes: int
+    file_bytes: int
+    raw_bytes: int
+    compression_ratio: float
+    psnr: float
+    train_seconds: float
+    ms_per_iteration: float
+    device: str
+    model_file: str
+
+    def key(self) -> tuple:
+        """What identifies a run: a row with the same key is not run again."""
+        return (self.dataset, self.model, self.size, self.seed, self.iterations, self.batch_size, self.lr_schedule)
+
+
+@dataclass(frozen=True)
+class CompressRow:
+    """One point of ``bench compress``: a compressor at one error bound, or one network.
+
+    Attributes:
+        dataset: ``file:variable`` label.
+        method: ``sz3``, ``zfp`` or a model name.
+        setting: the error bound relative to the value range (compressors) or the size preset (models).
+        compressed_bytes: compressed stream or model file size.
+        compression_ratio: float32 volume bytes / ``compressed_bytes``.
+        psnr: over every voxel (dB).
+        max_abs_error: largest voxel error (data units).
+        compress_seconds: compression time (training time for a network).
+        decompress_seconds: whole-volume decompression (decode for a network).
+        decompress_voxels_per_second: voxels / ``decompress_seconds``.
+        query_points: random points of the query test.
+        query_seconds: time to answer them from the compressed form (a compressor decompresses first).
+        query_points_per_second: ``query_points / query_seconds``.
+    """
+
+    dataset: str
+    method: str
+    setting: str
+    compressed_bytes: int
+    compression_ratio: float
+    psnr: float
+    max_abs_error: float
+    compress_seconds: float
+    decompress_seconds: float
+    decompress_voxels_per_second: float
+    query_points: int
+    query_seconds: float
+    query_points_per_second: float
+
+
+Row = TypeVar("Row", QualityRow, CompressRow)
+
+
+def write_rows(path: Path, rows: list, row_type: type) -> None:
+    """Write ``rows`` (of ``row_type``) as a CSV with a header, replacing ``path``."""
+    names = [f.name for f in dataclasses.fields(row_type)]
+    with open(path, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(names)
+        for row in rows:
+            writer.writerow([_format(getattr(row, name)) for name in names])
+
+
+def append_row(path: Path, row) -> None:
+    """Append one row to a CSV (header first if the file is new), so finished runs survive a crash."""
+    names = [f.name for f in dataclasses.fields(type(row))]
+    new = not path.exists() or path.stat().st_size == 0
+    with open(path, "a", newline="") as handle:
+        writer = csv.writer(handle)
+        if new:
+            writer.writerow(names)
+        writer.writerow([_format(getattr(row, name)) for name in names])
+
+
+def read_rows(path: Path, row_type: type[Row]) -> list[Row]:
+    """Rows of a CSV written by :func:`write_rows` / :func:`append_row`; an absent file gives none.
+
+    Raises:
+        ApmgsrnError: the file is not such a CSV (another header).
+    """
+    if not path.exists():
+        return []
+    fields = {f.name: f.type for f in dataclasses.fields(row_type)}
+    with open(path, newline="") as handle:
+        reader = csv.DictReader(handle)
+        if reader.fieldnames is None:
+            return []
+        if set(reader.fieldnames) != set(fields):
+            raise ApmgsrnError(
+                f"{path}: not a {row_type.__name__} results file (other columns); choose another --out folder"
+            )
+        rows = []
+        for record in reader:
+            values = {}
+            for name, kind in fields.items():
+                text = record[name]
+                if kind in ("int", int):
+                    values[name] = int(text)
+                elif kind in ("float", float):
+                    values[name] = float(text)
+                else:
+                    values[name] = text
+            rows.append(row_type(**values))
+    return rows
+
+
+def _format(value) -> str:
+    if isinstance(value, float):
+        return repr(value) if math.isfinite(value) else str(value)
+    return str(value)
+
+
+@dataclass(frozen=True)
+class Summary:
+    """Mean and spread of one quantity over seeds."""
+
+    mean: float
+    std: float
+    count: int
+
+    @staticmethod
+    def of(values: list[float]) -> "Summary":
+        finite = [v for v in values if math.isfinite(v)]
+        if not finite:
+            return Summary(math.nan, math.nan, len(values))
+        std = statistics.stdev(finite) if len(finite) > 1 else 0.0
+        return Summary(statistics.fmean(finite), std, len(values))
+
+
+def group_quality(rows: list[QualityRow]) -> dict[tuple[str, str, str], list[QualityRow]]:
+    """Rows by (dataset, model, size), in first-seen order."""
+    groups: dict[tuple[str, str, str], list[QualityRow]] = {}
+    for row in rows:
+        groups.setdefault((row.dataset, row.model, row.size), []).append(row)
+    return groups
+
+
+def ordered(values, order) -> list:
+    """Distinct ``values`` sorted by their place in ``order`` (unknown ones last, as first seen)."""
+    seen = list(dict.fromkeys(values))
+    rank = {v: i for i, v in enumerate(order)}
+    return sorted(seen, key=lambda v: (rank.get(v, len(order)), seen.index(v)))

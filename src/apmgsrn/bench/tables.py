@@ -1,0 +1,146 @@
+"""Markdown tables of benchmark results (the layout of the paper's Table 1)."""
+
+from __future__ import annotations
+
+import math
+
+from apmgsrn.bench.results import (
+    MODEL_TITLES,
+    SIZE_ORDER,
+    CompressRow,
+    QualityRow,
+    Summary,
+    group_quality,
+    ordered,
+)
+
+
+def quality_tables(rows: list[QualityRow]) -> str:
+    """PSNR, real size and training time tables, one row per volume, ``S / M / L`` per model.
+
+    The best mean PSNR of each volume and size is in bold. With several seeds a cell reads
+    ``mean ± standard deviation``; an empty cell (``–``) was not run.
+
+    Args:
+        rows: results of ``bench quality`` (any subset of combinations).
+
+    Returns:
+        Markdown text: PSNR table, size table, training-time table and the protocol.
+    """
+    from apmgsrn.models.registry import ENCODERS
+
+    groups = group_quality(rows)
+    datasets = list(dict.fromkeys(row.dataset for row in rows))
+    models = ordered((row.model for row in rows), list(ENCODERS))
+    sizes = ordered((row.size for row in rows), SIZE_ORDER)
+    shapes = {row.dataset: row.shape for row in rows}
+    psnr = {key: Summary.of([r.psnr for r in group]) for key, group in groups.items()}
+    seconds = {key: Summary.of([r.train_seconds for r in group]) for key, group in groups.items()}
+    letters = " / ".join(size[0].upper() for size in sizes)
+
+    lines = ["PSNR (dB) over every voxel; best per volume and size in **bold**.", ""]
+    lines.append("| volume | " + " | ".join(f"{MODEL_TITLES.get(m, m)} {letters}" for m in models) + " |")
+    lines.append("|---|" + "---|" * len(models))
+    for dataset in datasets:
+        best = {}
+        for size in sizes:
+            means = [psnr[(dataset, m, size)].mean for m in models if (dataset, m, size) in psnr]
+            means = [v for v in means if math.isfinite(v)]
+            best[size] = max(means) if means else None
+        cells = []
+        for model in models:
+            parts = []
+            for size in sizes:
+                summary = psnr.get((dataset, model, size))
+                if summary is None:
+                    parts.append("–")
+                    continue
+                text = _with_spread(summary, 2)
+                parts.append(f"**{text}**" if best[size] is not None and summary.mean == best[size] else text)
+            cells.append(" / ".join(parts))
+        lines.append(f"| {dataset} {shapes[dataset]} | " + " | ".join(cells) + " |")
+
+    lines += ["", "Real model sizes (parameters; float32 bytes; model file bytes with metadata).", ""]
+    lines.append("| model | size | parameters | float32 | file |")
+    lines.append("|---|---|---|---|---|")
+    for model in models:
+        for size in sizes:
+            sample = next((r for r in rows if r.model == model and r.size == size), None)
+            if sample is None:
+                continue
+            lines.append(
+                f"| {MODEL_TITLES.get(model, model)} | {size} | {sample.parameters:,} | "
+                f"{_kilobytes(sample.parameter_bytes)} | {_kilobytes(sample.file_bytes)} |"
+            )
+
+    lines += ["", f"Training time (s), {letters}.", ""]
+    lines.append("| volume | " + " | ".join(f"{MODEL_TITLES.get(m, m)} {letters}" for m in models) + " |")
+    lines.append("|---|" + "---|" * len(models))
+    for dataset in datasets:
+        cells = []
+        for model in models:
+            parts = []
+            for size in sizes:
+                summary = seconds.get((dataset, model, size))
+                parts.append("–" if summary is None else f"{summary.mean:.0f}")
+            cells.append(" / ".join(parts))
+        lines.append(f"| {dataset} | " + " | ".join(cells) + " |")
+
+    lines += ["", _protocol(rows), ""]
+    return "\n".join(lines)
+
+
+def compress_table(rows: list[CompressRow]) -> str:
+    """One line per compressor setting or network: ratio, PSNR, times and query throughput.
+
+    Args:
+        rows: results of ``bench compress``.
+
+    Returns:
+        Markdown text.
+    """
+    lines = [
+        "| volume | method | setting | ratio | PSNR dB | max error | compress s | decompress s | "
+        "decompress Mvox/s | query s | query Mpts/s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r.dataset} | {MODEL_TITLES.get(r.method, r.method.upper())} | {r.setting} | "
+            f"{r.compression_ratio:.1f} | {r.psnr:.2f} | {r.max_abs_error:.3g} | {r.compress_seconds:.2f} | "
+            f"{r.decompress_seconds:.2f} | {r.decompress_voxels_per_second / 1e6:.1f} | {r.query_seconds:.3f} | "
+            f"{r.query_points_per_second / 1e6:.2f} |"
+        )
+    if rows:
+        lines += [
+            "",
+            f"Query: {rows[0].query_points:,} uniformly random points; a compressor must decompress the "
+            "whole volume first and then interpolate, a network evaluates the points directly.",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def _with_spread(summary: Summary, digits: int) -> str:
+    if not math.isfinite(summary.mean):
+        return "nan"
+    if summary.count > 1:
+        return f"{summary.mean:.{digits}f} ± {summary.std:.{digits}f}"
+    return f"{summary.mean:.{digits}f}"
+
+
+def _kilobytes(count: int) -> str:
+    return f"{count / 1024:,.1f} KB" if count < 10 * 1024**2 else f"{count / 1024**2:,.1f} MB"
+
+
+def _protocol(rows: list[QualityRow]) -> str:
+    """One sentence naming the budgets, seeds and devices the rows came from."""
+    budgets = sorted({(r.iterations, r.batch_size) for r in rows})
+    seeds = sorted({len(g) for g in group_quality(rows).values()})
+    devices = sorted({r.device for r in rows})
+    schedules = sorted({f"{MODEL_TITLES.get(r.model, r.model)} {r.lr_schedule}" for r in rows})
+    budget_text = ", ".join(f"{i:,} iterations x {b:,} points" for i, b in budgets)
+    seed_text = "/".join(str(s) for s in seeds)
+    return (
+        f"Protocol: {budget_text}; {seed_text} seed(s) per cell; learning-rate schedule "
+        f"{', '.join(schedules)}; device {', '.join(devices)}."
+    )

@@ -1,0 +1,72 @@
+"""``apmgsrn grids``: pictures of where an APMGSRN model placed its grids."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from apmgsrn.cli.common import add_data_arguments, add_device_argument, open_data
+from apmgsrn.errors import ApmgsrnError
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "grids",
+        help="draw the learned grid boxes over the volume; VTK boxes for ParaView; optional animation",
+        description="Write PREFIX.png (grid boxes over maximum-intensity projections along z, y and x) and "
+        "PREFIX.vtk (the boxes as hexahedra, in voxel-index coordinates, for ParaView). With --animate, "
+        "train the model again with its recorded settings and seed, record the grids every K iterations "
+        "and write PREFIX.gif.",
+    )
+    parser.add_argument("model", help="an apmgsrn model file")
+    parser.add_argument("data", help="the volume the model was trained on")
+    add_data_arguments(parser)
+    parser.add_argument("--out", required=True, metavar="PREFIX", help="output path prefix (PREFIX.png, ...)")
+    parser.add_argument("--vtk-coordinates", choices=["index", "normalized"], default="index",
+                        help="VTK box coordinates: voxel index (default, lines up in ParaView) or [-1, 1]")
+    parser.add_argument("--animate", action="store_true", help="also write PREFIX.gif of the grids in training")
+    parser.add_argument("--every", type=int, default=50, metavar="K", help="animation: a frame every K iterations")
+    parser.add_argument("--iterations", type=int, help="animation: train this many iterations instead")
+    add_device_argument(parser)
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import apmgsrn
+    from apmgsrn.bench.grid_pictures import (
+        grid_picture,
+        projections,
+        record_grid_history,
+        require_grids,
+        write_grid_animation,
+        write_grid_vtk,
+    )
+    from apmgsrn.device import resolve_device
+
+    if args.every < 1:
+        raise ApmgsrnError(f"--every {args.every}: give a positive number of iterations")
+    prefix = Path(args.out)
+    if not prefix.absolute().parent.is_dir():
+        raise ApmgsrnError(f"{prefix}: output folder {prefix.parent} does not exist; create it or choose another --out")
+    field = apmgsrn.load(args.model)
+    boxes = require_grids(field, args.model)
+    volume = open_data(args, args.data)
+    if tuple(volume.shape) != tuple(field.volume_shape):
+        raise ApmgsrnError(
+            f"{args.data}: volume shape differs from the one {args.model} was trained on; pass that volume"
+        )
+    mips = projections(volume, field.transform)
+    title = f"{Path(args.model).name}: {boxes.shape[0]} grids over {volume.describe()}"
+    png, vtk = Path(f"{prefix}.png"), Path(f"{prefix}.vtk")
+    grid_picture(boxes, mips, png, title)
+    write_grid_vtk(boxes, vtk, volume.shape if args.vtk_coordinates == "index" else None)
+    print(f"wrote {png} and {vtk}")
+    if args.animate:
+        history = record_grid_history(
+            field, volume, args.every, resolve_device(args.device), args.iterations,
+            log=lambda line: print(line, flush=True),
+        )
+        gif = Path(f"{prefix}.gif")
+        frames = write_grid_animation(history, mips, gif, Path(args.model).name)
+        print(f"wrote {gif} ({frames} frames)")
+    return 0

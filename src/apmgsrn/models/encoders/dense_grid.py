@@ -1,0 +1,75 @@
+"""Dense feature grid plus Fourier features (the fVSRN baseline of SPEC section 5)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from apmgsrn.ops.multigrid import multigrid_features
+
+
+@dataclass(frozen=True)
+class DenseGridConfig:
+    """What to build (SPEC section 5, fVSRN column).
+
+    Attributes:
+        features: feature channels ``C`` of the grid.
+        resolution: grid resolution ``(D, H, W)``; the grid spans the domain ``[-1, 1]^3``, corner-aligned.
+        frequencies: Fourier frequencies ``K``: ``sin`` and ``cos`` of ``2^k pi p`` for ``k < K``, per axis.
+        backend: grid sampling backend of :func:`apmgsrn.ops.multigrid.multigrid_features` (``"auto"``
+            picks the fastest available).
+    """
+
+    features: int = 2
+    resolution: tuple[int, int, int] = (32, 32, 32)
+    frequencies: int = 6
+    backend: str = "auto"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "resolution", tuple(int(r) for r in self.resolution))
+        if self.features < 1 or len(self.resolution) != 3 or min(self.resolution) < 2 or self.frequencies < 0:
+            raise ValueError(f"invalid dense-grid size: {self}")
+
+
+class DenseGridEncoder(nn.Module):
+    """Encodes points ``[N, 3]`` to ``[N, C + 6 K]``: grid features, then ``sin``, then ``cos`` terms.
+
+    Parameter: ``grid`` ``[1, C, D, H, W]``, initialised ``U(-1e-4, 1e-4)`` like the other encoders.
+    The Fourier terms have no parameters; they give the decoder the fine detail a coarse grid misses.
+
+    The grid is sampled as a one-grid multi-grid with the identity map: inside ``[-1, 1]^3`` that is
+    plain corner-aligned trilinear interpolation, and it runs on the fused multi-grid kernels.
+    """
+
+    def __init__(self, config: DenseGridConfig, generator: torch.Generator | None = None):
+        super().__init__()
+        self.config = config
+        d, h, w = config.resolution
+        self.out_features = config.features + 6 * config.frequencies
+        self.grid = nn.Parameter(torch.empty(1, config.features, d, h, w))
+        # Angular frequencies 2^k pi, k = 0..K-1: the lowest spans the domain once.
+        frequencies = math.pi * 2.0 ** torch.arange(config.frequencies, dtype=torch.float32)
+        self.register_buffer("frequencies", frequencies, persistent=False)
+        self.register_buffer("identity", torch.eye(3)[None], persistent=False)  # [1, 3, 3]
+        self.register_buffer("origin", torch.zeros(1, 3), persistent=False)  # [1, 3]
+        with torch.no_grad():
+            self.grid.uniform_(-1e-4, 1e-4, generator=generator)
+
+    def forward(self, points: torch.Tensor, detach_transforms: bool = False) -> torch.Tensor:
+        """Features at ``points`` ``[N, 3]`` -> ``[N, C + 6 K]``.
+
+        Args:
+            points: global coordinates in ``[-1, 1]^3``.
+            detach_transforms: ignored (this encoder has no transforms).
+        """
+        n = points.shape[0]
+        grid_features = multigrid_features(
+            points, self.identity, self.origin, self.grid, backend=self.config.backend
+        )  # [N, C]
+        if self.config.frequencies == 0:
+            return grid_features
+        angles = (points[:, :, None] * self.frequencies).reshape(n, -1)  # [N, 3 K], axis-major
+        return torch.cat([grid_features, torch.sin(angles), torch.cos(angles)], dim=1)  # [N, C + 6 K]

@@ -1,0 +1,93 @@
+"""SZ3 and ZFP round trips on real data, and the ``bench compress`` harness output."""
+
+import csv
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from apmgsrn.bench import compressors
+from apmgsrn.bench.compress import CompressPlan, run_compress
+from apmgsrn.bench.datasets import DataSpec
+from apmgsrn.bench.results import CompressRow
+from apmgsrn.cli.main import main
+from apmgsrn.data import open_volume
+
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture(scope="module")
+def c60_block(shared_data, tmp_path_factory):
+    """A real 40x40x24 block of the C60 field, in memory (float32) and as .npy.
+
+    Not one of the NetCDF previews: those were made by ZFP itself, which then restores them exactly.
+    """
+    volume = open_volume(shared_data / "c60_128x128x128_uint8.raw")
+    data = volume.read(slice(20, 44), slice(20, 60), slice(20, 60))
+    path = tmp_path_factory.mktemp("compress") / "c60_block.npy"
+    np.save(path, data)
+    return path, data
+
+
+@pytest.mark.parametrize("name", ["sz3", "zfp"])
+def test_compressor_round_trip_honours_the_relative_error_bound(name, c60_block):
+    pytest.importorskip({"sz3": "pysz", "zfp": "zfpy"}[name])
+    _, data = c60_block
+    compressor = compressors.get_compressor(name)
+    value_range = float(data.max() - data.min())
+    sizes = []
+    for bound in (1e-2, 1e-4):
+        packed = compressor.compress(data, bound)
+        restored = compressor.decompress(packed)
+        assert restored.shape == data.shape and restored.dtype == np.float32
+        error = float(np.abs(restored.astype(np.float64) - data).max())
+        assert error <= bound * value_range * (1 + 1e-6)
+        if bound == 1e-2:
+            assert error > 0  # lossy at the loose bound
+        sizes.append(len(packed.data))
+    assert data.nbytes > sizes[1] > sizes[0]  # compresses, and a tighter bound costs bytes
+
+
+def test_compress_benchmark_writes_rows_table_and_rate_distortion_chart(c60_block, tmp_path, capsys):
+    pytest.importorskip("pysz")
+    pytest.importorskip("zfpy")
+    path, data = c60_block
+    out = tmp_path / "results"
+    code = main(["bench", "compress", str(path), "--models", "apmgsrn", "ngp", "--iterations", "5",
+                 "--batch-size", "512", "--bounds", "0.01", "0.001", "--query-points", "5000", "--out", str(out),
+                 "--device", "cpu"])
+    assert code == 0
+    with open(out / "compress_c60_block.csv", newline="") as handle:
+        records = list(csv.DictReader(handle))
+    assert list(records[0]) == [f.name for f in dataclasses.fields(CompressRow)]
+    assert [(r["method"], r["setting"]) for r in records] == [
+        ("sz3", "0.01"), ("sz3", "0.001"), ("zfp", "0.01"), ("zfp", "0.001"), ("apmgsrn", "small"), ("ngp", "small"),
+    ]
+    for r in records:
+        assert float(r["compression_ratio"]) == pytest.approx(data.nbytes / int(r["compressed_bytes"]))
+        assert int(r["query_points"]) == 5000 and float(r["query_points_per_second"]) > 0
+        assert float(r["decompress_voxels_per_second"]) > 0 and float(r["psnr"]) > 0
+    # The networks were trained through bench quality into the same folder.
+    assert (out / "quality.csv").is_file()
+    with Image.open(out / "compress_c60_block.png") as chart:
+        assert chart.format == "PNG"
+    assert "| c60_block.npy | SZ3 | 0.01 |" in (out / "compress_c60_block.md").read_text()
+
+
+def test_a_missing_compressor_package_is_skipped_with_the_install_hint(c60_block, tmp_path, monkeypatch):
+    path, _ = c60_block
+
+    def missing(self):
+        raise ImportError("no module")
+
+    monkeypatch.setattr(compressors.SZ3Compressor, "_module", missing)
+    monkeypatch.setattr(compressors.ZFPCompressor, "_module", missing)
+    lines = []
+    plan = CompressPlan(DataSpec(path), models=("fvsrn",), iterations=3, batch_size=256, query_points=100)
+    report = run_compress(plan, tmp_path / "r", torch.device("cpu"), log=lines.append)
+    assert [r.method for r in report.rows] == ["fvsrn"]
+    assert len(report.skipped) == 2 and all("apmgsrn[baselines]" in s for s in report.skipped)
+    assert any(line.startswith("skipped sz3: the 'pysz' package is not installed") for line in lines)

@@ -1,0 +1,95 @@
+"""``bench quality``: runs every combination once, resumes, and writes the Table 1 layout and a chart."""
+
+import csv
+import dataclasses
+import re
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from apmgsrn.bench.datasets import parse_data_spec
+from apmgsrn.bench.results import QualityRow, read_rows
+from apmgsrn.bench.tables import quality_tables
+from apmgsrn.cli.main import main
+from apmgsrn.data import open_volume
+from apmgsrn.errors import ApmgsrnError
+
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture(scope="module")
+def crop(shared_data, tmp_path_factory):
+    """A real 20^3 crop of the hcci OH field (NetCDF), saved as .npy, and its label."""
+    volume = open_volume(shared_data / "hcci_oh_187.nc", variable="oh")
+    data = volume.read(slice(80, 100), slice(80, 100), slice(80, 100))
+    path = tmp_path_factory.mktemp("quality") / "hcci_crop.npy"
+    np.save(path, data)
+    return path
+
+
+def test_quality_benchmark_writes_csv_table_and_chart_and_resumes(crop, tmp_path, capsys):
+    out = tmp_path / "results"
+    args = ["bench", "quality", str(crop), "--sizes", "small", "--iterations", "4", "--batch-size", "512",
+            "--out", str(out), "--device", "cpu"]
+    assert main(args + ["--seeds", "2"]) == 0
+    printed = capsys.readouterr().out
+    assert len(re.findall(r"^\[\d+/6\]", printed, flags=re.M)) == 6  # 3 models x 1 size x 2 seeds
+
+    with open(out / "quality.csv", newline="") as handle:
+        records = list(csv.DictReader(handle))
+    assert [f.name for f in dataclasses.fields(QualityRow)] == list(records[0])
+    assert sorted((r["model"], r["seed"]) for r in records) == [
+        (m, s) for m in ("apmgsrn", "fvsrn", "ngp") for s in ("0", "1")
+    ]
+    for record in records:
+        assert int(record["parameters"]) * 4 == int(record["parameter_bytes"]) < int(record["file_bytes"])
+        assert float(record["compression_ratio"]) == pytest.approx(20**3 * 4 / int(record["file_bytes"]))
+        assert (out / "models").joinpath(record["model_file"].split("/")[-1]).is_file()
+
+    table = (out / "quality.md").read_text()
+    header = "| volume | APMGSRN S | fVSRN S | NGP S |"
+    assert header in table
+    row = next(line for line in table.splitlines() if line.startswith("| hcci_crop.npy"))
+    assert row.count("**") == 2 and row.count("±") == 3  # one best cell; mean ± spread of 2 seeds
+    assert "| NGP | small | 70,800 |" in table
+    with Image.open(out / "quality.png") as chart:
+        assert chart.format == "PNG" and chart.width > 300
+
+    # A third seed runs only the three new combinations.
+    assert main(args + ["--seeds", "3"]) == 0
+    printed = capsys.readouterr().out
+    assert len(re.findall(r"^\[\d+/9\]", printed, flags=re.M)) == 3
+    assert len(read_rows(out / "quality.csv", QualityRow)) == 9
+
+
+def _row(dataset, model, size, seed, psnr):
+    return QualityRow(dataset, "8x8x8", model, size, seed, 10, 64, "cosine", 100, 400, 500, 2048, 4.1, psnr,
+                      1.0, 100.0, "cpu", "m.apmgsrn")
+
+
+def test_table_marks_the_best_per_size_and_leaves_missing_cells_empty():
+    rows = [
+        _row("a.nc:v", "apmgsrn", "small", 0, 30.0), _row("a.nc:v", "apmgsrn", "small", 1, 32.0),
+        _row("a.nc:v", "ngp", "small", 0, 33.5), _row("a.nc:v", "apmgsrn", "medium", 0, 40.0),
+        _row("a.nc:v", "fvsrn", "medium", 0, 41.25),
+    ]
+    table = quality_tables(rows)
+    line = next(row for row in table.splitlines() if row.startswith("| a.nc:v"))
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert cells[1:] == ["31.00 ± 1.41 / 40.00", "– / **41.25**", "**33.50** / –"]
+
+
+def test_data_spec_takes_a_variable_after_the_last_colon(shared_data):
+    spec = parse_data_spec(f"{shared_data / 'hcci_oh_187.nc'}:oh")
+    assert spec.variable == "oh" and spec.label == "hcci_oh_187.nc:oh"
+    with pytest.raises(ApmgsrnError, match="no such volume file"):
+        parse_data_spec(str(shared_data / "missing.nc") + ":oh")
+
+
+def test_quality_benchmark_refuses_a_file_as_results_folder(crop, tmp_path, capsys):
+    target = tmp_path / "file.txt"
+    target.write_text("x")
+    assert main(["bench", "quality", str(crop), "--out", str(target), "--iterations", "1"]) == 2
+    assert "needs a folder" in capsys.readouterr().err
