@@ -1,0 +1,107 @@
+"""``apmgsrn train --bricks I,J,K``: the domain-decomposition options of ``train`` and their run (wiring only)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+from dataclasses import replace
+from pathlib import Path
+
+from apmgsrn.cli.common import format_bytes, open_data, parse_triple
+from apmgsrn.errors import ApmgsrnError
+
+
+def add_brick_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of a brick (domain decomposition) run; every other ``train`` option applies per brick."""
+    group = parser.add_argument_group(
+        "domain decomposition (one model per brick; --out is then a folder)",
+    )
+    group.add_argument("--bricks", metavar="I,J,K",
+                       help="train one model per brick of an I x J x K grid over x, y, z (e.g. 2,2,2 or 4)")
+    group.add_argument("--ghost-cells", type=int, default=1, metavar="G",
+                       help="voxels each brick overlaps its neighbours beyond the shared border (default 1)")
+    group.add_argument("--workers", type=int, metavar="N",
+                       help="local workers (default: one per visible GPU, else one per CPU core, at most 4)")
+    group.add_argument("--scheduler", metavar="ADDRESS|FILE",
+                       help="join a running Dask cluster: tcp://host:port or its scheduler JSON file")
+    group.add_argument("--retries", type=int, default=2, metavar="N",
+                       help="extra attempts of a brick whose job raised (default 2)")
+    group.add_argument("--blend", action="store_true",
+                       help="at inference, blend neighbouring bricks across their shared ghost region (no seams)")
+
+
+def run_bricks(args: argparse.Namespace) -> int:
+    """Train (or finish) a brick model; the same command after a crash trains only missing bricks."""
+    from apmgsrn.cli.train import build_configs
+    from apmgsrn.decomposition.coordinator import BrickProgress, train_bricks
+    from apmgsrn.decomposition.executor import ExecutorConfig, open_job_queue
+    from apmgsrn.decomposition.planner import DecompositionConfig
+    from apmgsrn.device import resolve_device
+    from apmgsrn.decomposition.brick_training import BRICK_LR_CUTS
+
+    counts = parse_triple(args.bricks, "--bricks")
+    if args.ghost_cells < 0:
+        raise ApmgsrnError(f"--ghost-cells {args.ghost_cells}: must be 0 or more")
+    if args.workers is not None and args.workers < 1:
+        raise ApmgsrnError(f"--workers {args.workers}: must be 1 or more")
+    if args.retries < 0:
+        raise ApmgsrnError(f"--retries {args.retries}: must be 0 or more")
+    if args.scheduler and args.workers:
+        raise ApmgsrnError("--workers starts local workers; with --scheduler the cluster's workers are used: drop one")
+    # SPEC section 6: a brick trains under the plateau schedule and is done after its third cut.
+    if args.lr_schedule is None:
+        args.lr_schedule = "plateau"
+    # The coordinator only sizes the budget; workers resolve --device themselves (auto: their own GPU).
+    field_config, train_config = build_configs(args, resolve_device(args.device))
+    if train_config.lr_schedule == "plateau":
+        train_config = replace(train_config, stop_after_lr_cuts=BRICK_LR_CUTS)
+    # Workers reopen the file by path, possibly from another folder or machine.
+    volume = open_data(args, os.path.abspath(args.data))
+    out = Path(args.out)
+    decomposition = DecompositionConfig(counts, args.ghost_cells, args.blend)
+    executor = ExecutorConfig(scheduler=args.scheduler, workers=args.workers, retries=args.retries)
+    with open_job_queue(executor) as queue:
+        summary = train_bricks(
+            volume, decomposition, field_config, train_config, out, queue,
+            transform=args.transform, log_offset=args.log_offset, device=args.device,
+            progress=BrickProgress(),
+        )
+    trained = [r for r in summary.trained if r.ok]
+    result = {
+        "model": str(out),
+        "bricks": list(summary.plan.counts),
+        "complete": summary.complete,
+        "trained": len(trained),
+        "reused": len(summary.reused),
+        "failed": summary.failed,
+        "model_bytes": summary.model_bytes,
+        "raw_bytes": volume.raw_bytes,
+        "compression_ratio": volume.raw_bytes / summary.model_bytes if summary.model_bytes else None,
+        "seconds": summary.seconds,
+        "coordinator_peak_rss_bytes": summary.coordinator_peak_rss_bytes,
+        "worker_peak_rss_bytes": summary.worker_peak_rss_bytes,
+        "brick_psnr": {r.name: (r.psnr if math.isfinite(r.psnr) else None) for r in trained},
+    }
+    if args.json:
+        print(json.dumps(result))
+    else:
+        i, j, k = summary.plan.counts
+        print(f"model       {out}/ ({i}x{j}x{k} bricks, {format_bytes(summary.model_bytes)})")
+        print(f"data        {volume.describe()} ({format_bytes(volume.raw_bytes)} as float32)")
+        if summary.model_bytes:
+            print(f"compression {result['compression_ratio']:.1f}x")
+        print(f"time        {summary.seconds:.1f} s for {len(trained)} brick(s); {len(summary.reused)} done earlier")
+        worker_peak = max(summary.worker_peak_rss_bytes.values(), default=0)
+        print(f"peak memory coordinator {format_bytes(summary.coordinator_peak_rss_bytes)}, "
+              f"workers up to {format_bytes(worker_peak)}")
+        if summary.complete:
+            print(f"evaluate    apmgsrn eval {out} {args.data}")
+    if summary.failed:
+        names = ", ".join(sorted(summary.failed))
+        raise ApmgsrnError(
+            f"{out}: {len(summary.failed)} brick(s) failed: {names} (reasons above); the others are saved: "
+            "run the same command again to retry the failed ones"
+        )
+    return 0

@@ -1,0 +1,379 @@
+"""Train a brick model: plan the bricks, queue one job per missing brick, follow them, write the manifest.
+
+The coordinator never reads voxels: it sends each job the volume's recipe and the brick's box, and the
+job reads that box itself. Running the same call again after a crash or a kill trains only the bricks
+whose model files are missing (a brick interrupted half-way resumes from its training checkpoint), and
+since every brick is seeded with ``seed + brick index`` the finished model is the same.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+import uuid
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TextIO
+
+from apmgsrn.decomposition.brick_model import (
+    brick_file_name,
+    brick_summary_from_file,
+    manifest_path,
+    missing_bricks,
+    new_manifest,
+    read_manifest,
+    write_manifest,
+)
+from apmgsrn.decomposition.brick_training import (
+    BrickJob,
+    BrickResult,
+    brick_train_config,
+    peak_rss_bytes,
+    shippable_volume,
+    train_brick,
+)
+from apmgsrn.decomposition.executor import JobQueue
+from apmgsrn.decomposition.planner import BrickPlan, DecompositionConfig, plan_bricks
+from apmgsrn.errors import ApmgsrnError
+from apmgsrn.models.registry import FieldConfig
+from apmgsrn.training.trainer import TrainConfig
+
+
+@dataclass(frozen=True)
+class BrickTrainingSummary:
+    """What a brick training run did.
+
+    Attributes:
+        out: the model folder.
+        plan: the bricks.
+        trained: results of the bricks trained by this run (in finishing order).
+        reused: names of bricks an earlier run had finished.
+        failed: brick name -> why it failed (after retries).
+        seconds: wall time of this run.
+        coordinator_peak_rss_bytes: resident-set high-water mark of the coordinating process.
+        worker_peak_rss_bytes: per worker (``host:pid``), the highest resident-set mark its jobs reported.
+        complete: every brick has a model file.
+        model_bytes: bytes of the folder's model files (manifest included).
+        value_range: ``(min, max)`` over the bricks, data units (None while incomplete).
+    """
+
+    out: Path
+    plan: BrickPlan
+    trained: list[BrickResult]
+    reused: list[str]
+    failed: dict[str, str]
+    seconds: float
+    coordinator_peak_rss_bytes: int
+    worker_peak_rss_bytes: dict[str, int] = field(default_factory=dict)
+    complete: bool = False
+    model_bytes: int = 0
+    value_range: tuple[float, float] | None = None
+
+
+class BrickProgress:
+    """Shows bricks done / running / failed, each finished brick's PSNR and time, and the total time.
+
+    On a terminal: a progress bar with the counts, and one line per finished or failed brick above it;
+    elsewhere (logs, CI): the same lines only.
+
+    Args:
+        stream: where to write (default stderr, so that ``--json`` output on stdout stays clean).
+        enabled: False shows nothing.
+    """
+
+    def __init__(self, stream: TextIO | None = None, enabled: bool = True):
+        self.stream = stream if stream is not None else sys.stderr
+        self.enabled = enabled
+        self._bar = None
+        self.total = 0
+        self.done = 0
+        self.failed = 0
+
+    def start(self, plan: BrickPlan, to_train: int, where: str) -> None:
+        self.total = to_train
+        if not self.enabled:
+            return
+        i, j, k = plan.counts
+        reused = len(plan) - to_train
+        self._write(
+            f"bricks      {i}x{j}x{k} = {len(plan)} (ghost cells {plan.config.ghost_cells}); "
+            f"{to_train} to train, {reused} already done; {where}"
+        )
+        if to_train and _is_terminal(self.stream):
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=to_train, unit="brick", file=self.stream, dynamic_ncols=True, leave=True)
+
+    def _write(self, line: str) -> None:
+        if self._bar is not None:
+            self._bar.write(line, file=self.stream)
+        else:
+            print(line, file=self.stream, flush=True)
+
+    def finished(self, result: BrickResult) -> None:
+        self.done += 1
+        if not self.enabled:
+            return
+        early = f", stopped early at {result.iterations}" if result.stopped_early and result.iterations else ""
+        empty = ", constant: no training needed" if result.iterations == 0 else ""
+        resumed = f", resumed at {result.resumed_from}" if result.resumed_from else ""
+        self._write(
+            f"[{self.done + self.failed:>{len(str(self.total))}}/{self.total}] {result.name} done: "
+            f"PSNR {result.psnr:.2f} dB, {result.iterations} it, {result.seconds:.1f} s{early}{empty}{resumed} "
+            f"({result.worker})"
+        )
+        self._advance()
+
+    def brick_failed(self, name: str, message: str) -> None:
+        self.failed += 1
+        if not self.enabled:
+            return
+        self._write(f"[{self.done + self.failed:>{len(str(self.total))}}/{self.total}] {name} FAILED: {message}")
+        self._advance()
+
+    def _advance(self) -> None:
+        if self._bar is not None:
+            self._bar.update(1)
+
+    def tick(self, running: int) -> None:
+        if self._bar is not None:
+            self._bar.set_postfix_str(f"done {self.done}, running {running}, failed {self.failed}", refresh=True)
+
+    def close(self, summary: BrickTrainingSummary) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+        if not self.enabled:
+            return
+        self._write(
+            f"finished    {len(summary.plan) - len(summary.failed) - len(missing_names(summary))} of {len(summary.plan)} "
+            f"bricks ({len(summary.trained)} trained now, {len(summary.reused)} earlier), {len(summary.failed)} failed, "
+            f"total {summary.seconds:.1f} s"
+        )
+
+
+def missing_names(summary: BrickTrainingSummary) -> list[str]:
+    """Bricks neither finished nor failed (an interrupted run)."""
+    finished = {r.name for r in summary.trained if r.ok} | set(summary.reused) | set(summary.failed)
+    return [b.name for b in summary.plan.bricks if b.name not in finished]
+
+
+def _is_terminal(stream: TextIO) -> bool:
+    try:
+        return stream.isatty()
+    except (AttributeError, ValueError):
+        return False
+
+
+def _jsonable(value):
+    return json.loads(json.dumps(value))
+
+
+def training_settings(volume, plan: BrickPlan, field_config: FieldConfig, train_config: TrainConfig,
+                      transform: str, log_offset: float) -> dict:
+    """Everything that decides the bricks' models; a rerun must match it to reuse finished bricks."""
+    return _jsonable({
+        "volume": {"path": os.path.basename(str(volume.path)), "variable": volume.variable,
+                   "time": getattr(volume, "time", None), "shape": list(volume.shape)},
+        "grid": list(plan.counts),
+        "ghost_cells": plan.config.ghost_cells,
+        "field": field_config.to_dict(),
+        "training": asdict(train_config),
+        "transform": transform,
+        "log_offset": log_offset,
+    })
+
+
+def _prepare_directory(out: Path, settings: dict) -> dict | None:
+    """Create the model folder, or check that an existing one belongs to the same run.
+
+    Returns:
+        The existing manifest, or None for a new folder.
+    """
+    if out.exists() and not out.is_dir():
+        raise ApmgsrnError(f"{out}: exists and is a file; a brick model is a folder: choose another --out")
+    if not out.absolute().parent.is_dir():
+        raise ApmgsrnError(f"{out}: output folder {out.parent} does not exist; create it or choose another --out")
+    if out.is_dir():
+        if manifest_path(out).exists():
+            manifest = read_manifest(out)
+            if manifest.get("settings") != settings:
+                differs = sorted(k for k in set(settings) | set(manifest.get("settings") or {})
+                                 if settings.get(k) != (manifest.get("settings") or {}).get(k))
+                raise ApmgsrnError(
+                    f"{out}: holds a brick model made with other settings ({', '.join(differs)} differ); "
+                    "rerun with the same options to finish it, or choose another --out"
+                )
+            return manifest
+        if any(out.iterdir()):
+            raise ApmgsrnError(f"{out}: folder is not empty and holds no brick model; choose a new or empty --out")
+        return None
+    try:
+        out.mkdir()
+    except OSError as exc:
+        raise ApmgsrnError(f"{out}: cannot create the model folder ({exc.strerror}); choose another --out") from None
+    return None
+
+
+def train_bricks(
+    volume,
+    decomposition: DecompositionConfig,
+    field_config: FieldConfig,
+    train_config: TrainConfig,
+    out: Path,
+    queue: JobQueue,
+    transform: str = "none",
+    log_offset: float = 0.0,
+    device: str = "auto",
+    progress: BrickProgress | None = None,
+    poll_seconds: float = 1.0,
+    psnr_voxels: int | None = None,
+) -> BrickTrainingSummary:
+    """Train (or finish training) a brick model in the folder ``out``.
+
+    Args:
+        volume: a :class:`apmgsrn.data.Volume`; only its recipe is sent to the jobs, each of which reads its
+            own brick. File-backed volumes must be readable under the same path on every worker.
+        decomposition: brick counts (x, y, z), ghost cells and the blend flag saved with the model.
+        field_config: the model of every brick.
+        train_config: how to train every brick (brick ``b`` uses seed ``seed + b``); for the paper's
+            per-brick early stop use ``lr_schedule="plateau"`` with ``stop_after_lr_cuts=3``.
+        out: the model folder (created; an existing one must come from the same settings).
+        queue: where the jobs run (see :func:`apmgsrn.decomposition.executor.open_job_queue`).
+        transform: value transform, fitted per brick.
+        log_offset: offset for ``log10``.
+        device: device name resolved on each worker.
+        progress: the display (None: none).
+        poll_seconds: how often the display refreshes the running count.
+        psnr_voxels: measure each brick's PSNR on about this many voxels (None: all).
+
+    Returns:
+        The summary; ``failed`` names bricks that kept failing (the others are finished and saved).
+
+    Raises:
+        ApmgsrnError: the folder holds another model, or the bricks do not fit the volume.
+    """
+    started = time.perf_counter()
+    out = Path(out)
+    progress = progress or BrickProgress(enabled=False)
+    plan = plan_bricks(volume.shape, decomposition, str(volume.path))
+    source = {"path": os.path.basename(str(volume.path)), "variable": volume.variable,
+              "description": volume.describe()}
+    settings = training_settings(volume, plan, field_config, train_config, transform, log_offset)
+    manifest = _prepare_directory(out, settings) or new_manifest(plan, settings, source)
+    manifest["blend"] = decomposition.blend
+    manifest["complete"] = False
+    write_manifest(out, manifest)
+
+    todo = missing_bricks(out, plan)
+    todo_names = {b.name for b in todo}
+    reused = [b.name for b in plan.bricks if b.name not in todo_names]
+    progress.start(plan, len(todo), queue.description)
+    token = uuid.uuid4().hex[:8]
+    futures = {}
+    shipped = shippable_volume(volume)
+    for brick in todo:
+        job = BrickJob(
+            volume=shipped,
+            brick=brick,
+            field_config=field_config,
+            train_config=brick_train_config(train_config, brick),
+            model_path=(out / brick_file_name(brick)).absolute(),
+            transform=transform,
+            log_offset=log_offset,
+            device=device,
+            threads=queue.threads_per_job,
+            source=source,
+            psnr_voxels=psnr_voxels,
+        )
+        futures[queue.submit(train_brick, job, key=f"{brick.name}-{token}")] = brick
+    trained: list[BrickResult] = []
+    failed: dict[str, str] = {}
+    pending = set(futures)
+    try:
+        while pending:
+            for future in queue.wait(pending, poll_seconds):
+                pending.discard(future)
+                brick = futures[future]
+                error = future.exception()
+                if error is not None:
+                    failed[brick.name] = _one_line(error)
+                    progress.brick_failed(brick.name, failed[brick.name])
+                    continue
+                result = future.result()
+                if result.ok:
+                    trained.append(result)
+                    progress.finished(result)
+                else:
+                    failed[brick.name] = result.message
+                    progress.brick_failed(brick.name, result.message)
+            progress.tick(queue.running())
+    finally:
+        for future in pending:  # interrupted: do not leave jobs running for nobody
+            try:
+                future.cancel()
+            except Exception:  # noqa: BLE001 - cancelling is best effort
+                pass
+        summary = _finish(out, plan, manifest, trained, reused, failed, started, queue)
+        progress.close(summary)
+    return summary
+
+
+def _one_line(error: BaseException) -> str:
+    text = str(error).strip().splitlines()
+    return f"{type(error).__name__}: {text[0]}" if text else type(error).__name__
+
+
+def _finish(out: Path, plan: BrickPlan, manifest: dict, trained: list[BrickResult], reused: list[str],
+            failed: dict[str, str], started: float, queue: JobQueue) -> BrickTrainingSummary:
+    """Write the final manifest: per-brick figures, value range, and whether every brick is there."""
+    by_name = {r.name: r for r in trained}
+    missing = {b.name for b in missing_bricks(out, plan)}
+    low, high = math.inf, -math.inf
+    for entry, brick in zip(manifest["bricks"], plan.bricks):
+        if brick.name in missing:
+            entry.pop("summary", None)
+            continue
+        result = by_name.get(brick.name)
+        if result is not None:
+            entry["summary"] = {"psnr": result.psnr, "seconds": round(result.seconds, 3),
+                                "iterations": result.iterations, "stopped_early": result.stopped_early,
+                                "value_min": result.value_min, "value_max": result.value_max,
+                                "bytes": result.model_bytes, "device": result.device}
+        else:
+            entry["summary"] = brick_summary_from_file(out / brick_file_name(brick))
+        low = min(low, float(entry["summary"]["value_min"]))
+        high = max(high, float(entry["summary"]["value_max"]))
+    complete = not missing
+    seconds = time.perf_counter() - started
+    workers: dict[str, int] = {}
+    for result in trained:
+        workers[result.worker] = max(workers.get(result.worker, 0), result.peak_rss_bytes)
+    manifest["complete"] = complete
+    manifest["value_range"] = [low, high] if complete else None
+    manifest["training"] = {
+        "last_run_seconds": round(seconds, 3),
+        "last_run_trained": len(trained),
+        "last_run_where": queue.description,
+        "failed": failed,
+    }
+    write_manifest(out, manifest)
+    model_bytes = manifest_path(out).stat().st_size + sum(
+        (out / brick_file_name(b)).stat().st_size for b in plan.bricks if b.name not in missing
+    )
+    return BrickTrainingSummary(
+        out=out,
+        plan=plan,
+        trained=trained,
+        reused=reused,
+        failed=failed,
+        seconds=seconds,
+        coordinator_peak_rss_bytes=peak_rss_bytes(),
+        worker_peak_rss_bytes=workers,
+        complete=complete,
+        model_bytes=model_bytes,
+        value_range=(low, high) if complete else None,
+    )
