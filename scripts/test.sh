@@ -4,4 +4,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/install.sh test
+# The viewer's browser tests drive Debian's chromium; install it when missing (they skip if this fails).
+if [ ! -x /usr/bin/chromium ] && command -v apt-get >/dev/null 2>&1; then
+  { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; } >/dev/null 2>&1 \
+    || echo "note: could not install chromium; browser tests will be skipped" >&2
+fi
 exec .venv/bin/python -m pytest -q -m "not slow" "$@"
