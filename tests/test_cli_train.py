@@ -80,7 +80,7 @@ def test_decode_to_netcdf_round_trips_through_the_reader(neghip_model, tmp_path,
     assert result["max_abs_error"] < 1e-3
 
 
-def test_info_reports_architecture_training_and_grids(neghip_model, capsys):
+def test_info_reports_architecture_training_and_grids(neghip_model, capsys, tmp_path):
     info = run_json(capsys, ["info", str(neghip_model), "--json"])
     assert info["parameters"] == 70_912 and info["parameter_bytes"] == 70_912 * 4
     assert info["volume_shape_xyz"] == [64, 64, 64]
@@ -89,6 +89,9 @@ def test_info_reports_architecture_training_and_grids(neghip_model, capsys):
     assert main(["info", str(neghip_model)]) == 0
     text = capsys.readouterr().out
     assert "grids frozen at iteration 100" in text and "70,912" in text
+    plot = tmp_path / "curves.png"
+    assert main(["info", str(neghip_model), "--plot", str(plot)]) == 0
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_log10_transform_fits_cosmology_density_in_data_units(shared_data, tmp_path, capsys):

@@ -10,7 +10,43 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser("info", help="describe a model file")
     parser.add_argument("model", help="model file")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--plot", metavar="FILE.png", help="also draw the training curves to this image")
     parser.set_defaults(func=run)
+
+
+def plot_training_curves(training: dict, out: str) -> None:
+    """Reconstruction and density loss and learning rate against iteration, grid freeze marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from apmgsrn.errors import ApmgsrnError
+
+    history = training.get("history") or {}
+    if not history.get("iteration"):
+        raise ApmgsrnError(f"{out}: the model holds no training history to plot")
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    top.semilogy(history["iteration"], history["reconstruction"], label="reconstruction (MSE, [0,1] units)")
+    density = [(i, d) for i, d in zip(history["iteration"], history["density"]) if d == d]
+    if density:
+        top.semilogy(*zip(*density), label="feature density (KL)")
+    bottom.plot(history["iteration"], history["lr"], color="tab:green", label="network learning rate")
+    frozen = training.get("frozen_at")
+    for axis in (top, bottom):
+        if frozen:
+            axis.axvline(frozen, color="gray", linestyle="--", label=f"grids frozen ({frozen})")
+        axis.legend(loc="upper right", fontsize=8)
+        axis.grid(alpha=0.3)
+    bottom.set_xlabel("iteration")
+    top.set_title(f"training: {training.get('iterations')} iterations, PSNR {training.get('psnr', float('nan')):.2f} dB")
+    fig.tight_layout()
+    try:
+        fig.savefig(out, dpi=110)
+    except OSError as exc:
+        raise ApmgsrnError(f"{out}: cannot write the plot ({exc.strerror})") from None
+    finally:
+        plt.close(fig)
 
 
 def describe_field(field) -> dict:
@@ -35,6 +71,12 @@ def describe_field(field) -> dict:
     if history and history.get("reconstruction"):
         info["final_reconstruction_loss"] = history["reconstruction"][-1]
     info["training"] = training
+    encoder_config = getattr(field.encoder, "config", None)
+    if hasattr(encoder_config, "level_table_sizes"):  # hash grid: what each level really stores
+        info["levels"] = [
+            {"resolution": r, "table_entries": n, "dense": r**3 <= n}
+            for r, n in zip(encoder_config.level_resolutions(), encoder_config.level_table_sizes())
+        ]
     if hasattr(field.encoder, "grid_boxes"):
         boxes = field.encoder.grid_boxes()  # [M, 8, 3]
         info["grids"] = [
@@ -50,7 +92,11 @@ def run(args: argparse.Namespace) -> int:
     from apmgsrn.cli.common import format_bytes
 
     model = apmgsrn.load(args.model)
+    if getattr(model, "kind", None) == "bricks":
+        return _run_bricks(args, model)
     info = describe_field(model)
+    if args.plot:
+        plot_training_curves(getattr(model, "training_summary", {}), args.plot)
     if args.json:
         print(json.dumps(info))
         return 0
@@ -69,7 +115,83 @@ def run(args: argparse.Namespace) -> int:
         print(f"final losses    reconstruction {info.get('final_reconstruction_loss', float('nan')):.3e}, "
               f"density {t.get('final_density_loss')}")
         print(f"grids frozen at iteration {t.get('frozen_at')}")
+    levels = info.get("levels")
+    if levels:
+        dense = sum(level["dense"] for level in levels)
+        print(f"hash levels     {len(levels)}: resolution {levels[0]['resolution']}..{levels[-1]['resolution']}, "
+              f"table entries {min(v['table_entries'] for v in levels):,}..{max(v['table_entries'] for v in levels):,} "
+              f"per level ({dense} stored densely)")
     for i, grid in enumerate(info.get("grids", [])):
         c, e = grid["center"], grid["extent"]
         print(f"  grid {i:2d}  center ({c[0]:+.3f}, {c[1]:+.3f}, {c[2]:+.3f})  extent ({e[0]:.3f}, {e[1]:.3f}, {e[2]:.3f})")
+    return 0
+
+
+def describe_bricks(model) -> dict:
+    """A JSON-able description of a brick model: grid, ghost cells, blend and per-brick figures."""
+    first = model.bricks[0]
+    info = {
+        "kind": "bricks",
+        "bricks": list(model.plan.counts),
+        "ghost_cells": model.plan.config.ghost_cells,
+        "blend": model.blend,
+        "brick_model": describe_field(first) | {"training": {}, "grids": None},
+        "parameters": model.parameter_count(),
+        "parameter_bytes": model.parameter_count() * 4,
+        "file_bytes": model.file_bytes,
+        "volume_shape_xyz": list(reversed(model.volume_shape)),
+        "value_range": [model.value_min, model.value_max],
+        "source": model.source,
+        "training": model.training_summary,
+        "per_brick": [],
+    }
+    for entry in model.brick_summaries:
+        summary = entry.get("summary") or {}
+        info["per_brick"].append({
+            "name": entry.get("name"),
+            "position": entry.get("position"),
+            "voxels_zyx": [entry.get("start"), entry.get("stop")],
+            **{k: summary.get(k) for k in ("psnr", "iterations", "stopped_early", "seconds", "value_min",
+                                           "value_max", "bytes", "device")},
+        })
+    return info
+
+
+def _run_bricks(args: argparse.Namespace, model) -> int:
+    from apmgsrn.cli.common import format_bytes
+
+    info = describe_bricks(model)
+    if args.json:
+        # Strict JSON: an exact (constant) brick's infinite PSNR becomes null.
+        for brick in info["per_brick"]:
+            if isinstance(brick["psnr"], float) and brick["psnr"] in (float("inf"), float("-inf")):
+                brick["psnr"] = None
+        print(json.dumps(info))
+        return 0
+    i, j, k = info["bricks"]
+    each = info["brick_model"]
+    print(f"folder          {args.model} ({format_bytes(info['file_bytes'])} in {i * j * k + 1} files)")
+    print(f"bricks          {i} x {j} x {k} (x, y, z), ghost cells {info['ghost_cells']}, "
+          f"blend {'on' if info['blend'] else 'off'}")
+    print(f"brick model     {each['model']}: " + ", ".join(f"{key}={v}" for key, v in each["encoder"].items()))
+    print(f"parameters      {info['parameters']:,} in all ({format_bytes(info['parameter_bytes'])} as float32), "
+          f"{each['parameters']:,} per brick")
+    x, y, z = info["volume_shape_xyz"]
+    print(f"volume          {x}x{y}x{z} (x*y*z) from {info['source'].get('description', '?')}")
+    print(f"value range     [{info['value_range'][0]:.6g}, {info['value_range'][1]:.6g}]")
+    t = info["training"] or {}
+    if t:
+        print(f"last run        {t.get('last_run_trained')} brick(s) in {t.get('last_run_seconds')} s on "
+              f"{t.get('last_run_where')}")
+    print(f"  {'brick':<17}  {'x voxels':>9}  {'y voxels':>9}  {'z voxels':>9}  {'PSNR dB':>8}  {'iterations':>10}  "
+          f"{'seconds':>8}")
+    for brick in info["per_brick"]:
+        (z0, y0, x0), (z1, y1, x1) = brick["voxels_zyx"]
+        psnr = brick["psnr"]
+        psnr_text = "exact" if psnr == float("inf") else (f"{psnr:.2f}" if isinstance(psnr, (int, float)) else "?")
+        early = " (early stop)" if brick["stopped_early"] and brick["iterations"] else ""
+        iterations = brick["iterations"] if brick["iterations"] is not None else "?"
+        seconds = f"{brick['seconds']:.1f}" if isinstance(brick["seconds"], (int, float)) else "?"
+        print(f"  {brick['name']:<17}  {f'{x0}:{x1}':>9}  {f'{y0}:{y1}':>9}  {f'{z0}:{z1}':>9}  {psnr_text:>8}  "
+              f"{iterations:>10}  {seconds:>8}{early}")
     return 0

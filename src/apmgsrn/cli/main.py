@@ -15,6 +15,9 @@ COMMAND_MODULES = [
     "apmgsrn.cli.decode",
     "apmgsrn.cli.info",
     "apmgsrn.cli.render",
+    "apmgsrn.cli.bench",
+    "apmgsrn.cli.grids",
+    "apmgsrn.cli.view",
 ]
 
 
