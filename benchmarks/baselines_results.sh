@@ -9,12 +9,19 @@ set -e
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 D=../shared/data
 OUT=${OUT:-bench-results}
-SEEDS=${SEEDS:-1}
+SEEDS=${SEEDS:-3}
 Q="--iterations 2000 --batch-size 32768 --seeds $SEEDS --out $OUT"
 
 apmgsrn bench quality $D/hcci_oh_187.nc:oh $D/miranda_density_256.nc:density \
   --models apmgsrn fvsrn ngp --sizes small medium $Q
 apmgsrn bench compress $D/hcci_oh_187.nc:oh --model-files $OUT/models/hcci_oh_187-oh_*_s0_i2000.apmgsrn --out $OUT
+apmgsrn bench compress $D/richtmyer_meshkov_t20_256x256x256_uint8.raw --out $OUT
+apmgsrn bench quality $D/channel_pressure_640x240x48.nc:pressure $D/richtmyer_meshkov_t20_256x256x256_uint8.raw \
+  $D/c60_128x128x128_uint8.raw $D/neghip_64x64x64_uint8.raw $D/viscous_fingers_t050.vti \
+  $D/cth_armor_penetration.vtr:Pressure --models apmgsrn fvsrn ngp --sizes small --seeds 1 \
+  --iterations 2000 --batch-size 32768 --out $OUT
+apmgsrn bench quality $D/darkmatter_density_64.h5 --transform log10 --models apmgsrn fvsrn ngp --sizes small \
+  --seeds 1 --iterations 2000 --batch-size 32768 --out $OUT-log10
 apmgsrn bench quality $D/hcci_oh_187.nc:oh --models fvsrn --sizes small --lr-schedule steps \
   --iterations 2000 --batch-size 32768 --out $OUT/steps
 apmgsrn grids $OUT/models/hcci_oh_187-oh_apmgsrn_small_s0_i2000.apmgsrn $D/hcci_oh_187.nc --variable oh \

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import platform
+import sys
 import tempfile
 from pathlib import Path
 
@@ -84,7 +85,13 @@ def main() -> None:
                 rows.append(row)
     table = "\n".join(rows)
     if args.out:
-        args.out.write_text(f"Device: {device} ({name}); {args.iterations} iterations x {args.batch_size} points, seed 0.\n\n{table}\n")
+        command = "python benchmarks/cpu_protocol.py " + " ".join(sys.argv[1:])
+        args.out.write_text(
+            f"# The protocol on {device.type.upper()}: PSNR and training time\n\n"
+            f"Device: {device} ({name}); torch {torch.__version__}; {args.iterations} iterations x "
+            f"{args.batch_size} points, seed 0. Train s: the training loop, as the authors' figures count it. "
+            f"Command: `{command}`.\n\n{table}\n"
+        )
 
 
 if __name__ == "__main__":

@@ -79,6 +79,38 @@ def test_reconstruction_gradients_reach_only_grids_and_decoder():
     assert all(layer.weight.grad is not None for layer in field.decoder if isinstance(layer, torch.nn.Linear))
 
 
+def test_bfloat16_decoder_matches_float32_in_forward_and_backward():
+    """The trainer's bfloat16 hidden layers against the float32 reference: same values and gradients
+    to bfloat16's precision (8-bit mantissa), float32 output and float32 gradients."""
+    field = small_field()
+    points = torch.rand(4096, 3) * 2 - 1
+    results = []
+    for dtype in (None, torch.bfloat16):
+        field.zero_grad(set_to_none=True)
+        out = field.normalized(points, detach_transforms=True, hidden_dtype=dtype)
+        (out.square().mean()).backward()
+        linears = [m.weight for m in field.decoder if isinstance(m, torch.nn.Linear)]
+        grads = [p.grad.clone() for p in (field.encoder.grids, *linears)]
+        results.append((out.detach(), grads))
+    (ref, ref_grads), (low, low_grads) = results
+    assert low.dtype == torch.float32 and all(g.dtype == torch.float32 for g in low_grads)
+    scale = float(ref.abs().max())
+    assert float((low - ref).abs().max()) < 0.02 * scale and not torch.equal(low, ref)
+    for g_ref, g_low in zip(ref_grads, low_grads):
+        assert float((g_low - g_ref).norm() / g_ref.norm()) < 0.08  # three bfloat16 products deep
+
+
+def test_decoder_precision_is_chosen_by_option_and_device():
+    from apmgsrn.training.trainer import TrainConfig, decoder_hidden_dtype
+
+    cpu = torch.device("cpu")
+    assert decoder_hidden_dtype("float32", cpu) is None
+    assert decoder_hidden_dtype("bfloat16", cpu) is torch.bfloat16
+    assert decoder_hidden_dtype("auto", torch.device("meta")) is None  # auto: bfloat16 only on such CPUs
+    with pytest.raises(ValueError, match="decoder precision"):
+        TrainConfig(decoder_precision="half")
+
+
 def test_density_gradients_reach_only_transforms():
     field = small_field()
     points = torch.rand(256, 3) * 2 - 1

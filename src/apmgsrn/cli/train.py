@@ -15,7 +15,7 @@ def register(subparsers) -> None:
     from apmgsrn.models.encoders.adaptive_multigrid import GRID_INITS
     from apmgsrn.models.registry import ENCODERS
     from apmgsrn.models.value_transform import TRANSFORMS
-    from apmgsrn.training.trainer import DENSITY_NORMALIZATIONS, LR_SCHEDULES
+    from apmgsrn.training.trainer import DECODER_PRECISIONS, DENSITY_NORMALIZATIONS, LR_SCHEDULES
 
     parser = subparsers.add_parser(
         "train",
@@ -57,6 +57,9 @@ def register(subparsers) -> None:
                           help="grids stop moving by this fraction of the budget (default 0.5; paper 0.8)")
     training.add_argument("--density-normalization", choices=DENSITY_NORMALIZATIONS, default="mass",
                           help="mass (default): share of all grid features; batch: the paper's rho / sum rho")
+    training.add_argument("--decoder-precision", choices=DECODER_PRECISIONS, default="auto",
+                          help="decoder hidden layers while training: auto (default: bfloat16 on CPUs with "
+                               "native bfloat16, else float32), float32, bfloat16")
     training.add_argument("--seed", type=int, default=0)
     training.add_argument("--checkpoint-every", type=int, default=250)
     training.add_argument("--resume", action="store_true", help="continue an interrupted run from MODEL.ckpt")
@@ -97,6 +100,7 @@ def build_configs(args: argparse.Namespace, device):
             density_start=args.density_start,
             freeze_fraction=args.freeze_fraction,
             density_normalization=args.density_normalization,
+            decoder_precision=args.decoder_precision,
             seed=args.seed,
             checkpoint_every=args.checkpoint_every,
         )

@@ -38,3 +38,20 @@ class Decoder(nn.Sequential):
                     fan_out, fan_in = layer.weight.shape
                     bound = (6.0 / (fan_in + fan_out)) ** 0.5
                     layer.weight.uniform_(-bound, bound, generator=generator)
+
+    def forward(self, features: torch.Tensor, hidden_dtype: torch.dtype | None = None) -> torch.Tensor:
+        """``[N, in_features] -> [N, 1]``.
+
+        Args:
+            features: encoder output.
+            hidden_dtype: dtype of the hidden layers' matrix products (``None``: the features' dtype).
+                ``torch.bfloat16`` runs them 3-4x faster on CPUs with AVX512-BF16 or AMX; weights stay
+                float32 (cast on use, so gradients arrive in float32) and the output layer runs in float32,
+                so the fitted value is not rounded to bfloat16's 8-bit mantissa.
+        """
+        layers = [layer for layer in self if isinstance(layer, nn.Linear)]
+        x = features if hidden_dtype is None else features.to(hidden_dtype)
+        for layer in layers[:-1]:
+            x = torch.relu(nn.functional.linear(x, layer.weight.to(x.dtype)))
+        last = layers[-1]
+        return nn.functional.linear(x.to(last.weight.dtype), last.weight)

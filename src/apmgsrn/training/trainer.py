@@ -19,6 +19,7 @@ from apmgsrn.training.losses import feature_density_loss
 
 LR_SCHEDULES = ("cosine", "constant", "plateau", "steps")
 DENSITY_NORMALIZATIONS = ("mass", "batch")
+DECODER_PRECISIONS = ("auto", "float32", "bfloat16")
 
 
 @dataclass(frozen=True)
@@ -51,6 +52,10 @@ class TrainConfig:
         history_every: iterations between recorded loss-curve points; None: about 500 points in all.
         stop_after_lr_cuts: with ``lr_schedule="plateau"``, end training once the plateau scheduler has cut
             the learning rate this many times (paper, per brick: 3); None: run the whole budget.
+        decoder_precision: dtype of the decoder's hidden matrix products in the reconstruction step
+            (weights, gradients, optimiser and the output layer stay float32). ``"auto"``: bfloat16 on CPUs
+            that multiply it natively (AVX512-BF16 or AMX), where it makes CPU training 20-25 % faster at the
+            same PSNR (docs/benchmarks.md); float32 elsewhere. Evaluation always runs in float32.
     """
 
     iterations: int = 2000
@@ -70,6 +75,7 @@ class TrainConfig:
     checkpoint_every: int = 250
     history_every: int | None = None
     stop_after_lr_cuts: int | None = None
+    decoder_precision: str = "auto"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "betas", tuple(self.betas))
@@ -83,6 +89,27 @@ class TrainConfig:
             raise ValueError(f"lr schedule must be one of {LR_SCHEDULES}")
         if self.density_normalization not in DENSITY_NORMALIZATIONS:
             raise ValueError(f"density normalization must be one of {DENSITY_NORMALIZATIONS}")
+        if self.decoder_precision not in DECODER_PRECISIONS:
+            raise ValueError(f"decoder precision must be one of {DECODER_PRECISIONS}")
+
+
+def decoder_hidden_dtype(precision: str, device: torch.device) -> torch.dtype | None:
+    """The decoder's hidden-layer dtype for a :attr:`TrainConfig.decoder_precision` on ``device``."""
+    if precision == "bfloat16":
+        return torch.bfloat16
+    if precision == "auto" and device.type == "cpu" and _cpu_has_native_bfloat16():
+        return torch.bfloat16
+    return None
+
+
+def _cpu_has_native_bfloat16() -> bool:
+    """Whether this CPU has bfloat16 dot-product instructions (elsewhere oneDNN emulates them, slowly)."""
+    try:
+        with open("/proc/cpuinfo") as cpuinfo:
+            flags = next((line.split() for line in cpuinfo if line.startswith("flags")), [])
+    except OSError:
+        return False
+    return "avx512_bf16" in flags or "amx_bf16" in flags
 
 
 def default_budget(device: torch.device) -> tuple[int, int]:
@@ -156,6 +183,7 @@ class Trainer:
             if transform_params
             else None
         )
+        self.hidden_dtype = decoder_hidden_dtype(config.decoder_precision, self.device)
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(config.seed)
         self.state = TrainingState()
@@ -204,7 +232,8 @@ class Trainer:
         target = sample_volume(self.volume, points)  # [B]
 
         # Step 1: L_rec moves grids and decoder only (transform-detached coordinates).
-        prediction = self.field.normalized(points, detach_transforms=True).view(-1)  # [B]
+        prediction = self.field.normalized(points, detach_transforms=True, hidden_dtype=self.hidden_dtype)
+        prediction = prediction.view(-1)  # [B]
         error = (prediction - target).square()  # [B]
         reconstruction = error.mean()
         self.network_optimizer.zero_grad(set_to_none=True)
