@@ -201,6 +201,13 @@ def test_sample_volume_is_exact_on_linear_fields():
     torch.testing.assert_close(sample_volume(values, coords), values.reshape(-1), atol=1e-5, rtol=1e-5)
 
 
+def test_strided_voxel_coordinates_match_strided_voxels():
+    shape = (5, 7, 9)
+    full = voxel_coordinates(shape).reshape(*shape, 3)
+    assert torch.equal(voxel_coordinates(shape, stride=2), full[::2, ::2, ::2].reshape(-1, 3))
+    assert torch.equal(voxel_coordinates(shape, slice(1, 4), stride=3), full[1:4][::3, ::3, ::3].reshape(-1, 3))
+
+
 def test_value_transforms_round_trip_and_fit_statistics():
     import numpy as np
 

@@ -356,16 +356,13 @@ def _brick_psnr(field, region: np.ndarray, device: torch.device, max_voxels: int
     """PSNR over the brick (its own value range), on every voxel or on a strided subset."""
     from apmgsrn.inference.evaluate import evaluate_tensor, psnr_from_mse
     from apmgsrn.inference.query import query
+    from apmgsrn.ops.trilinear import voxel_coordinates
 
     if not max_voxels or region.size <= max_voxels:
         return evaluate_tensor(field, torch.from_numpy(region).to(device))
     stride = max(1, math.ceil((region.size / max_voxels) ** (1 / 3)))
-    # Corner-aligned coordinates of every stride-th voxel along each axis (x, y, z order, x fastest).
-    axes = [torch.arange(0, n, stride, dtype=torch.float32) * (2.0 / (n - 1)) - 1.0 for n in region.shape]
-    gz, gy, gx = torch.meshgrid(*axes, indexing="ij")
-    coords = torch.stack([gx, gy, gz], dim=-1)  # [d', h', w', 3]
     truth = torch.from_numpy(np.ascontiguousarray(region[::stride, ::stride, ::stride])).reshape(-1).double()
-    prediction = query(field, coords.reshape(-1, 3)).double().cpu()
+    prediction = query(field, voxel_coordinates(region.shape, stride=stride)).double().cpu()
     mse = float((prediction - truth).square().mean())
     return psnr_from_mse(mse, float(region.max() - region.min()))
 

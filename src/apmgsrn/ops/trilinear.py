@@ -27,15 +27,17 @@ def sample_volume(volume: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     return out.view(n)
 
 
-def voxel_coordinates(shape: tuple[int, int, int], z: slice | None = None) -> torch.Tensor:
-    """Coordinates in ``[-1, 1]^3`` of every voxel of a ``(D, H, W)`` volume (or of z-slab ``z``).
+def voxel_coordinates(shape: tuple[int, int, int], z: slice | None = None, stride: int = 1) -> torch.Tensor:
+    """Coordinates in ``[-1, 1]^3`` of every voxel of a ``(D, H, W)`` volume (or of z-slab ``z``), or of
+    every ``stride``-th voxel along each axis.
 
     Returns:
-        ``[n, 3]`` points ``(x, y, z)``, C order (x fastest), matching ``volume[z].reshape(-1)``.
+        ``[n, 3]`` points ``(x, y, z)``, C order (x fastest), matching
+        ``volume[z][::stride, ::stride, ::stride].reshape(-1)``.
     """
     d, h, w = shape
-    zs = torch.arange(d)[z if z is not None else slice(None)]
-    axes = [_axis(zs, d), _axis(torch.arange(h), h), _axis(torch.arange(w), w)]
+    zs = torch.arange(d)[z if z is not None else slice(None)][::stride]
+    axes = [_axis(zs, d), _axis(torch.arange(h)[::stride], h), _axis(torch.arange(w)[::stride], w)]
     gz, gy, gx = torch.meshgrid(*axes, indexing="ij")
     return torch.stack([gx, gy, gz], dim=-1).reshape(-1, 3)
 

@@ -3,6 +3,7 @@ a learning rate that follows the iteration budget, atomic checkpoints and exact 
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
 import time
@@ -102,6 +103,7 @@ def decoder_hidden_dtype(precision: str, device: torch.device) -> torch.dtype | 
     return None
 
 
+@functools.cache
 def _cpu_has_native_bfloat16() -> bool:
     """Whether this CPU has bfloat16 dot-product instructions (elsewhere oneDNN emulates them, slowly)."""
     try:
