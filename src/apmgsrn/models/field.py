@@ -63,3 +63,12 @@ class NeuralField(nn.Module):
 
     def parameter_count(self) -> int:
         return sum(p.numel() for p in self.parameters())
+
+    def check_parameters(self) -> str | None:
+        """Why these parameters cannot be a trained model (NaN/Inf, a singular grid map), or None."""
+        problem = self.encoder.check_parameters()
+        if problem is None:
+            for name, tensor in self.decoder.named_parameters():
+                if not bool(torch.isfinite(tensor).all()):
+                    return f"decoder parameter {name} holds NaN or Inf"
+        return problem
