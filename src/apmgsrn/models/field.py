@@ -58,6 +58,9 @@ class NeuralField(nn.Module):
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """Values in data units ``[N, 1]`` at ``points`` ``[N, 3]``."""
+        if self.value_min == self.value_max:
+            # A constant volume: its value exactly, whatever the transform would round it to.
+            return torch.full((points.shape[0], 1), self.value_min, dtype=points.dtype, device=points.device)
         fitted = self.normalized(points) * (self.fit_max - self.fit_min) + self.fit_min
         return self.transform.inverse(fitted)
 
