@@ -22,6 +22,7 @@ def plot_training_curves(training: dict, out: str) -> None:
     import matplotlib.pyplot as plt
 
     from apmgsrn.errors import ApmgsrnError
+    from apmgsrn.io import atomic_write
 
     history = training.get("history") or {}
     if not history.get("iteration"):
@@ -42,9 +43,7 @@ def plot_training_curves(training: dict, out: str) -> None:
     top.set_title(f"training: {training.get('iterations')} iterations, PSNR {training.get('psnr', float('nan')):.2f} dB")
     fig.tight_layout()
     try:
-        fig.savefig(out, dpi=110)
-    except OSError as exc:
-        raise ApmgsrnError(f"{out}: cannot write the plot ({exc.strerror})") from None
+        atomic_write(out, lambda temp: fig.savefig(temp, dpi=110, format="png"), "plot")
     finally:
         plt.close(fig)
 
