@@ -153,7 +153,7 @@ def test_baseline_trains_saves_and_reports_its_real_size(model, neghip_crop, tmp
     assert main(["info", str(out), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["model"] == model
-    assert info["parameters"] == field.parameter_count() == summary["parameters"]
+    assert info["parameters"] == field.description.parameters == summary["parameters"]
     assert info["parameter_bytes"] == 4 * info["parameters"]
     assert info["file_bytes"] == out.stat().st_size > info["parameter_bytes"]
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from apmgsrn.cli.main import main
-from apmgsrn.training.checkpoint import save_field
+from apmgsrn.io import SourceInfo, save_field
 
 FAST = ["--iterations", "30", "--batch-size", "1024", "--device", "cpu"]
 
@@ -103,7 +103,7 @@ def model_file(tmp_path):
     from apmgsrn.models.registry import preset_config
 
     path = tmp_path / "ok.apmgsrn"
-    save_field(path, NeuralField(preset_config("apmgsrn", "small"), volume_shape=(64, 64, 64)))
+    save_field(path, NeuralField(preset_config("apmgsrn", "small"), volume_shape=(64, 64, 64)), SourceInfo(), {})
     return path
 
 

@@ -100,7 +100,7 @@ def test_log10_transform_fits_cosmology_density_in_data_units(shared_data, tmp_p
     result = run_json(capsys, ["train", str(shared_data / "darkmatter_density_64.h5"), "--out", str(out),
                                "--transform", "log10", *FAST, "--json"])
     model = apmgsrn.load(out)
-    assert model.transform.kind == "log10"
+    assert model.field.transform.kind == "log10" and model.description.transform == "log10"
     with torch.no_grad():
         values = model(torch.rand(4096, 3) * 2 - 1)
     assert float(values.min()) > 0.1 and float(values.max()) < 3e5  # data units, positive

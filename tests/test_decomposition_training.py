@@ -13,7 +13,8 @@ import torch
 
 import apmgsrn
 from apmgsrn.data.raw import RawVolume
-from apmgsrn.decomposition.brick_model import brick_file_name, manifest_path
+from apmgsrn.io import SourceInfo, model_kind
+from apmgsrn.io.brick_folder import brick_file_name, manifest_path
 from apmgsrn.decomposition.brick_training import train_brick
 from apmgsrn.decomposition.coordinator import train_bricks
 from apmgsrn.decomposition.executor import DaskJobQueue, ExecutorConfig, open_job_queue
@@ -21,7 +22,6 @@ from apmgsrn.decomposition.planner import DecompositionConfig, plan_bricks
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.inference.evaluate import evaluate
 from apmgsrn.models.registry import preset_config
-from apmgsrn.training.checkpoint import is_model_file
 from apmgsrn.training.trainer import TrainConfig
 
 distributed = pytest.importorskip("distributed")
@@ -85,14 +85,15 @@ def test_bricks_train_on_dask_reading_only_their_own_box(reference, shared_data)
     boxes = sorted((b.start[0], b.stop[0], b.start[1], b.stop[1], b.start[2], b.stop[2]) for b in plan.bricks)
     assert sorted(reads) == boxes, "the coordinator read nothing, each job read exactly its box once"
     model = apmgsrn.load(out)
-    assert model.volume_shape == (64, 64, 64) and (model.value_min, model.value_max) == (0.0, 255.0)
-    assert model.parameter_count() == 4 * model.bricks[0].parameter_count()
-    assert model.file_bytes == sum(p.stat().st_size for p in out.iterdir())
-    assert is_model_file(out)
-    result = evaluate(model, RawVolume(shared_data / NEGHIP), model.file_bytes)
+    description = model.description
+    assert description.volume_shape == (64, 64, 64) and description.value_range == (0.0, 255.0)
+    assert description.parameters == 4 * model.field.bricks[0].parameter_count()
+    assert description.file_bytes == sum(p.stat().st_size for p in out.iterdir())
+    assert model_kind(out) == "bricks"
+    result = evaluate(model, RawVolume(shared_data / NEGHIP), description.file_bytes)
     assert result.psnr > NEGHIP_PSNR_BAR
-    model.blend = True  # blending keeps the quality (it only mixes bricks inside their shared voxels)
-    assert evaluate(model, RawVolume(shared_data / NEGHIP), model.file_bytes).psnr > NEGHIP_PSNR_BAR
+    model.field.blend = True  # blending keeps the quality (it only mixes bricks inside their shared voxels)
+    assert evaluate(model, RawVolume(shared_data / NEGHIP), description.file_bytes).psnr > NEGHIP_PSNR_BAR
     assert all(r.worker and r.peak_rss_bytes > 0 for r in summary.trained)
 
 
@@ -193,9 +194,9 @@ def test_rerun_after_a_kill_trains_missing_and_resumes_interrupted_bricks(refere
     names = [b.name for b in plan.bricks]
     # What a kill -9 leaves: a brick never written, a temp file of an atomic write that never finished,
     # and a brick that was stopped after its first training checkpoint (kill simulated right after it).
-    (out / brick_file_name(plan.bricks[0])).unlink()
-    (out / f".{brick_file_name(plan.bricks[0])}.abc.tmp").write_bytes(b"partial")
-    (out / brick_file_name(plan.bricks[3])).unlink()
+    (out / brick_file_name(plan.bricks[0].name)).unlink()
+    (out / f".{brick_file_name(plan.bricks[0].name)}.abc.tmp").write_bytes(b"partial")
+    (out / brick_file_name(plan.bricks[3].name)).unlink()
     manifest = json.loads(manifest_path(out).read_text())
     manifest["complete"] = False
     manifest_path(out).write_text(json.dumps(manifest))
@@ -213,7 +214,7 @@ def test_rerun_after_a_kill_trains_missing_and_resumes_interrupted_bricks(refere
     first = FlakyQueue(client, tmp_path / "none", index=-1, failures=0, retries=0)
     summary = train_bricks(RawVolume(shared_data / NEGHIP), GRID, FIELD, TRAIN, out, first)
     assert sorted(first.submitted) == sorted([names[0], names[3]])
-    assert list(summary.failed) == [names[3]] and (out / f"{brick_file_name(plan.bricks[3])}.ckpt").exists()
+    assert list(summary.failed) == [names[3]] and (out / f"{brick_file_name(plan.bricks[3].name)}.ckpt").exists()
 
     second = FlakyQueue(client, tmp_path / "none", index=-1, failures=0, retries=0)
     summary = train_bricks(RawVolume(shared_data / NEGHIP), GRID, FIELD, TRAIN, out, second)
@@ -268,7 +269,7 @@ def test_constant_bricks_need_no_training_and_the_cli_handles_brick_models(share
     result = json.loads(capsys.readouterr().out)
     assert result["complete"] and result["trained"] == 4
     model = apmgsrn.load(out)
-    iterations = {s["name"]: s["summary"]["iterations"] for s in model.brick_summaries}
+    iterations = {entry.name: entry.summary["iterations"] for entry in model.description.bricks.entries}
     assert iterations["brick_000_000_000"] == iterations["brick_003_000_000"] == 0
     assert iterations["brick_001_000_000"] == iterations["brick_002_000_000"] == 100
     empty = torch.rand(1000, 3) * 2 - 1
@@ -280,7 +281,7 @@ def test_constant_bricks_need_no_training_and_the_cli_handles_brick_models(share
     assert "4 x 1 x 1 (x, y, z), ghost cells 1" in text and text.count("exact") == 2
     assert main(["eval", str(out), data, "--variable", variable, "--json"]) == 0
     evaluation = json.loads(capsys.readouterr().out)
-    assert evaluation["model_bytes"] == model.file_bytes and evaluation["psnr"] > 10
+    assert evaluation["model_bytes"] == model.description.file_bytes and evaluation["psnr"] > 10
     decoded = tmp_path / "decoded.npy"
     assert main(["decode", str(out), "--out", str(decoded)]) == 0
     capsys.readouterr()
@@ -301,7 +302,7 @@ def test_hostile_or_corrupt_brick_models_are_refused(reference, tmp_path):
     out, manifest = fresh("escape")
     manifest["bricks"][0]["file"] = "../../etc/passwd"
     manifest_path(out).write_text(json.dumps(manifest))
-    with pytest.raises(ApmgsrnError, match="invalid brick entry"):
+    with pytest.raises(ApmgsrnError, match=r"bricks\[0\] has an invalid name or file"):
         apmgsrn.load(out)
 
     out, manifest = fresh("huge")
@@ -320,7 +321,7 @@ def test_hostile_or_corrupt_brick_models_are_refused(reference, tmp_path):
     manifest_path(out).write_bytes(b"\x00\xff not json")
     with pytest.raises(ApmgsrnError, match="not an apmgsrn brick model manifest"):
         apmgsrn.load(out)
-    assert not is_model_file(out)
+    assert model_kind(out) is None
 
     out, _ = fresh("pickled")
     import pickle
@@ -360,11 +361,11 @@ def test_a_volume_whose_reader_does_not_pickle_is_reopened_by_path(reference, sh
     shipped = shippable_volume(volume)
     assert isinstance(shipped, VolumeRecipe) and shipped.shape_xyz == (64, 64, 64) and shipped.dtype == "uint8"
     brick = plan_bricks(volume.shape, GRID).bricks[0]
-    job = BrickJob(shipped, brick, FIELD, brick_train_config(TRAIN, brick), tmp_path / brick_file_name(brick),
-                   threads=1, source={"path": NEGHIP})
+    job = BrickJob(shipped, brick, FIELD, brick_train_config(TRAIN, brick), tmp_path / brick_file_name(brick.name),
+                   threads=1, source=SourceInfo(path=NEGHIP))
     assert train_brick(job).ok
-    expected = apmgsrn.load(reference[0]).bricks[0]
-    assert_same_model(apmgsrn.load(tmp_path / brick_file_name(brick)), expected)
+    expected = apmgsrn.load(reference[0]).field.bricks[0]
+    assert_same_model(apmgsrn.load(tmp_path / brick_file_name(brick.name)).field, expected)
 
 
 @pytest.mark.slow

@@ -1,17 +1,19 @@
 """apmgsrn: adaptively placed multi-grid scene representation networks for scientific volumes.
 
-Importing this package never initialises CUDA, compiles kernels or imports optional extras.
+Importing this package imports nothing heavy (the command line starts fast): it never initialises CUDA,
+compiles kernels or imports torch or optional extras until a name below is used.
 """
 
 from apmgsrn.errors import ApmgsrnError
 
 __version__ = "0.1.0"
-__all__ = ["ApmgsrnError", "load", "__version__"]
+__all__ = ["ApmgsrnError", "Model", "load", "__version__"]
 
 
-def load(path, device="cpu"):
-    """Load a model file (single or brick model) as a torch module mapping ``[N, 3]`` points in
-    ``[-1, 1]^3`` to ``[N, 1]`` values in data units. Never executes code from the file."""
-    from apmgsrn.training.checkpoint import load_model
+def __getattr__(name: str):
+    # torch is imported on first use of the API, not by `import apmgsrn` (the CLI's start-up path).
+    if name in ("Model", "load"):
+        from apmgsrn import api
 
-    return load_model(path, device=device)
+        return getattr(api, name)
+    raise AttributeError(f"module 'apmgsrn' has no attribute {name!r}")

@@ -218,13 +218,13 @@ def measure_model(
     from apmgsrn.inference.query import query
     from apmgsrn.ops.trilinear import voxel_coordinates
 
-    field = apmgsrn.load(path, device=device)
-    if tuple(getattr(field, "volume_shape", data.shape)) != tuple(data.shape):
+    model = apmgsrn.load(path, device=device)
+    field, description = model.field, model.description
+    if description.volume_shape != tuple(data.shape):
         raise ApmgsrnError(f"{path}: model was trained on a volume of another shape; pass models of this volume")
-    summary = getattr(field, "training_summary", {}) or {}
     if train_seconds is None:
-        train_seconds = float(summary.get("seconds", math.nan))
-    method = field.config.model if hasattr(field, "config") else "model"
+        train_seconds = float(description.training.get("seconds", math.nan))
+    method = description.model
     query(field, points[:4096].to(device))  # warm-up: allocator, kernels, thread pool
     _synchronize(device)
     start = time.perf_counter()
@@ -245,7 +245,7 @@ def measure_model(
     return CompressRow(
         dataset=label,
         method=method,
-        setting=size or _preset_of(field) or "custom",
+        setting=size or _preset_of(description.config) or "custom",
         compressed_bytes=file_bytes,
         compression_ratio=data.size * 4 / file_bytes,
         psnr=psnr,
@@ -259,14 +259,14 @@ def measure_model(
     )
 
 
-def _preset_of(field) -> str | None:
-    """The size preset whose encoder config the field has, if any."""
+def _preset_of(field_config) -> str | None:
+    """The size preset whose encoder config a field config has, if any."""
     import dataclasses
 
     from apmgsrn.models.registry import PRESETS
 
-    config = dataclasses.asdict(field.config.encoder)
-    for preset, fields in PRESETS.get(field.config.model, {}).items():
+    config = dataclasses.asdict(field_config.encoder)
+    for preset, fields in PRESETS.get(field_config.model, {}).items():
         if all(config.get(k) == (tuple(v) if isinstance(v, list) else v) for k, v in fields.items()):
             return preset
     return None

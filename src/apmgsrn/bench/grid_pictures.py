@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.models.field import NeuralField
 
 # VTK_HEXAHEDRON lists the bottom face counter-clockwise, then the top face.
 _VTK_HEXAHEDRON_ORDER = (0, 1, 3, 2, 4, 5, 7, 6)
@@ -44,11 +45,11 @@ def require_grids(field, path: Path | str = "model") -> torch.Tensor:
     Raises:
         ApmgsrnError: the model has no adaptive grids (fvsrn, ngp or a brick model).
     """
-    encoder = getattr(field, "encoder", None)
-    if encoder is None or not hasattr(encoder, "grid_boxes"):
-        kind = getattr(getattr(field, "config", None), "model", "this kind of")
+    boxes = field.encoder.grid_boxes() if isinstance(field, NeuralField) else None
+    if boxes is None:
+        kind = field.config.model if isinstance(field, NeuralField) else "brick"
         raise ApmgsrnError(f"{path}: is a {kind} model without adaptive grids; pass an apmgsrn model")
-    return encoder.grid_boxes()
+    return boxes
 
 
 def projections(volume, transform=None, slab_voxels: int = 2**22) -> Projections:
@@ -189,7 +190,7 @@ class GridHistory:
 
 
 def record_grid_history(
-    field,
+    model,
     volume,
     every: int,
     device: torch.device,
@@ -202,7 +203,7 @@ def record_grid_history(
     repeats the run that made the model (up to floating-point non-determinism of parallel reductions).
 
     Args:
-        field: a loaded apmgsrn model (its ``training_summary`` must hold the training config).
+        model: a loaded apmgsrn model (:func:`apmgsrn.load`; its training summary must hold the config).
         volume: the volume it was trained on.
         every: record the grids every this many iterations (and at 0 and the end).
         device: training device.
@@ -212,12 +213,12 @@ def record_grid_history(
     Raises:
         ApmgsrnError: the file holds no training record, or the volume has another shape.
     """
-    from apmgsrn.models.field import NeuralField
     from apmgsrn.training.fit import prepare_volume
     from apmgsrn.training.trainer import Trainer, TrainConfig
 
+    field = model.field
     require_grids(field)
-    recorded = (getattr(field, "training_summary", {}) or {}).get("config")
+    recorded = model.description.training.get("config")
     if not recorded:
         raise ApmgsrnError("model file holds no training settings; animate a model written by 'apmgsrn train'")
     if tuple(volume.shape) != tuple(field.volume_shape):

@@ -28,9 +28,9 @@ def run(args: argparse.Namespace) -> int:
         x, y, z = parse_triple(args.shape, "--shape")
         shape = (z, y, x)
     else:
-        shape = tuple(model.volume_shape)
+        shape = model.description.volume_shape
     out = Path(args.out)
-    decode_volume(model, out, shape, batch_size=args.batch_size, progress=True,
+    decode_volume(model.field, out, shape, batch_size=args.batch_size, progress=True,
                   attributes={"source_model": Path(args.model).name})
     print(f"wrote {out} ({shape[2]}x{shape[1]}x{shape[0]} x*y*z, float32)")
     return 0

@@ -32,13 +32,13 @@ def run(args: argparse.Namespace) -> int:
     from apmgsrn.data import check_finite
 
     check_finite(volume)
-    trained_shape = tuple(getattr(model, "volume_shape", ()))
-    if trained_shape and trained_shape != tuple(volume.shape):
+    trained_shape = model.description.volume_shape
+    if trained_shape != tuple(volume.shape):
         raise ApmgsrnError(
             f"{args.data}: volume is {volume.shape[2]}x{volume.shape[1]}x{volume.shape[0]} (x*y*z) but the model "
             f"was trained on {trained_shape[2]}x{trained_shape[1]}x{trained_shape[0]}; pass the matching volume"
         )
-    result = evaluate(model, volume, model_bytes=model.file_bytes, batch_size=args.batch_size)
+    result = evaluate(model.field, volume, model_bytes=model.description.file_bytes, batch_size=args.batch_size)
     if args.json:
         values = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in result.to_dict().items()}
         print(json.dumps(values))

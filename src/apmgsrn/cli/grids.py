@@ -48,14 +48,14 @@ def run(args: argparse.Namespace) -> int:
     prefix = Path(args.out)
     if not prefix.absolute().parent.is_dir():
         raise ApmgsrnError(f"{prefix}: output folder {prefix.parent} does not exist; create it or choose another --out")
-    field = apmgsrn.load(args.model)
-    boxes = require_grids(field, args.model)
+    model = apmgsrn.load(args.model)
+    boxes = require_grids(model.field, args.model)
     volume = open_data(args, args.data)
-    if tuple(volume.shape) != tuple(field.volume_shape):
+    if tuple(volume.shape) != model.description.volume_shape:
         raise ApmgsrnError(
             f"{args.data}: volume shape differs from the one {args.model} was trained on; pass that volume"
         )
-    mips = projections(volume, field.transform)
+    mips = projections(volume, model.field.transform)
     title = f"{Path(args.model).name}: {boxes.shape[0]} grids over {volume.describe()}"
     png, vtk = Path(f"{prefix}.png"), Path(f"{prefix}.vtk")
     grid_picture(boxes, mips, png, title)
@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {png} and {vtk}")
     if args.animate:
         history = record_grid_history(
-            field, volume, args.every, resolve_device(args.device), args.iterations,
+            model, volume, args.every, resolve_device(args.device), args.iterations,
             log=lambda line: print(line, flush=True),
         )
         gif = Path(f"{prefix}.gif")

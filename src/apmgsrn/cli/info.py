@@ -22,6 +22,7 @@ def plot_training_curves(training: dict, out: str) -> None:
     import matplotlib.pyplot as plt
 
     from apmgsrn.errors import ApmgsrnError
+    from apmgsrn.io import atomic_write
 
     history = training.get("history") or {}
     if not history.get("iteration"):
@@ -42,43 +43,45 @@ def plot_training_curves(training: dict, out: str) -> None:
     top.set_title(f"training: {training.get('iterations')} iterations, PSNR {training.get('psnr', float('nan')):.2f} dB")
     fig.tight_layout()
     try:
-        fig.savefig(out, dpi=110)
-    except OSError as exc:
-        raise ApmgsrnError(f"{out}: cannot write the plot ({exc.strerror})") from None
+        atomic_write(out, lambda temp: fig.savefig(temp, dpi=110, format="png"), "plot")
     finally:
         plt.close(fig)
 
 
-def describe_field(field) -> dict:
-    """A JSON-able description of a single-field model."""
+def describe_field(field, description) -> dict:
+    """A JSON-able description of a single-field model.
+
+    Args:
+        field: the :class:`~apmgsrn.models.field.NeuralField`.
+        description: its file's :class:`~apmgsrn.io.ModelDescription`.
+    """
     import dataclasses
 
     config = field.config
     info = {
         "model": config.model,
-        "encoder": dataclasses.asdict(config.encoder),
+        "encoder": {k: v for k, v in config.to_dict()["encoder"].items()},
         "decoder": dataclasses.asdict(config.decoder),
         "parameters": field.parameter_count(),
         "parameter_bytes": field.parameter_count() * 4,
-        "file_bytes": getattr(field, "file_bytes", None),
-        "volume_shape_xyz": list(reversed(field.volume_shape)),
-        "value_range": [field.value_min, field.value_max],
+        "file_bytes": description.file_bytes,
+        "volume_shape_xyz": list(reversed(description.volume_shape)),
+        "value_range": list(description.value_range),
         "transform": dataclasses.asdict(field.transform),
-        "source": getattr(field, "source", {}),
+        "source": description.source.to_dict(),
     }
-    training = dict(getattr(field, "training_summary", {}) or {})
+    training = dict(description.training)
     history = training.pop("history", None)
     if history and history.get("reconstruction"):
         info["final_reconstruction_loss"] = history["reconstruction"][-1]
     info["training"] = training
-    encoder_config = getattr(field.encoder, "config", None)
-    if hasattr(encoder_config, "level_table_sizes"):  # hash grid: what each level really stores
+    if config.model == "ngp":  # hash grid: what each level really stores
         info["levels"] = [
             {"resolution": r, "table_entries": n, "dense": r**3 <= n}
-            for r, n in zip(encoder_config.level_resolutions(), encoder_config.level_table_sizes())
+            for r, n in zip(config.encoder.level_resolutions(), config.encoder.level_table_sizes())
         ]
-    if hasattr(field.encoder, "grid_boxes"):
-        boxes = field.encoder.grid_boxes()  # [M, 8, 3]
+    boxes = field.encoder.grid_boxes()  # [M, 8, 3] or None
+    if boxes is not None:
         info["grids"] = [
             {"center": [round(v, 4) for v in box.mean(0).tolist()],
              "extent": [round(v, 4) for v in (box.max(0).values - box.min(0).values).tolist()]}
@@ -92,11 +95,11 @@ def run(args: argparse.Namespace) -> int:
     from apmgsrn.cli.common import format_bytes
 
     model = apmgsrn.load(args.model)
-    if getattr(model, "kind", None) == "bricks":
+    if model.description.kind == "bricks":
         return _run_bricks(args, model)
-    info = describe_field(model)
+    info = describe_field(model.field, model.description)
     if args.plot:
-        plot_training_curves(getattr(model, "training_summary", {}), args.plot)
+        plot_training_curves(model.description.training, args.plot)
     if args.json:
         print(json.dumps(info))
         return 0
@@ -107,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"decoder         {info['decoder']['hidden_layers']} x {info['decoder']['width']}, ReLU, no bias")
     print(f"parameters      {info['parameters']:,} ({format_bytes(info['parameter_bytes'])} as float32)")
     x, y, z = info["volume_shape_xyz"]
-    print(f"volume          {x}x{y}x{z} (x*y*z) from {info['source'].get('description', '?')}")
+    print(f"volume          {x}x{y}x{z} (x*y*z) from {info['source'].get('description') or '?'}")
     print(f"value range     [{info['value_range'][0]:.6g}, {info['value_range'][1]:.6g}], transform {info['transform']['kind']}")
     if t:
         print(f"training        {t.get('iterations')} iterations x {t.get('batch_size')} points, "
@@ -128,29 +131,32 @@ def run(args: argparse.Namespace) -> int:
 
 
 def describe_bricks(model) -> dict:
-    """A JSON-able description of a brick model: grid, ghost cells, blend and per-brick figures."""
-    first = model.bricks[0]
+    """A JSON-able description of a brick model (an :class:`apmgsrn.Model` of kind ``bricks``): grid, ghost
+    cells, blend and per-brick figures."""
+    description = model.description
+    layout = description.bricks
+    first = model.field.bricks[0]
     info = {
         "kind": "bricks",
-        "bricks": list(model.plan.counts),
-        "ghost_cells": model.plan.config.ghost_cells,
-        "blend": model.blend,
-        "brick_model": describe_field(first) | {"training": {}, "grids": None},
-        "parameters": model.parameter_count(),
-        "parameter_bytes": model.parameter_count() * 4,
-        "file_bytes": model.file_bytes,
-        "volume_shape_xyz": list(reversed(model.volume_shape)),
-        "value_range": [model.value_min, model.value_max],
-        "source": model.source,
-        "training": model.training_summary,
+        "bricks": list(layout.counts),
+        "ghost_cells": layout.ghost_cells,
+        "blend": layout.blend,
+        "brick_model": describe_field(first, description) | {"training": {}, "grids": None},
+        "parameters": description.parameters,
+        "parameter_bytes": description.parameters * 4,
+        "file_bytes": description.file_bytes,
+        "volume_shape_xyz": list(reversed(description.volume_shape)),
+        "value_range": list(description.value_range),
+        "source": description.source.to_dict(),
+        "training": description.training,
         "per_brick": [],
     }
-    for entry in model.brick_summaries:
-        summary = entry.get("summary") or {}
+    for entry in layout.entries:
+        summary = entry.summary
         info["per_brick"].append({
-            "name": entry.get("name"),
-            "position": entry.get("position"),
-            "voxels_zyx": [entry.get("start"), entry.get("stop")],
+            "name": entry.name,
+            "position": list(entry.position),
+            "voxels_zyx": [list(entry.start), list(entry.stop)],
             **{k: summary.get(k) for k in ("psnr", "iterations", "stopped_early", "seconds", "value_min",
                                            "value_max", "bytes", "device")},
         })
@@ -177,7 +183,7 @@ def _run_bricks(args: argparse.Namespace, model) -> int:
     print(f"parameters      {info['parameters']:,} in all ({format_bytes(info['parameter_bytes'])} as float32), "
           f"{each['parameters']:,} per brick")
     x, y, z = info["volume_shape_xyz"]
-    print(f"volume          {x}x{y}x{z} (x*y*z) from {info['source'].get('description', '?')}")
+    print(f"volume          {x}x{y}x{z} (x*y*z) from {info['source'].get('description') or '?'}")
     print(f"value range     [{info['value_range'][0]:.6g}, {info['value_range'][1]:.6g}]")
     t = info["training"] or {}
     if t:

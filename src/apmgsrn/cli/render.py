@@ -195,16 +195,13 @@ class _Source:
 def _open_source(args: argparse.Namespace, path: str, device) -> _Source:
     if not Path(path).exists():
         raise ApmgsrnError(f"{path}: no such file; give a model file or a volume file")
-    from apmgsrn.training.checkpoint import is_model_file
+    from apmgsrn.io import model_kind
 
-    if is_model_file(path):
+    if model_kind(path) is not None:
         import apmgsrn
 
         model = apmgsrn.load(path, device=device)
-        model.eval()
-        value_range = (float(model.value_min), float(model.value_max))
-        shape = tuple(getattr(model, "volume_shape", (2, 2, 2)))
-        return _Source(model, value_range, shape)
+        return _Source(model.field, model.description.value_range, model.description.volume_shape)
     from apmgsrn.data import check_finite
 
     volume = open_data(args, path)

@@ -224,6 +224,7 @@ class Volume:
         if np.ma.isMaskedArray(data):
             # NetCDF _FillValue / missing values become NaN, so check_finite reports them.
             data = np.ma.filled(data.astype(np.float32), np.nan)
+        self._check_float32_range(data)
         out = np.asarray(data, dtype=np.float32, order="C")
         if not out.flags.writeable:
             out = out.copy()
@@ -231,6 +232,20 @@ class Volume:
         if out.shape != expected:  # an internal reader bug, not a user error
             raise RuntimeError(f"reader returned shape {out.shape} for a region of shape {expected}")
         return out
+
+    def _check_float32_range(self, data) -> None:
+        """Refuse finite values that float32, which everything here computes in, cannot hold."""
+        data = np.asarray(data)
+        if data.dtype.kind != "f" or data.dtype.itemsize <= 4 or data.size == 0:
+            return
+        finite = data[np.isfinite(data)]
+        largest = float(np.abs(finite).max()) if finite.size else 0.0
+        if largest > float(np.finfo(np.float32).max):
+            raise ApmgsrnError(
+                f"{self.path}: holds {data.dtype} values up to {largest:.3g}, beyond float32's range "
+                f"({float(np.finfo(np.float32).max):.3g}) in which apmgsrn computes; store the data in other "
+                "units (rescaled) first"
+            )
 
     def read(self, z: slice = slice(None), y: slice = slice(None), x: slice = slice(None)) -> np.ndarray:
         """Read a region; only that region is fetched from disk.

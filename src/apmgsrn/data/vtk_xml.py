@@ -6,6 +6,8 @@ optional extra and is imported only here, when such a file is opened.
 
 from __future__ import annotations
 
+import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +21,63 @@ _READERS = {
     ".vti": ("vtkXMLImageDataReader", "ImageData (.vti)"),
     ".vtr": ("vtkXMLRectilinearGridReader", "RectilinearGrid (.vtr)"),
 }
+
+
+#: Most bytes the XML header of a VTK file is searched for its extents (the appended data follows it).
+HEADER_SEARCH_BYTES = 16 << 20
+#: Largest expansion of stored bytes each compressor can give (zlib's is 1032:1, LZ4's about 255:1);
+#: a file declaring more data than this times its own size cannot hold it. LZMA has no small bound.
+COMPRESSION_BOUND = {"": 1.0, "vtkZLibDataCompressor": 1100.0, "vtkLZ4DataCompressor": 300.0}
+
+
+def _available_memory() -> int:
+    """Bytes of memory available now (Linux ``/proc/meminfo``), else the physical memory size."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def check_declared_size(path: Path) -> None:
+    """Refuse a VTK XML file whose declared extents it cannot hold, or that would not fit in memory,
+    before VTK allocates anything (a 335-byte file declaring 2001^3 points would abort the process).
+
+    Raises:
+        ApmgsrnError: the declared data is larger than the file could hold or than half the free memory.
+    """
+    with open(path, "rb") as f:
+        head = f.read(HEADER_SEARCH_BYTES)
+    head = head.split(b"<AppendedData", 1)[0].decode("latin-1")
+    extents = re.findall(r'\b(?:Whole)?Extent\s*=\s*"([^"]*)"', head)
+    arrays = max(1, len(re.findall(r"<DataArray\b", head)))
+    compressor = re.search(r'\bcompressor\s*=\s*"([^"]*)"', head)
+    largest = 0
+    for text in extents:
+        try:
+            low_x, high_x, low_y, high_y, low_z, high_z = (int(v) for v in text.split())
+        except ValueError:
+            raise ApmgsrnError(f"{path}: extent {text!r} is not six integers; the file is damaged") from None
+        counts = [high_x - low_x + 1, high_y - low_y + 1, high_z - low_z + 1]
+        if min(counts) < 1:
+            raise ApmgsrnError(f"{path}: extent {text!r} is empty or inverted; the file is damaged")
+        largest = max(largest, counts[0] * counts[1] * counts[2])
+    declared = largest * 4  # bytes of one float32 array of that many points
+    bound = COMPRESSION_BOUND.get(compressor.group(1) if compressor else "")
+    size = path.stat().st_size
+    if bound is not None and declared > bound * size + 4096:
+        raise ApmgsrnError(
+            f"{path}: declares {largest:,} points ({declared / 2**30:.1f} GiB a float32 array) but the file is only "
+            f"{size:,} bytes; it is damaged or truncated"
+        )
+    if declared * arrays > _available_memory() // 2:
+        raise ApmgsrnError(
+            f"{path}: declares {arrays} array(s) of {largest:,} points ({declared * arrays / 2**30:.1f} GiB), more "
+            "than half the free memory; this reader holds .vti/.vtr data in memory: convert the file to NetCDF, "
+            "HDF5 or Zarr, which are read lazily"
+        )
 
 
 def _read_vtk_arrays(path: Path) -> dict[str, tuple[ArrayInfo, np.ndarray]]:
@@ -37,6 +96,7 @@ def _read_vtk_arrays(path: Path) -> dict[str, tuple[ArrayInfo, np.ndarray]]:
         raise ApmgsrnError(
             f"{path}: not a readable VTK XML {label} file; check the file type and that it is not damaged"
         )
+    check_declared_size(path)
     reader.SetFileName(str(path))
     # VTK prints parse errors of damaged files to stderr; silence them and check the output instead.
     warnings_were_on = vtkObject.GetGlobalWarningDisplay()

@@ -8,8 +8,10 @@ interrupted run never leaves a half-written file under the requested name.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import shutil
 import uuid
 from pathlib import Path
 from typing import Any
@@ -119,12 +121,20 @@ class VolumeWriter:
                 dataset.close()
                 raise
             return dataset
-        if self.suffix == ".npy":
-            return np.lib.format.open_memmap(self._temporary, mode="w+", dtype=np.float32, shape=self.shape)
+        # raw and .npy: plain writes at known offsets (never a memory map: on a full disk a write to a mapped
+        # page kills the process with SIGBUS, where a write() call fails with ENOSPC that we can report).
+        needed = depth * height * width * 4
+        free = shutil.disk_usage(self.path.parent).free
+        if needed > free:
+            raise OSError(errno.ENOSPC, f"needs {needed:,} bytes, {free:,} free")
         handle = open(self._temporary, "wb")
         try:
+            if self.suffix == ".npy":
+                header = {"descr": "<f4", "fortran_order": False, "shape": self.shape}
+                np.lib.format.write_array_header_1_0(handle, header)
+            self._data_offset = handle.tell()
             # Size the file up front (sparse) so slabs can be written in any order.
-            handle.truncate(depth * height * width * 4)
+            handle.truncate(self._data_offset + needed)
         except BaseException:
             handle.close()
             raise
@@ -133,18 +143,16 @@ class VolumeWriter:
     def _store(self, z: slice, block: np.ndarray) -> None:
         if self.suffix == ".nc":
             self._handle[self.variable][z.start:z.stop, :, :] = block
-        elif self.suffix == ".npy":
-            self._handle[z.start:z.stop] = block
         else:
             _, height, width = self.shape
-            self._handle.seek(z.start * height * width * 4)
+            self._handle.seek(self._data_offset + z.start * height * width * 4)
             self._handle.write(np.ascontiguousarray(block, dtype="<f4").data)
 
     def _finish(self) -> None:
-        if self.suffix == ".npy":
+        if self.suffix != ".nc":
             self._handle.flush()
-        else:
-            self._handle.close()
+            os.fsync(self._handle.fileno())
+        self._handle.close()
         self._handle = None
 
     # ----------------------------------------------------------------- public
@@ -202,7 +210,7 @@ class VolumeWriter:
     def abort(self) -> None:
         """Drop the temporary file without touching the target."""
         handle, self._handle = self._handle, None
-        if handle is not None and self.suffix != ".npy":
+        if handle is not None:
             try:
                 handle.close()
             except Exception:  # noqa: BLE001 - the handle may already be broken; cleanup goes on

@@ -19,7 +19,9 @@ import torch
 
 from apmgsrn.decomposition.planner import Brick
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.io import SourceInfo, save_field
 from apmgsrn.models.registry import FieldConfig
+from apmgsrn.training.checkpoint import checkpoint_path_for
 from apmgsrn.training.trainer import TrainConfig
 
 #: Paper (SPEC section 6): a brick is done after the plateau scheduler's third learning-rate cut.
@@ -57,7 +59,7 @@ class BrickJob:
     log_offset: float = 0.0
     device: str = "auto"
     threads: int | None = None
-    source: dict | None = None
+    source: SourceInfo = SourceInfo()
     psnr_voxels: int | None = None
 
 
@@ -151,11 +153,6 @@ def shippable_volume(volume):
             shape_xyz=tuple(reversed(volume.shape)) if raw else None,
             dtype=str(volume.dtype) if raw else None,
         )
-
-
-def checkpoint_path_for(model_path: Path) -> Path:
-    """The training checkpoint beside a brick's model file."""
-    return Path(str(model_path) + ".ckpt")
 
 
 def peak_rss_bytes() -> int:
@@ -264,7 +261,6 @@ def train_brick(job: BrickJob) -> BrickResult:
 def _fit_region(job: BrickJob, region: np.ndarray, device: torch.device, worker: str, path) -> BrickResult:
     from apmgsrn.models.field import NeuralField
     from apmgsrn.models.value_transform import fit_value_transform
-    from apmgsrn.training.checkpoint import save_field
     from apmgsrn.training.trainer import Trainer
 
     brick = job.brick
@@ -301,7 +297,7 @@ def _fit_region(job: BrickJob, region: np.ndarray, device: torch.device, worker:
     resumed_from = 0
     if span > 0:
         fingerprint = {"brick": brick.name, "box": [list(brick.start), list(brick.stop)],
-                       "source": job.source or {}, "field": job.field_config.to_dict()}
+                       "source": job.source.to_dict(), "field": job.field_config.to_dict()}
         trainer = Trainer(field, values, config, checkpoint, fingerprint, progress=False)
         if checkpoint.exists():
             trainer.load_checkpoint(checkpoint)
@@ -329,7 +325,7 @@ def _fit_region(job: BrickJob, region: np.ndarray, device: torch.device, worker:
         "brick": {"name": brick.name, "index": brick.index, "position": list(brick.position),
                   "start": list(brick.start), "stop": list(brick.stop)},
     }
-    save_field(job.model_path, field, training=training, source=job.source or {})
+    save_field(job.model_path, field, job.source, training)
     if checkpoint.exists():
         checkpoint.unlink()
     peak_device = int(torch.cuda.max_memory_allocated(device)) if device.type == "cuda" else 0

@@ -18,15 +18,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TextIO
 
-from apmgsrn.decomposition.brick_model import (
-    brick_file_name,
-    brick_summary_from_file,
-    manifest_path,
-    missing_bricks,
-    new_manifest,
-    read_manifest,
-    write_manifest,
-)
+from apmgsrn.decomposition.brick_model import missing_bricks
 from apmgsrn.decomposition.brick_training import (
     BrickJob,
     BrickResult,
@@ -38,6 +30,15 @@ from apmgsrn.decomposition.brick_training import (
 from apmgsrn.decomposition.executor import JobQueue
 from apmgsrn.decomposition.planner import BrickPlan, DecompositionConfig, plan_bricks
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.io import SourceInfo
+from apmgsrn.io.brick_folder import (
+    brick_file_name,
+    brick_summary_from_file,
+    manifest_path,
+    new_manifest,
+    read_manifest,
+    write_manifest,
+)
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.training.trainer import TrainConfig
 
@@ -260,10 +261,11 @@ def train_bricks(
     out = Path(out)
     progress = progress or BrickProgress(enabled=False)
     plan = plan_bricks(volume.shape, decomposition, str(volume.path))
-    source = {"path": os.path.basename(str(volume.path)), "variable": volume.variable,
-              "description": volume.describe()}
+    source = SourceInfo.of_volume(volume)
     settings = training_settings(volume, plan, field_config, train_config, transform, log_offset)
-    manifest = _prepare_directory(out, settings) or new_manifest(plan, settings, source)
+    manifest = _prepare_directory(out, settings) or new_manifest(
+        plan.volume_shape, plan.counts, plan.config.ghost_cells, decomposition.blend, plan.bricks, settings, source
+    )
     manifest["blend"] = decomposition.blend
     manifest["complete"] = False
     write_manifest(out, manifest)
@@ -281,7 +283,7 @@ def train_bricks(
             brick=brick,
             field_config=field_config,
             train_config=brick_train_config(train_config, brick),
-            model_path=(out / brick_file_name(brick)).absolute(),
+            model_path=(out / brick_file_name(brick.name)).absolute(),
             transform=transform,
             log_offset=log_offset,
             device=device,
@@ -344,7 +346,7 @@ def _finish(out: Path, plan: BrickPlan, manifest: dict, trained: list[BrickResul
                                 "value_min": result.value_min, "value_max": result.value_max,
                                 "bytes": result.model_bytes, "device": result.device}
         else:
-            entry["summary"] = brick_summary_from_file(out / brick_file_name(brick))
+            entry["summary"] = brick_summary_from_file(out / brick_file_name(brick.name))
         low = min(low, float(entry["summary"]["value_min"]))
         high = max(high, float(entry["summary"]["value_max"]))
     complete = not missing
@@ -362,7 +364,7 @@ def _finish(out: Path, plan: BrickPlan, manifest: dict, trained: list[BrickResul
     }
     write_manifest(out, manifest)
     model_bytes = manifest_path(out).stat().st_size + sum(
-        (out / brick_file_name(b)).stat().st_size for b in plan.bricks if b.name not in missing
+        (out / brick_file_name(b.name)).stat().st_size for b in plan.bricks if b.name not in missing
     )
     return BrickTrainingSummary(
         out=out,

@@ -49,6 +49,7 @@ class ExecutorConfig:
             memory divided by the workers.
         use_dask: False runs the jobs in threads of this process without Dask (also the fallback when
             Dask is not installed and no scheduler was given).
+        dashboard: serve the local cluster's Dask dashboard on 127.0.0.1 (any free port); off by default.
     """
 
     scheduler: str | None = None
@@ -57,6 +58,7 @@ class ExecutorConfig:
     processes: bool = True
     memory_limit: int | str | None = None
     use_dask: bool = True
+    dashboard: bool = False
 
     def __post_init__(self) -> None:
         if self.workers is not None and self.workers < 1:
@@ -271,6 +273,25 @@ def _join_cluster(config: ExecutorConfig) -> DaskJobQueue:
     return DaskJobQueue(client, config.retries, owned=(client,))
 
 
+def _local_security():
+    """TLS with a fresh throw-away certificate for a local process cluster, so that no other local user's
+    client can reach its scheduler or workers (Dask refuses a connection without the certificate).
+
+    Returns:
+        ``(protocol, Security)``: ``"tls://"`` and the credentials, or ``"inproc://"`` and None for a cluster
+        of threads in this process (unreachable from outside it).
+    """
+    from distributed.security import Security
+
+    try:
+        return "tls://", Security.temporary()
+    except ImportError:
+        raise ApmgsrnError(
+            "a local Dask cluster needs the 'cryptography' package for its TLS credentials; run "
+            "`pip install apmgsrn[distributed]`"
+        ) from None
+
+
 def _start_local_cluster(config: ExecutorConfig) -> DaskJobQueue:
     import psutil
     from distributed import Client, LocalCluster, Nanny, Scheduler, SpecCluster
@@ -280,6 +301,9 @@ def _start_local_cluster(config: ExecutorConfig) -> DaskJobQueue:
     workers = config.workers or (len(gpus) if gpus else max(1, min(cores, DEFAULT_CPU_WORKERS)))
     threads_per_job = max(1, cores // workers)
     memory_limit = config.memory_limit or int(psutil.virtual_memory().total // workers)
+    # Loopback only, TLS between scheduler, workers and this client, dashboard only when asked for.
+    protocol, security = _local_security() if config.processes else ("inproc://", None)
+    dashboard = "127.0.0.1:0" if config.dashboard else None
     if gpus:
         # One process per worker, each seeing one GPU (round robin when there are more workers than GPUs).
         specs = {
@@ -289,13 +313,18 @@ def _start_local_cluster(config: ExecutorConfig) -> DaskJobQueue:
                     "nthreads": 1,
                     "memory_limit": memory_limit,
                     "env": {"CUDA_VISIBLE_DEVICES": gpus[i % len(gpus)]},
+                    "host": "127.0.0.1",
+                    "protocol": protocol,
+                    "security": security,
                 },
             }
             for i in range(workers)
         }
         cluster = SpecCluster(
             workers=specs,
-            scheduler={"cls": Scheduler, "options": {"dashboard_address": ":0"}},
+            scheduler={"cls": Scheduler, "options": {"dashboard_address": dashboard, "host": "127.0.0.1",
+                                                     "protocol": protocol, "security": security}},
+            security=security,
             silence_logs=logging.ERROR,
         )
         where = f"local Dask cluster: {workers} worker(s) on GPU(s) {','.join(gpus)}"
@@ -305,12 +334,17 @@ def _start_local_cluster(config: ExecutorConfig) -> DaskJobQueue:
             threads_per_worker=1,
             processes=config.processes,
             memory_limit=memory_limit,
-            dashboard_address=":0",  # any free port: never collide with another cluster
+            host="127.0.0.1" if config.processes else None,
+            protocol=protocol,
+            security=security,
+            dashboard_address=dashboard,
             silence_logs=logging.ERROR,
         )
         kind = "processes" if config.processes else "threads"
         where = f"local Dask cluster: {workers} CPU worker {kind}, {threads_per_job} torch thread(s) each"
-    client = Client(cluster)
+    client = Client(cluster, security=security)
     queue = DaskJobQueue(client, config.retries, owned=(client, cluster), threads_per_job=threads_per_job)
     queue.description = where
+    if config.dashboard:
+        queue.description += f"; dashboard {cluster.dashboard_link}"
     return queue

@@ -58,8 +58,20 @@ class NeuralField(nn.Module):
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """Values in data units ``[N, 1]`` at ``points`` ``[N, 3]``."""
+        if self.value_min == self.value_max:
+            # A constant volume: its value exactly, whatever the transform would round it to.
+            return torch.full((points.shape[0], 1), self.value_min, dtype=points.dtype, device=points.device)
         fitted = self.normalized(points) * (self.fit_max - self.fit_min) + self.fit_min
         return self.transform.inverse(fitted)
 
     def parameter_count(self) -> int:
         return sum(p.numel() for p in self.parameters())
+
+    def check_parameters(self) -> str | None:
+        """Why these parameters cannot be a trained model (NaN/Inf, a singular grid map), or None."""
+        problem = self.encoder.check_parameters()
+        if problem is None:
+            for name, tensor in self.decoder.named_parameters():
+                if not bool(torch.isfinite(tensor).all()):
+                    return f"decoder parameter {name} holds NaN or Inf"
+        return problem

@@ -41,6 +41,11 @@ PRESETS: dict[str, dict[str, dict]] = {
 DEFAULT_LR_SCHEDULES: dict[str, str] = {"apmgsrn": "cosine", "fvsrn": "cosine", "ngp": "cosine"}
 
 
+#: Config fields that choose how to run, not what to build: never saved, so a model trained with one
+#: kernel backend (say Triton on a GPU) loads anywhere and picks the fastest backend where it runs.
+RUN_TIME_FIELDS = ("backend",)
+
+
 @dataclass(frozen=True)
 class FieldConfig:
     """Everything needed to rebuild a field's modules (saved in every model file)."""
@@ -50,16 +55,53 @@ class FieldConfig:
     decoder: DecoderConfig = DecoderConfig()
 
     def to_dict(self) -> dict:
-        return {"model": self.model, "encoder": dataclasses.asdict(self.encoder), "decoder": dataclasses.asdict(self.decoder)}
+        encoder = {k: v for k, v in dataclasses.asdict(self.encoder).items() if k not in RUN_TIME_FIELDS}
+        return {"model": self.model, "encoder": encoder, "decoder": dataclasses.asdict(self.decoder)}
 
     @staticmethod
     def from_dict(data: dict) -> "FieldConfig":
+        """The config a model file describes; run-time fields stored by older versions are dropped.
+
+        Raises:
+            ValueError: an unknown model kind, unknown or mistyped fields, or sizes out of bounds.
+        """
+        if not isinstance(data, dict) or not isinstance(data.get("model"), str):
+            raise ValueError("field config is not an object with a model name")
         model = data["model"]
         if model not in ENCODERS:
             raise ValueError(f"unknown model kind {model!r}")
         config_class = ENCODERS[model][0]
-        encoder_fields = {k: tuple(v) if isinstance(v, list) else v for k, v in data["encoder"].items()}
-        return FieldConfig(model, config_class(**encoder_fields), DecoderConfig(**data["decoder"]))
+        encoder = _config_fields(config_class, data.get("encoder"), "encoder")
+        decoder = _config_fields(DecoderConfig, data.get("decoder"), "decoder")
+        return FieldConfig(model, config_class(**encoder), DecoderConfig(**decoder))
+
+    def parameter_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Shape of every stored parameter of the field, named as in its ``state_dict``."""
+        encoder = {f"encoder.{k}": v for k, v in self.encoder.parameter_shapes().items()}
+        decoder = {f"decoder.{k}": v for k, v in self.decoder.parameter_shapes(self.encoder.out_features).items()}
+        return encoder | decoder
+
+
+def _config_fields(config_class: type, data, name: str) -> dict:
+    """Keyword arguments for ``config_class`` from stored JSON: known fields of plain types only."""
+    if not isinstance(data, dict):
+        raise ValueError(f"{name} config is not an object")
+    known = {f.name: f for f in dataclasses.fields(config_class)}
+    fields = {}
+    for key, value in data.items():
+        if key in RUN_TIME_FIELDS:
+            continue
+        if key not in known:
+            raise ValueError(f"unknown {name} field {key!r}")
+        default = known[key].default
+        if isinstance(default, tuple):
+            if not isinstance(value, (list, tuple)) or not all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+                raise ValueError(f"{name}.{key} is not a list of integers")
+            value = tuple(value)
+        elif type(default) is not type(value) and not (isinstance(default, float) and type(value) is int):
+            raise ValueError(f"{name}.{key} is a {type(value).__name__}, not a {type(default).__name__}")
+        fields[key] = value
+    return fields
 
 
 def preset_config(model: str, preset: str, **overrides) -> FieldConfig:

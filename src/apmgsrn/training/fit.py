@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -13,7 +12,8 @@ from apmgsrn.errors import ApmgsrnError
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.models.value_transform import ValueTransform, fit_value_transform
-from apmgsrn.training.checkpoint import save_field
+from apmgsrn.io import SourceInfo, save_field
+from apmgsrn.training.checkpoint import checkpoint_path_for
 from apmgsrn.training.trainer import Trainer, TrainConfig
 
 
@@ -49,10 +49,6 @@ def prepare_volume(volume, transform: str, log_offset: float, device: torch.devi
     scaled = (fitted - fit_min) / (span if span > 0 else 1.0)
     values = torch.from_numpy(np.ascontiguousarray(scaled, dtype=np.float32)).to(device)
     return PreparedVolume(values, data, value_transform, fit_min, fit_max, value_min, value_max)
-
-
-def checkpoint_path_for(model_path: Path) -> Path:
-    return Path(str(model_path) + ".ckpt")
 
 
 @dataclass(frozen=True)
@@ -116,12 +112,8 @@ def fit_volume(
         volume_shape=volume.shape,
         generator=generator,
     ).to(device)
-    source = {
-        "path": os.path.basename(str(volume.path)),
-        "variable": volume.variable,
-        "description": volume.describe(),
-    }
-    fingerprint = {"source": source, "shape": list(volume.shape), "field": field_config.to_dict(),
+    source = SourceInfo.of_volume(volume)
+    fingerprint = {"source": source.to_dict(), "shape": list(volume.shape), "field": field_config.to_dict(),
                    "transform": asdict(prepared.transform)}
     trainer = Trainer(field, prepared.values, train_config, checkpoint, fingerprint, progress)
     state = trainer.run(resume=resume)
@@ -138,7 +130,7 @@ def fit_volume(
         "config": asdict(train_config),
         "history": state.history,
     }
-    save_field(out, field, training=training, source=source)
+    save_field(out, field, source, training)
     if checkpoint.exists():
         checkpoint.unlink()
     return FitResult(field, out, out.stat().st_size, state.elapsed, state.iteration, state.frozen_at, psnr)

@@ -14,8 +14,10 @@ from pathlib import Path
 import torch
 
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.io.container import load_tensors, read_header, save_tensors
 from apmgsrn.models.field import NeuralField
 from apmgsrn.ops.trilinear import sample_volume
+from apmgsrn.training.checkpoint import CHECKPOINT_KIND
 from apmgsrn.training.losses import feature_density_loss
 
 LR_SCHEDULES = ("cosine", "constant", "plateau", "steps")
@@ -176,7 +178,7 @@ class Trainer:
         self.fingerprint = fingerprint or {}
         self.progress = progress and sys.stderr.isatty()
         encoder = field.encoder
-        transform_params = list(encoder.transform_parameters()) if hasattr(encoder, "transform_parameters") else []
+        transform_params = list(encoder.transform_parameters())
         transform_ids = {id(p) for p in transform_params}
         network_params = [p for p in field.parameters() if id(p) not in transform_ids]
         self.network_optimizer = torch.optim.Adam(network_params, lr=config.lr, betas=config.betas)
@@ -379,8 +381,6 @@ class Trainer:
     # ----------------------------------------------------------------------------- checkpoints
     def save_checkpoint(self, path: Path) -> None:
         """Write model, optimiser moments and RNG state atomically (safetensors + JSON, no pickle)."""
-        from apmgsrn.training.checkpoint import save_tensors
-
         self._flush_density()
         tensors = {f"model.{k}": v for k, v in self.field.state_dict().items()}
         optimizers = {"network": self.network_optimizer, "transform": self.transform_optimizer}
@@ -400,16 +400,14 @@ class Trainer:
             "state": asdict(self.state),
             "param_groups": groups,
         }
-        save_tensors(path, tensors, "training-state", description)
+        save_tensors(path, tensors, CHECKPOINT_KIND, description, what="training checkpoint")
 
     def load_checkpoint(self, path: Path) -> None:
         """Restore a checkpoint written by :meth:`save_checkpoint` for the same run."""
-        from apmgsrn.training.checkpoint import load_tensors, read_header
-
         header = read_header(path)
-        if header["kind"] != "training-state":
+        if header.kind != CHECKPOINT_KIND:
             raise ApmgsrnError(f"{path}: not a training checkpoint; remove it or pass another --out")
-        description = header["description"]
+        description = header.description
         if description.get("fingerprint") != _jsonable(self.fingerprint) or description.get("config") != _jsonable(
             asdict(self.config)
         ):

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.io import model_kind
 
 MODEL = "model"
 VOLUME = "volume"
@@ -95,13 +96,9 @@ class Catalog:
 
     # ------------------------------------------------------------------ classification
     def _kind_of_directory(self, path: Path) -> str | None:
-        from apmgsrn.decomposition.brick_model import is_brick_model_directory
-
         if path.suffix.lower() == ".zarr":
             return VOLUME
-        if is_brick_model_directory(path):
-            return MODEL
-        return None
+        return MODEL if model_kind(path) is not None else None
 
     def _kind(self, path: Path) -> str | None:
         """What an existing path is to the viewer (None: not shown)."""
@@ -115,9 +112,7 @@ class Catalog:
         if suffix in MODEL_SUFFIXES:
             return MODEL
         # A model saved under another name still has its self-describing header (read, never executed).
-        from apmgsrn.training.checkpoint import is_model_file
-
-        return MODEL if is_model_file(path) else None
+        return MODEL if model_kind(path) is not None else None
 
     # ------------------------------------------------------------------ listing
     def entries(self) -> list[CatalogEntry]:

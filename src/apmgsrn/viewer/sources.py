@@ -92,15 +92,15 @@ def open_source(
 def _open_model(name: str, path: Path, device: torch.device, config: SourceConfig) -> ViewSource:
     import apmgsrn
 
-    model = apmgsrn.load(path, device=device)
-    model.eval()
-    value_range = (float(model.value_min), float(model.value_max))
-    shape = tuple(int(n) for n in getattr(model, "volume_shape", (2, 2, 2)))
+    loaded = apmgsrn.load(path, device=device)
+    model, description = loaded.field, loaded.description
+    value_range = description.value_range
+    shape = description.volume_shape
     grid_boxes, brick_boxes = None, None
-    bricks = getattr(model, "bricks", None)
-    if bricks is not None:
+    if description.bricks is not None:
+        bricks = model.bricks
         kind = "brick model"
-        counts = tuple(int(c) for c in model.plan.counts)  # (I, J, K) along x, y, z
+        counts = description.bricks.counts  # (I, J, K) along x, y, z
         brick_boxes = routing_boxes(counts)
         per_brick = []
         for index, brick_field in enumerate(bricks):
@@ -111,25 +111,22 @@ def _open_model(name: str, path: Path, device: torch.device, config: SourceConfi
                 offset = model.brick_offsets[index].detach().cpu()
                 per_brick.append((local - offset) / scale)
         grid_boxes = torch.cat(per_brick) if per_brick else None
-        description = f"brick model, {len(bricks)} bricks ({counts[0]}x{counts[1]}x{counts[2]})"
+        text = f"brick model, {len(bricks)} bricks ({counts[0]}x{counts[1]}x{counts[2]})"
     else:
         kind = "model"
         grid_boxes = _grid_boxes_of(model)
-        model_name = getattr(getattr(model, "config", None), "model", None) or type(model).__name__
         grids = f", {grid_boxes.shape[0]} feature grids" if grid_boxes is not None else ""
-        description = f"{model_name} model{grids}"
-    description += f", volume {shape[2]}x{shape[1]}x{shape[0]}"
+        text = f"{description.model} model{grids}"
+    text += f", volume {shape[2]}x{shape[1]}x{shape[0]}"
     histogram = _field_histogram(model, value_range, device, config)
-    return ViewSource(name, kind, model, value_range, shape, None, grid_boxes, brick_boxes, histogram, description)
+    return ViewSource(name, kind, model, value_range, shape, None, grid_boxes, brick_boxes, histogram, text)
 
 
-def _grid_boxes_of(model) -> torch.Tensor | None:
-    encoder = getattr(model, "encoder", None)
-    boxes = getattr(encoder, "grid_boxes", None)
-    if not callable(boxes):
-        return None  # a baseline without learned grids (dense or hash grid)
+def _grid_boxes_of(field) -> torch.Tensor | None:
+    """Corners ``[M, 8, 3]`` of a single field's placed grids (None for a baseline without them)."""
     with torch.no_grad():
-        return boxes().detach().float().cpu()  # [M, 8, 3]
+        boxes = field.encoder.grid_boxes()
+    return None if boxes is None else boxes.detach().float().cpu()
 
 
 def _open_volume(

@@ -1,0 +1,165 @@
+"""What a model file says about itself, as typed values: the description every consumer reads.
+
+Loading returns the network *and* a :class:`ModelDescription`; nothing is patched onto the module. The
+JSON a file holds is checked field by field here (types, shapes, bounds), so that a malformed or hostile
+description is refused with one message before anything is built from it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from apmgsrn.errors import ApmgsrnError
+from apmgsrn.models.registry import FieldConfig
+
+
+class DescriptionError(ValueError):
+    """A description field of the wrong type or value; the loader adds the file name."""
+
+
+@dataclass(frozen=True)
+class SourceInfo:
+    """Where the training data came from.
+
+    Attributes:
+        path: the data file's name (no folder: models travel between machines).
+        variable: the variable / dataset / array name, or None (raw, npy).
+        text: one line describing the volume as the reader saw it.
+    """
+
+    path: str = ""
+    variable: str | None = None
+    text: str = ""
+
+    def to_dict(self) -> dict:
+        return {"path": self.path, "variable": self.variable, "description": self.text}
+
+    @staticmethod
+    def of_volume(volume) -> "SourceInfo":
+        """What a :class:`apmgsrn.data.Volume` (anything with ``path``, ``variable``, ``describe()``) was."""
+        return SourceInfo(Path(str(volume.path)).name, volume.variable, volume.describe())
+
+    @staticmethod
+    def from_dict(data) -> "SourceInfo":
+        data = require_dict(data, "source")
+        return SourceInfo(
+            path=optional_str(data.get("path"), "source.path") or "",
+            variable=optional_str(data.get("variable"), "source.variable"),
+            text=optional_str(data.get("description"), "source.description") or "",
+        )
+
+
+@dataclass(frozen=True)
+class BrickEntry:
+    """One brick of a brick model: its box in voxels and the figures its training left."""
+
+    name: str
+    index: int
+    position: tuple[int, int, int]
+    start: tuple[int, int, int]  # (z, y, x), inclusive
+    stop: tuple[int, int, int]  # (z, y, x), exclusive
+    file: str
+    summary: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class BrickLayout:
+    """The brick grid of a brick model (SPEC section 6)."""
+
+    counts: tuple[int, int, int]  # bricks along x, y, z
+    ghost_cells: int
+    blend: bool
+    entries: tuple[BrickEntry, ...]
+
+
+@dataclass(frozen=True)
+class ModelDescription:
+    """Everything a model file says about the model it holds.
+
+    Attributes:
+        kind: ``"field"`` (one network) or ``"bricks"`` (a folder of one network per brick).
+        config: the network's config (of every brick, for a brick model); ``model`` is its kind.
+        volume_shape: ``(D, H, W)`` of the training volume.
+        value_range: ``(min, max)`` of the training data, data units.
+        transform: the value transform's kind (``none``, ``log10``, ``zscore``).
+        source: where the data came from.
+        training: the training summary as saved (iterations, seconds, psnr, max_abs_error, history, config...).
+        parameters: stored parameters of the network(s).
+        file_bytes: bytes on disk (a brick model: all of its files).
+        format_version: the file's format version.
+        bricks: the brick grid of a brick model, else None.
+    """
+
+    kind: str
+    config: FieldConfig
+    volume_shape: tuple[int, int, int]
+    value_range: tuple[float, float]
+    transform: str
+    source: SourceInfo
+    training: dict
+    parameters: int
+    file_bytes: int
+    format_version: int
+    bricks: BrickLayout | None = None
+
+    @property
+    def model(self) -> str:
+        """The network kind users type (``apmgsrn``, ``fvsrn``, ``ngp``, ...)."""
+        return self.config.model
+
+
+# ------------------------------------------------------------------------------------ typed JSON readers
+def require_dict(value, name: str) -> dict:
+    if not isinstance(value, dict):
+        raise DescriptionError(f"{name} is not an object")
+    return value
+
+
+def optional_str(value, name: str) -> str | None:
+    if value is not None and not isinstance(value, str):
+        raise DescriptionError(f"{name} is not a string")
+    return value
+
+
+def require_number(value, name: str, finite: bool = True) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise DescriptionError(f"{name} is not a number")
+    if finite and not math.isfinite(value):
+        raise DescriptionError(f"{name} is not finite")
+    return float(value)
+
+
+def require_int(value, name: str, minimum: int | None = None, maximum: int | None = None) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise DescriptionError(f"{name} is not an integer")
+    if (minimum is not None and value < minimum) or (maximum is not None and value > maximum):
+        raise DescriptionError(f"{name} = {value} is out of range")
+    return value
+
+
+def require_ints(value, name: str, count: int, minimum: int, maximum: int) -> tuple[int, ...]:
+    if not isinstance(value, (list, tuple)) or len(value) != count:
+        raise DescriptionError(f"{name} is not a list of {count} integers")
+    return tuple(require_int(v, name, minimum, maximum) for v in value)
+
+
+def training_summary(value) -> dict:
+    """The training summary: an object whose history, if any, is an object of number lists."""
+    summary = require_dict(value, "training")
+    history = summary.get("history")
+    if history is not None:
+        history = require_dict(history, "training.history")
+        for key, series in history.items():
+            if not isinstance(series, list) or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) for v in series
+            ):
+                raise DescriptionError(f"training.history.{key} is not a list of numbers")
+    return summary
+
+
+def inconsistent(path, error: Exception) -> ApmgsrnError:
+    """The one message for a model file whose contents do not fit together."""
+    first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+    return ApmgsrnError(f"{path}: model file is inconsistent ({first}); re-train or re-download it")
