@@ -232,7 +232,7 @@ def record_grid_history(
     transform = field.transform
     prepared = prepare_values(volume.to_numpy(), transform.kind, transform.offset, str(volume.path), device)
     if prepared.constant:
-        raise ApmgsrnError(f"{volume.path}: every voxel has the same value, so the grids never move; nothing to animate")
+        raise ApmgsrnError(f"{volume.path}: every voxel has the same value, so the grids never move; nothing to show")
     recorder = GridRecorder(every)
     if log is not None:
         log(f"retraining {config.iterations} iterations to record the grids every {every}")

@@ -33,10 +33,12 @@ def run(args: argparse.Namespace) -> int:
     figures = {**result.to_dict(), "model_bytes": model.file_bytes, "raw_bytes": raw_bytes,
                "compression_ratio": raw_bytes / model.file_bytes}
     if args.json:
-        print(json.dumps({k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in figures.items()}))
+        finite = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in figures.items()}
+        print(json.dumps(finite))
         return 0
     print(f"PSNR              {result.psnr:.2f} dB")
-    print(f"max abs error     {result.max_abs_error:.6g} ({percent_of_range(result.max_abs_error, result.data_min, result.data_max)})")
+    share = percent_of_range(result.max_abs_error, result.data_min, result.data_max)
+    print(f"max abs error     {result.max_abs_error:.6g} ({share})")
     print(f"MSE               {result.mse:.6g}")
     print(f"value range       [{result.data_min:.6g}, {result.data_max:.6g}]")
     print(f"model size        {format_bytes(model.file_bytes)} ({model.file_bytes:,} bytes)")
