@@ -188,7 +188,6 @@ class FitResult:
         stopped_early: training ended before the budget (early stop, or a constant volume).
         resumed_from: iteration the run resumed at (0: fresh).
         evaluation: PSNR and largest error against the truth, data units.
-        summary: the training summary saved in the model file.
     """
 
     field: NeuralField
@@ -200,7 +199,6 @@ class FitResult:
     stopped_early: bool
     resumed_from: int
     evaluation: Evaluation
-    summary: dict
 
     @property
     def psnr(self) -> float:
@@ -276,7 +274,6 @@ def fit(
         stopped_early=summary["stopped_early"],
         resumed_from=trained.resumed_from,
         evaluation=evaluation,
-        summary=summary,
     )
 
 
