@@ -58,6 +58,16 @@ def test_eval_matches_a_direct_computation(neghip_model, shared_data, capsys):
     expected = 20 * np.log10(255.0) - 10 * np.log10(mse)
     result = run_json(capsys, ["eval", str(neghip_model), str(shared_data / NEGHIP), "--json"])
     assert result["psnr"] == pytest.approx(expected, abs=1e-6)
+    # linspace and the evaluator's lattice round the coordinates differently: 1e-5 absorbs that.
+    assert result["max_abs_error"] == pytest.approx(np.abs(pred - data).max(), rel=1e-5)
+    # The training summary measured the same figures right after training, on the same lattice.
+    summary = model.description.training
+    assert summary["psnr"] == pytest.approx(result["psnr"], abs=1e-9)
+    assert summary["max_abs_error"] == result["max_abs_error"]
+    assert main(["eval", str(neghip_model), str(shared_data / NEGHIP)]) == 0
+    text = capsys.readouterr().out
+    largest = result["max_abs_error"]
+    assert f"max abs error     {largest:.6g} ({100 * largest / 255:.2g} % of the value range)" in text
     assert result["max_abs_error"] == pytest.approx(np.abs(pred - data).max(), rel=1e-6)
 
 

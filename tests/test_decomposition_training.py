@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -13,14 +14,14 @@ import torch
 
 import apmgsrn
 from apmgsrn.data.raw import RawVolume
-from apmgsrn.io import SourceInfo, model_kind
-from apmgsrn.io.brick_folder import brick_file_name, manifest_path
-from apmgsrn.decomposition.brick_training import train_brick
+from apmgsrn.decomposition.brick_training import brick_policy, brick_train_config, train_brick
 from apmgsrn.decomposition.coordinator import train_bricks
 from apmgsrn.decomposition.executor import DaskJobQueue, ExecutorConfig, open_job_queue
 from apmgsrn.decomposition.planner import DecompositionConfig, plan_bricks
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.inference.evaluate import evaluate
+from apmgsrn.io import SourceInfo, model_kind
+from apmgsrn.io.brick_folder import brick_file_name, manifest_path
 from apmgsrn.models.registry import preset_config
 from apmgsrn.training.trainer import TrainConfig
 
@@ -90,10 +91,10 @@ def test_bricks_train_on_dask_reading_only_their_own_box(reference, shared_data)
     assert description.parameters == 4 * model.field.bricks[0].parameter_count()
     assert description.file_bytes == sum(p.stat().st_size for p in out.iterdir())
     assert model_kind(out) == "bricks"
-    result = evaluate(model, RawVolume(shared_data / NEGHIP), description.file_bytes)
+    result = evaluate(model, RawVolume(shared_data / NEGHIP))
     assert result.psnr > NEGHIP_PSNR_BAR
     model.field.blend = True  # blending keeps the quality (it only mixes bricks inside their shared voxels)
-    assert evaluate(model, RawVolume(shared_data / NEGHIP), description.file_bytes).psnr > NEGHIP_PSNR_BAR
+    assert evaluate(model, RawVolume(shared_data / NEGHIP)).psnr > NEGHIP_PSNR_BAR
     assert all(r.worker and r.peak_rss_bytes > 0 for r in summary.trained)
 
 
@@ -250,9 +251,18 @@ def test_plateau_schedule_ends_training_after_the_third_cut():
     torch.nn.init.zeros_(field.decoder[-1].weight)
     config = TrainConfig(iterations=5000, batch_size=16, lr=0.0, lr_schedule="plateau", stop_after_lr_cuts=3,
                          freeze_fraction=0.001)
-    state = Trainer(field, torch.zeros(4, 4, 4), config, progress=False).run()
+    state = Trainer(field, torch.zeros(4, 4, 4), config).run()
     assert state.lr_scale == pytest.approx(1e-3)
     assert 1500 <= state.iteration <= 1560
+
+
+def test_bricks_train_under_cosine_by_default_and_plateau_bricks_stop_after_the_third_cut():
+    assert brick_policy(TrainConfig()) == TrainConfig()  # cosine: the whole budget
+    plateau = TrainConfig(lr_schedule="plateau")
+    assert brick_policy(plateau).stop_after_lr_cuts == 3
+    assert brick_policy(replace(plateau, stop_after_lr_cuts=1)).stop_after_lr_cuts == 1  # an explicit choice stays
+    brick = plan_bricks((64, 64, 64), GRID).bricks[3]
+    assert brick_train_config(plateau, brick) == replace(plateau, stop_after_lr_cuts=3, seed=3)
 
 
 def test_constant_bricks_need_no_training_and_the_cli_handles_brick_models(shared_data, client, tmp_path, capsys):
@@ -269,6 +279,9 @@ def test_constant_bricks_need_no_training_and_the_cli_handles_brick_models(share
     result = json.loads(capsys.readouterr().out)
     assert result["complete"] and result["trained"] == 4
     model = apmgsrn.load(out)
+    # Without --lr-schedule, bricks train under the single model's budget-following cosine schedule.
+    training = json.loads(manifest_path(out).read_text())["settings"]["training"]
+    assert training["lr_schedule"] == "cosine" and training["stop_after_lr_cuts"] is None
     iterations = {entry.name: entry.summary["iterations"] for entry in model.description.bricks.entries}
     assert iterations["brick_000_000_000"] == iterations["brick_003_000_000"] == 0
     assert iterations["brick_001_000_000"] == iterations["brick_002_000_000"] == 100

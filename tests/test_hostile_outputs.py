@@ -27,11 +27,13 @@ def model(tmp_path_factory) -> Path:
 
 
 def one_line_error(capsys, *words: str) -> str:
+    """The error: the last line of stderr, alone (progress lines may come before it), no traceback."""
     err = capsys.readouterr().err
-    assert err.startswith("error: ") and err.count("\n") == 1 and "Traceback" not in err, err
+    last = err.rstrip("\n").splitlines()[-1]
+    assert last.startswith("error: ") and err.count("error: ") == 1 and "Traceback" not in err, err
     for word in words:
-        assert word in err, err
-    return err
+        assert word in last, err
+    return last
 
 
 @pytest.mark.parametrize("suffix", [".npy", ".raw", ".nc"])

@@ -11,6 +11,7 @@ second run reuses them), or given as existing model files.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -20,9 +21,19 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from apmgsrn.api import load
+from apmgsrn.bench.charts import rate_distortion_chart
+from apmgsrn.bench.compressors import get_compressor
 from apmgsrn.bench.datasets import DataSpec, open_spec
+from apmgsrn.bench.quality import QualityPlan, prepare_folder, run_quality
 from apmgsrn.bench.results import CompressRow, write_rows
+from apmgsrn.bench.tables import compress_table
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.inference.decode import decode_array
+from apmgsrn.inference.evaluate import check_volume_shape, compare_arrays
+from apmgsrn.inference.query import query
+from apmgsrn.models.registry import PRESETS
+from apmgsrn.ops.trilinear import sample_volume
 
 DEFAULT_BOUNDS = (1e-1, 3e-2, 1e-2, 3e-3, 1e-3, 3e-4, 1e-4)
 
@@ -93,11 +104,6 @@ def run_compress(
     Returns:
         The rows (compressors first, then networks) and the skipped compressors' reasons.
     """
-    from apmgsrn.bench.charts import rate_distortion_chart
-    from apmgsrn.bench.compressors import get_compressor
-    from apmgsrn.bench.quality import QualityPlan, prepare_folder, run_quality
-    from apmgsrn.bench.tables import compress_table
-
     prepare_folder(out)
     paths = compress_paths(Path(out), plan.dataset)
     volume = open_spec(plan.dataset)
@@ -159,15 +165,13 @@ def measure_compressor(compressor, data: np.ndarray, bound: float, points: torch
         points: ``[Q, 3]`` query points in ``[-1, 1]^3``.
         label: volume name for the row.
     """
-    from apmgsrn.ops.trilinear import sample_volume
-
     start = time.perf_counter()
     compressed = compressor.compress(data, bound)
     compress_seconds = time.perf_counter() - start
     start = time.perf_counter()
     restored = compressor.decompress(compressed)
     decompress_seconds = time.perf_counter() - start
-    psnr, max_error = _errors(restored, data)
+    errors = compare_arrays(restored, data)
     # Point queries from the compressed form: decompress everything, then interpolate.
     start = time.perf_counter()
     values = sample_volume(torch.from_numpy(compressor.decompress(compressed)), points)
@@ -180,8 +184,8 @@ def measure_compressor(compressor, data: np.ndarray, bound: float, points: torch
         setting=f"{bound:g}",
         compressed_bytes=len(compressed.data),
         compression_ratio=raw_bytes / len(compressed.data),
-        psnr=psnr,
-        max_abs_error=max_error,
+        psnr=errors.psnr,
+        max_abs_error=errors.max_abs_error,
         compress_seconds=compress_seconds,
         decompress_seconds=decompress_seconds,
         decompress_voxels_per_second=data.size / decompress_seconds,
@@ -214,28 +218,18 @@ def measure_model(
     Raises:
         ApmgsrnError: the model was trained on a volume of another shape.
     """
-    import apmgsrn
-    from apmgsrn.inference.query import query
-    from apmgsrn.ops.trilinear import voxel_coordinates
-
-    model = apmgsrn.load(path, device=device)
+    model = load(path, device=device)
     field, description = model.field, model.description
-    if description.volume_shape != tuple(data.shape):
-        raise ApmgsrnError(f"{path}: model was trained on a volume of another shape; pass models of this volume")
+    check_volume_shape(data.shape, description.volume_shape, label)
     if train_seconds is None:
         train_seconds = float(description.training.get("seconds", math.nan))
     method = description.model
     query(field, points[:4096].to(device))  # warm-up: allocator, kernels, thread pool
     _synchronize(device)
     start = time.perf_counter()
-    d, h, w = data.shape
-    decoded = np.empty_like(data)
-    step = max(1, 2**22 // (h * w))
-    for z0 in range(0, d, step):
-        z = slice(z0, min(d, z0 + step))
-        decoded[z] = query(field, voxel_coordinates(data.shape, z)).numpy().reshape(-1, h, w)
+    decoded = decode_array(field, data.shape)
     decompress_seconds = time.perf_counter() - start
-    psnr, max_error = _errors(decoded, data)
+    errors = compare_arrays(decoded, data)
     _synchronize(device)
     start = time.perf_counter()
     query(field, points)
@@ -248,8 +242,8 @@ def measure_model(
         setting=size or _preset_of(description.config) or "custom",
         compressed_bytes=file_bytes,
         compression_ratio=data.size * 4 / file_bytes,
-        psnr=psnr,
-        max_abs_error=max_error,
+        psnr=errors.psnr,
+        max_abs_error=errors.max_abs_error,
         compress_seconds=train_seconds,
         decompress_seconds=decompress_seconds,
         decompress_voxels_per_second=data.size / decompress_seconds,
@@ -261,24 +255,11 @@ def measure_model(
 
 def _preset_of(field_config) -> str | None:
     """The size preset whose encoder config a field config has, if any."""
-    import dataclasses
-
-    from apmgsrn.models.registry import PRESETS
-
     config = dataclasses.asdict(field_config.encoder)
     for preset, fields in PRESETS.get(field_config.model, {}).items():
         if all(config.get(k) == (tuple(v) if isinstance(v, list) else v) for k, v in fields.items()):
             return preset
     return None
-
-
-def _errors(restored: np.ndarray, data: np.ndarray) -> tuple[float, float]:
-    """(PSNR over every voxel with the ground truth's range, largest absolute error)."""
-    from apmgsrn.inference.evaluate import psnr_from_mse
-
-    diff = restored.astype(np.float64).reshape(-1) - data.astype(np.float64).reshape(-1)
-    mse = float(np.dot(diff, diff)) / diff.size
-    return psnr_from_mse(mse, float(data.max()) - float(data.min())), float(np.abs(diff).max())
 
 
 def _synchronize(device: torch.device) -> None:

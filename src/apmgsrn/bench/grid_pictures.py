@@ -5,7 +5,8 @@
 - :func:`write_grid_vtk`: the boxes as hexahedra in a legacy VTK file that ParaView opens beside the volume
   (in voxel-index coordinates by default, where ParaView shows a volume that has no spacing of its own).
 - :func:`record_grid_history` and :func:`write_grid_animation`: train the model again with its recorded
-  settings (same seed, so the same run), keeping the grid maps every K iterations, and draw them as a GIF.
+  settings (same seed, so the same run) through the fitting pipeline, a :class:`GridRecorder` callback
+  keeping the grid maps every K iterations, and draw them as a GIF.
 """
 
 from __future__ import annotations
@@ -18,7 +19,12 @@ import numpy as np
 import torch
 
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.inference.evaluate import check_volume_shape
+from apmgsrn.inference.slabs import SLAB_VOXELS
 from apmgsrn.models.field import NeuralField
+from apmgsrn.training.callbacks import TrainingProgress
+from apmgsrn.training.fit import prepare_values, train_prepared
+from apmgsrn.training.trainer import StepLosses, TrainConfig, Trainer, TrainingCallback
 
 # VTK_HEXAHEDRON lists the bottom face counter-clockwise, then the top face.
 _VTK_HEXAHEDRON_ORDER = (0, 1, 3, 2, 4, 5, 7, 6)
@@ -52,7 +58,7 @@ def require_grids(field, path: Path | str = "model") -> torch.Tensor:
     return boxes
 
 
-def projections(volume, transform=None, slab_voxels: int = 2**22) -> Projections:
+def projections(volume, transform=None, slab_voxels: int = SLAB_VOXELS) -> Projections:
     """MIPs along the three axes, streamed over z-slabs (one slab in memory at a time).
 
     Args:
@@ -213,19 +219,12 @@ def record_grid_history(
     Raises:
         ApmgsrnError: the file holds no training record, or the volume has another shape.
     """
-    from apmgsrn.training.fit import prepare_volume
-    from apmgsrn.training.trainer import Trainer, TrainConfig
-
     field = model.field
     require_grids(field)
     recorded = model.description.training.get("config")
     if not recorded:
         raise ApmgsrnError("model file holds no training settings; animate a model written by 'apmgsrn train'")
-    if tuple(volume.shape) != tuple(field.volume_shape):
-        raise ApmgsrnError(
-            f"{volume.path}: volume is {'x'.join(map(str, reversed(volume.shape)))}, the model was trained on "
-            f"{'x'.join(map(str, reversed(field.volume_shape)))}; pass the volume the model was trained on"
-        )
+    check_volume_shape(volume.shape, model.description.volume_shape, str(volume.path))
     settings = dict(recorded)
     settings["betas"] = tuple(settings.get("betas", (0.9, 0.99)))
     if iterations is not None:
@@ -233,27 +232,37 @@ def record_grid_history(
         settings.update(iterations=int(iterations), density_start=None, history_every=None)
     config = TrainConfig(**{k: v for k, v in settings.items() if k in TrainConfig.__dataclass_fields__})
     transform = field.transform
-    prepared = prepare_volume(volume, transform.kind, transform.offset, device)
-    replay = NeuralField(
-        field.config, fit_min=prepared.fit_min, fit_max=prepared.fit_max, value_min=prepared.value_min,
-        value_max=prepared.value_max, transform=prepared.transform, volume_shape=volume.shape,
-        generator=torch.Generator().manual_seed(config.seed),
-    ).to(device)
-    history = GridHistory([0], [replay.encoder.grid_boxes().cpu().numpy()])
-
-    class RecordingTrainer(Trainer):
-        def step(self):
-            losses = super().step()
-            done = self.state.iteration + 1  # step() runs before the loop counts the iteration
-            if done % every == 0 or done == self.config.iterations:
-                history.iterations.append(done)
-                history.boxes.append(self.field.encoder.grid_boxes().cpu().numpy())
-            return losses
-
+    prepared = prepare_values(volume.to_numpy(), transform.kind, transform.offset, str(volume.path), device)
+    if prepared.constant:
+        raise ApmgsrnError(f"{volume.path}: every voxel has the same value, so the grids never move; nothing to show")
+    recorder = GridRecorder(every)
     if log is not None:
         log(f"retraining {config.iterations} iterations to record the grids every {every}")
-    RecordingTrainer(replay, prepared.values, config, progress=True).run()
-    return history
+    train_prepared(prepared, field.config, config, volume.shape, callbacks=[recorder, TrainingProgress("replay")])
+    return recorder.history
+
+
+class GridRecorder(TrainingCallback):
+    """Keeps the grid boxes at the start, every ``every`` iterations and at the end of the budget.
+
+    Args:
+        every: iterations between recorded states.
+    """
+
+    def __init__(self, every: int):
+        self.every = every
+        self.history = GridHistory([], [])
+
+    def _record(self, trainer: Trainer, iteration: int) -> None:
+        self.history.iterations.append(iteration)
+        self.history.boxes.append(trainer.field.encoder.grid_boxes().detach().cpu().numpy())  # [M, 8, 3]
+
+    def on_start(self, trainer: Trainer) -> None:
+        self._record(trainer, trainer.state.iteration)
+
+    def after_step(self, trainer: Trainer, iteration: int, losses: StepLosses) -> None:
+        if iteration % self.every == 0 or iteration == trainer.config.iterations:
+            self._record(trainer, iteration)
 
 
 def write_grid_animation(

@@ -59,6 +59,12 @@ def format_bytes(count: float) -> str:
     return f"{count} B"
 
 
+def percent_of_range(error: float, low: float, high: float) -> str:
+    """An error as a share of a value range, e.g. ``"0.41 % of the value range"``."""
+    span = high - low
+    return f"{100 * error / span:.2g} % of the value range" if span > 0 else "constant data"
+
+
 def require_model(path: str) -> Path:
     path_obj = Path(path)
     if not path_obj.exists():

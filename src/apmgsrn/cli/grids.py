@@ -42,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
         write_grid_vtk,
     )
     from apmgsrn.device import resolve_device
+    from apmgsrn.inference.evaluate import check_volume_shape
 
     if args.every < 1:
         raise ApmgsrnError(f"--every {args.every}: give a positive number of iterations")
@@ -51,10 +52,7 @@ def run(args: argparse.Namespace) -> int:
     model = apmgsrn.load(args.model)
     boxes = require_grids(model.field, args.model)
     volume = open_data(args, args.data)
-    if tuple(volume.shape) != model.description.volume_shape:
-        raise ApmgsrnError(
-            f"{args.data}: volume shape differs from the one {args.model} was trained on; pass that volume"
-        )
+    check_volume_shape(volume.shape, model.description.volume_shape, args.data)
     mips = projections(volume, model.field.transform)
     title = f"{Path(args.model).name}: {boxes.shape[0]} grids over {volume.describe()}"
     png, vtk = Path(f"{prefix}.png"), Path(f"{prefix}.vtk")

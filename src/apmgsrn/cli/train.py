@@ -6,7 +6,14 @@ import argparse
 import json
 from pathlib import Path
 
-from apmgsrn.cli.common import add_data_arguments, add_device_argument, format_bytes, open_data, parse_triple
+from apmgsrn.cli.common import (
+    add_data_arguments,
+    add_device_argument,
+    format_bytes,
+    open_data,
+    parse_triple,
+    percent_of_range,
+)
 from apmgsrn.errors import ApmgsrnError
 
 
@@ -49,8 +56,9 @@ def register(subparsers) -> None:
     training.add_argument("--lr", type=float, default=0.01)
     training.add_argument("--transform-lr", type=float, default=0.001, help="learning rate of the grid transforms")
     training.add_argument("--lr-schedule", choices=LR_SCHEDULES,
-                          help="cosine: anneal after the grids stop (default for every model); constant; "
-                               "plateau (paper); steps: x0.33 at 40/60/80%% (NGP/fVSRN reference code)")
+                          help="cosine: anneal after the grids stop (default for every model, bricks too); "
+                               "constant; plateau (paper; a brick ends after the third cut); "
+                               "steps: x0.33 at 40/60/80%% (NGP/fVSRN reference code)")
     training.add_argument("--density-start", type=int,
                           help="iteration where the grids start moving (default: 5%% of the budget; paper 500)")
     training.add_argument("--freeze-fraction", type=float, default=0.5,
@@ -134,6 +142,7 @@ def run(args: argparse.Namespace) -> int:
     summary = {
         "model": str(out),
         "psnr": result.psnr,
+        "max_abs_error": result.max_abs_error,
         "model_bytes": result.model_bytes,
         "parameters": result.field.parameter_count(),
         "raw_bytes": raw_bytes,
@@ -148,8 +157,14 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(f"model       {out} ({format_bytes(result.model_bytes)}, {summary['parameters']:,} parameters)")
         print(f"data        {volume.describe()} ({format_bytes(raw_bytes)} as float32)")
-        print(f"PSNR        {result.psnr:.2f} dB over all {volume.raw_bytes // 4:,} voxels")
+        evaluation = result.evaluation
+        print(f"PSNR        {evaluation.psnr:.2f} dB over all {volume.raw_bytes // 4:,} voxels; "
+              f"max abs error {evaluation.max_abs_error:.4g} "
+              f"({percent_of_range(evaluation.max_abs_error, evaluation.data_min, evaluation.data_max)})")
         print(f"compression {summary['compression_ratio']:.1f}x")
-        print(f"training    {result.iterations} iterations in {result.seconds:.1f} s "
-              f"({summary['ms_per_iteration']:.1f} ms/iteration), grids frozen at {result.frozen_at}")
+        if result.iterations == 0:
+            print("training    none needed: every voxel has the same value")
+        else:
+            print(f"training    {result.iterations} iterations in {result.seconds:.1f} s "
+                  f"({summary['ms_per_iteration']:.1f} ms/iteration), grids frozen at {result.frozen_at}")
     return 0

@@ -6,7 +6,6 @@ import argparse
 import json
 import math
 import os
-from dataclasses import replace
 from pathlib import Path
 
 from apmgsrn.cli.common import format_bytes, open_data, parse_triple
@@ -39,7 +38,6 @@ def run_bricks(args: argparse.Namespace) -> int:
     from apmgsrn.decomposition.executor import ExecutorConfig, open_job_queue
     from apmgsrn.decomposition.planner import DecompositionConfig
     from apmgsrn.device import resolve_device
-    from apmgsrn.decomposition.brick_training import BRICK_LR_CUTS
 
     counts = parse_triple(args.bricks, "--bricks")
     if args.ghost_cells < 0:
@@ -50,13 +48,10 @@ def run_bricks(args: argparse.Namespace) -> int:
         raise ApmgsrnError(f"--retries {args.retries}: must be 0 or more")
     if args.scheduler and args.workers:
         raise ApmgsrnError("--workers starts local workers; with --scheduler the cluster's workers are used: drop one")
-    # SPEC section 6: a brick trains under the plateau schedule and is done after its third cut.
-    if args.lr_schedule is None:
-        args.lr_schedule = "plateau"
     # The coordinator only sizes the budget; workers resolve --device themselves (auto: their own GPU).
+    # How a brick trains beyond these options (the plateau schedule's early stop) is decided by
+    # decomposition.brick_training.brick_policy.
     field_config, train_config = build_configs(args, resolve_device(args.device))
-    if train_config.lr_schedule == "plateau":
-        train_config = replace(train_config, stop_after_lr_cuts=BRICK_LR_CUTS)
     # Workers reopen the file by path, possibly from another folder or machine.
     volume = open_data(args, os.path.abspath(args.data))
     out = Path(args.out)

@@ -8,9 +8,7 @@ since every brick is seeded with ``seed + brick index`` the finished model is th
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import sys
 import time
 import uuid
@@ -22,6 +20,7 @@ from apmgsrn.decomposition.brick_model import missing_bricks
 from apmgsrn.decomposition.brick_training import (
     BrickJob,
     BrickResult,
+    brick_policy,
     brick_train_config,
     peak_rss_bytes,
     shippable_volume,
@@ -40,7 +39,8 @@ from apmgsrn.io.brick_folder import (
     write_manifest,
 )
 from apmgsrn.models.registry import FieldConfig
-from apmgsrn.training.trainer import TrainConfig
+from apmgsrn.progress import Progress
+from apmgsrn.training.trainer import TrainConfig, as_json
 
 
 @dataclass(frozen=True)
@@ -77,8 +77,8 @@ class BrickTrainingSummary:
 class BrickProgress:
     """Shows bricks done / running / failed, each finished brick's PSNR and time, and the total time.
 
-    On a terminal: a progress bar with the counts, and one line per finished or failed brick above it;
-    elsewhere (logs, CI): the same lines only.
+    One line per finished or failed brick, plus the count of bricks done where the user is looking (a
+    bar on a terminal or in a notebook, a periodic line in logs; see :mod:`apmgsrn.progress`).
 
     Args:
         stream: where to write (default stderr, so that ``--json`` output on stdout stays clean).
@@ -88,71 +88,53 @@ class BrickProgress:
     def __init__(self, stream: TextIO | None = None, enabled: bool = True):
         self.stream = stream if stream is not None else sys.stderr
         self.enabled = enabled
-        self._bar = None
+        self._progress = Progress(0, enabled=False)
         self.total = 0
         self.done = 0
         self.failed = 0
 
     def start(self, plan: BrickPlan, to_train: int, where: str) -> None:
         self.total = to_train
-        if not self.enabled:
-            return
+        self._progress = Progress(to_train, unit="brick", description="bricks", stream=self.stream,
+                                  enabled=self.enabled)
         i, j, k = plan.counts
         reused = len(plan) - to_train
-        self._write(
+        self._progress.write(
             f"bricks      {i}x{j}x{k} = {len(plan)} (ghost cells {plan.config.ghost_cells}); "
             f"{to_train} to train, {reused} already done; {where}"
         )
-        if to_train and _is_terminal(self.stream):
-            from tqdm import tqdm
-
-            self._bar = tqdm(total=to_train, unit="brick", file=self.stream, dynamic_ncols=True, leave=True)
-
-    def _write(self, line: str) -> None:
-        if self._bar is not None:
-            self._bar.write(line, file=self.stream)
-        else:
-            print(line, file=self.stream, flush=True)
 
     def finished(self, result: BrickResult) -> None:
         self.done += 1
-        if not self.enabled:
-            return
         early = f", stopped early at {result.iterations}" if result.stopped_early and result.iterations else ""
         empty = ", constant: no training needed" if result.iterations == 0 else ""
         resumed = f", resumed at {result.resumed_from}" if result.resumed_from else ""
-        self._write(
+        self._progress.write(
             f"[{self.done + self.failed:>{len(str(self.total))}}/{self.total}] {result.name} done: "
-            f"PSNR {result.psnr:.2f} dB, {result.iterations} it, {result.seconds:.1f} s{early}{empty}{resumed} "
-            f"({result.worker})"
+            f"PSNR {result.psnr:.2f} dB, max error {result.max_abs_error:.4g}, {result.iterations} it, "
+            f"{result.seconds:.1f} s{early}{empty}{resumed} ({result.worker})"
         )
-        self._advance()
+        self._progress.update(1)
 
     def brick_failed(self, name: str, message: str) -> None:
         self.failed += 1
-        if not self.enabled:
-            return
-        self._write(f"[{self.done + self.failed:>{len(str(self.total))}}/{self.total}] {name} FAILED: {message}")
-        self._advance()
-
-    def _advance(self) -> None:
-        if self._bar is not None:
-            self._bar.update(1)
+        self._progress.write(
+            f"[{self.done + self.failed:>{len(str(self.total))}}/{self.total}] {name} FAILED: {message}"
+        )
+        self._progress.update(1)
 
     def tick(self, running: int) -> None:
-        if self._bar is not None:
-            self._bar.set_postfix_str(f"done {self.done}, running {running}, failed {self.failed}", refresh=True)
+        self._progress.set_fields(done=str(self.done), running=str(running), failed=str(self.failed))
 
     def close(self, summary: BrickTrainingSummary) -> None:
-        if self._bar is not None:
-            self._bar.close()
-            self._bar = None
+        self._progress.close()
         if not self.enabled:
             return
-        self._write(
+        print(
             f"finished    {len(summary.plan) - len(summary.failed) - len(missing_names(summary))} of {len(summary.plan)} "
             f"bricks ({len(summary.trained)} trained now, {len(summary.reused)} earlier), {len(summary.failed)} failed, "
-            f"total {summary.seconds:.1f} s"
+            f"total {summary.seconds:.1f} s",
+            file=self.stream, flush=True,
         )
 
 
@@ -162,22 +144,11 @@ def missing_names(summary: BrickTrainingSummary) -> list[str]:
     return [b.name for b in summary.plan.bricks if b.name not in finished]
 
 
-def _is_terminal(stream: TextIO) -> bool:
-    try:
-        return stream.isatty()
-    except (AttributeError, ValueError):
-        return False
-
-
-def _jsonable(value):
-    return json.loads(json.dumps(value))
-
-
 def training_settings(volume, plan: BrickPlan, field_config: FieldConfig, train_config: TrainConfig,
                       transform: str, log_offset: float) -> dict:
     """Everything that decides the bricks' models; a rerun must match it to reuse finished bricks."""
-    return _jsonable({
-        "volume": {"path": os.path.basename(str(volume.path)), "variable": volume.variable,
+    return as_json({
+        "volume": {"path": Path(str(volume.path)).name, "variable": volume.variable,
                    "time": getattr(volume, "time", None), "shape": list(volume.shape)},
         "grid": list(plan.counts),
         "ghost_cells": plan.config.ghost_cells,
@@ -186,6 +157,18 @@ def training_settings(volume, plan: BrickPlan, field_config: FieldConfig, train_
         "transform": transform,
         "log_offset": log_offset,
     })
+
+
+def stored_settings(manifest: dict) -> dict:
+    """A manifest's settings as this version writes them: the field config read back through
+    :class:`~apmgsrn.models.registry.FieldConfig`, so run-time fields older versions stored (the kernel
+    backend) do not make an unfinished folder look like another run's."""
+    settings = dict(manifest.get("settings") or {})
+    try:
+        settings["field"] = as_json(FieldConfig.from_dict(settings.get("field")).to_dict())
+    except (TypeError, ValueError):
+        pass  # not a config this version reads: the comparison reports it as differing
+    return settings
 
 
 def _prepare_directory(out: Path, settings: dict) -> dict | None:
@@ -201,9 +184,9 @@ def _prepare_directory(out: Path, settings: dict) -> dict | None:
     if out.is_dir():
         if manifest_path(out).exists():
             manifest = read_manifest(out)
-            if manifest.get("settings") != settings:
-                differs = sorted(k for k in set(settings) | set(manifest.get("settings") or {})
-                                 if settings.get(k) != (manifest.get("settings") or {}).get(k))
+            stored = stored_settings(manifest)
+            if stored != settings:
+                differs = sorted(k for k in set(settings) | set(stored) if settings.get(k) != stored.get(k))
                 raise ApmgsrnError(
                     f"{out}: holds a brick model made with other settings ({', '.join(differs)} differ); "
                     "rerun with the same options to finish it, or choose another --out"
@@ -240,8 +223,10 @@ def train_bricks(
             own brick. File-backed volumes must be readable under the same path on every worker.
         decomposition: brick counts (x, y, z), ghost cells and the blend flag saved with the model.
         field_config: the model of every brick.
-        train_config: how to train every brick (brick ``b`` uses seed ``seed + b``); for the paper's
-            per-brick early stop use ``lr_schedule="plateau"`` with ``stop_after_lr_cuts=3``.
+        train_config: how to train every brick, through :func:`~apmgsrn.decomposition.brick_training.brick_policy`
+            (under ``lr_schedule="plateau"`` a brick ends after the third cut, the paper's per-brick early
+            stop; the default budget-following ``cosine`` runs the whole budget); brick ``b`` uses seed
+            ``seed + b``.
         out: the model folder (created; an existing one must come from the same settings).
         queue: where the jobs run (see :func:`apmgsrn.decomposition.executor.open_job_queue`).
         transform: value transform, fitted per brick.
@@ -262,6 +247,7 @@ def train_bricks(
     progress = progress or BrickProgress(enabled=False)
     plan = plan_bricks(volume.shape, decomposition, str(volume.path))
     source = SourceInfo.of_volume(volume)
+    train_config = brick_policy(train_config)
     settings = training_settings(volume, plan, field_config, train_config, transform, log_offset)
     manifest = _prepare_directory(out, settings) or new_manifest(
         plan.volume_shape, plan.counts, plan.config.ghost_cells, decomposition.blend, plan.bricks, settings, source

@@ -4,12 +4,15 @@ a learning rate that follows the iteration budget, atomic checkpoints and exact 
 from __future__ import annotations
 
 import functools
+import json
 import math
-import sys
+import signal
+import threading
 import time
-from collections import deque
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 
@@ -149,6 +152,30 @@ class TrainingState:
     )
 
 
+class StepLosses(NamedTuple):
+    """Losses of one iteration, detached 0-d tensors on the training device (reading one syncs a GPU)."""
+
+    reconstruction: torch.Tensor
+    density: torch.Tensor | None  # None once the grids stopped moving (or before they start)
+
+
+class TrainingCallback:
+    """Hooks of the training loop; subclass and override what you need (each does nothing by default).
+
+    The loop calls :meth:`on_start` before the first iteration (after a resume: at the resumed one),
+    :meth:`after_step` after every iteration, and :meth:`on_end` when the loop stops for any reason.
+    """
+
+    def on_start(self, trainer: Trainer) -> None:
+        """Training is about to start at ``trainer.state.iteration``."""
+
+    def after_step(self, trainer: Trainer, iteration: int, losses: StepLosses) -> None:
+        """Iteration ``iteration`` (counted from 1) is done: the parameters are updated."""
+
+    def on_end(self, trainer: Trainer) -> None:
+        """The loop stopped: budget spent, early stop, Ctrl-C or an error."""
+
+
 class Trainer:
     """Fits a :class:`NeuralField` to a volume of values already scaled to ``[0, 1]``.
 
@@ -158,7 +185,7 @@ class Trainer:
         config: how to train.
         checkpoint_path: where periodic training checkpoints go (None: no checkpoints).
         fingerprint: description of the run that a resumed checkpoint must match.
-        progress: show a progress bar (only when stderr is a terminal).
+        callbacks: called around every iteration (progress display, grid recording, ...).
     """
 
     def __init__(
@@ -168,7 +195,7 @@ class Trainer:
         config: TrainConfig,
         checkpoint_path: Path | None = None,
         fingerprint: dict | None = None,
-        progress: bool = True,
+        callbacks: Sequence[TrainingCallback] = (),
     ):
         self.field = field
         self.volume = volume
@@ -176,7 +203,7 @@ class Trainer:
         self.device = volume.device
         self.checkpoint_path = Path(checkpoint_path) if checkpoint_path else None
         self.fingerprint = fingerprint or {}
-        self.progress = progress and sys.stderr.isatty()
+        self.callbacks = tuple(callbacks)
         encoder = field.encoder
         transform_params = list(encoder.transform_parameters())
         transform_ids = {id(p) for p in transform_params}
@@ -222,12 +249,12 @@ class Trainer:
         return int(self.config.iterations * self.config.freeze_fraction)
 
     # ----------------------------------------------------------------------------- one step
-    def step(self) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def step(self) -> StepLosses:
         """One iteration: reconstruction step, then (while the grids move) the density step.
 
         Returns:
-            (reconstruction loss, density loss or None) as detached 0-d tensors in fitted ``[0, 1]``
-            units; they stay on the device so that a GPU step never waits for the host.
+            The losses in fitted ``[0, 1]`` units; they stay on the device so that a GPU step never
+            waits for the host.
         """
         cfg, st = self.config, self.state
         for group in self.network_optimizer.param_groups:
@@ -258,7 +285,7 @@ class Trainer:
             density_loss.backward()
             self.transform_optimizer.step()
             density_value = density_loss.detach()
-        return reconstruction.detach(), density_value
+        return StepLosses(reconstruction.detach(), density_value)
 
     def _update_freeze(self, density: torch.Tensor | None) -> None:
         """Early stop of grid motion: freeze once the windowed mean fails to fall by the tolerance.
@@ -312,63 +339,49 @@ class Trainer:
         return cuts is not None and self.state.lr_scale < 10.0 ** (0.5 - cuts)
 
     # ----------------------------------------------------------------------------- loop
-    def run(self, resume: bool = False) -> TrainingState:
-        """Train to ``config.iterations``; resume from the checkpoint if asked and present.
+    def run(self) -> TrainingState:
+        """Train from ``state.iteration`` (0, or where :meth:`load_checkpoint` left it) to the budget.
 
         Raises:
             TrainingInterrupted: on Ctrl-C, after saving a checkpoint.
         """
-        if resume and self.checkpoint_path and self.checkpoint_path.exists():
-            self.load_checkpoint(self.checkpoint_path)
         cfg, st = self.config, self.state
         self.field.train()
-        bar = None
-        if self.progress:
-            from tqdm import tqdm
-
-            bar = tqdm(total=cfg.iterations, initial=st.iteration, unit="it", dynamic_ncols=True, leave=True)
-        recent: deque[float] = deque(maxlen=5)
         start = time.perf_counter() - st.elapsed
         stop = _StopRequest() if self.checkpoint_path is not None else None
+        for callback in self.callbacks:
+            callback.on_start(self)
         try:
             while st.iteration < cfg.iterations and not self.stopped_early():
                 if stop is not None and stop.requested:
                     # Ctrl-C lands between iterations, so the checkpoint is an exact state to resume.
                     self.save_checkpoint(self.checkpoint_path)
                     raise TrainingInterrupted(st.iteration, self.checkpoint_path)
-                reconstruction, density = self.step()
-                self._update_freeze(density)
+                losses = self.step()
+                self._update_freeze(losses.density)
                 if st.iteration % cfg.history_every == 0:
-                    loss = float(reconstruction)  # one host sync per recorded point
+                    loss = float(losses.reconstruction)  # one host sync per recorded point
                     if not math.isfinite(loss):
                         raise ApmgsrnError(
                             f"training diverged at iteration {st.iteration} (loss {loss}); "
                             "lower --lr or check the data"
                         )
-                    recent.append(loss)
                     self._update_plateau(loss)
                     st.history["iteration"].append(st.iteration)
                     st.history["reconstruction"].append(loss)
-                    st.history["density"].append(float(density) if density is not None else float("nan"))
+                    st.history["density"].append(float(losses.density) if losses.density is not None else float("nan"))
                     st.history["lr"].append(self.network_optimizer.param_groups[0]["lr"])
                 st.iteration += 1
                 st.elapsed = time.perf_counter() - start
-                if bar is not None:
-                    bar.update(1)
-                    if st.iteration % 10 == 0:
-                        mse = sum(recent) / len(recent)
-                        bar.set_postfix(
-                            loss=f"{mse:.2e}",
-                            psnr=f"{-10 * math.log10(max(mse, 1e-30)):.2f}dB",
-                            grids=self.grid_status(),
-                        )
+                for callback in self.callbacks:
+                    callback.after_step(self, st.iteration, losses)
                 if self.checkpoint_path and st.iteration % cfg.checkpoint_every == 0 and st.iteration < cfg.iterations:
                     self.save_checkpoint(self.checkpoint_path)
         finally:
             if stop is not None:
                 stop.restore()
-            if bar is not None:
-                bar.close()
+            for callback in self.callbacks:
+                callback.on_end(self)
         self.field.eval()
         return st
 
@@ -408,7 +421,7 @@ class Trainer:
         if header.kind != CHECKPOINT_KIND:
             raise ApmgsrnError(f"{path}: not a training checkpoint; remove it or pass another --out")
         description = header.description
-        if description.get("fingerprint") != _jsonable(self.fingerprint) or description.get("config") != _jsonable(
+        if description.get("fingerprint") != as_json(self.fingerprint) or description.get("config") != as_json(
             asdict(self.config)
         ):
             raise ApmgsrnError(
@@ -439,9 +452,6 @@ class _StopRequest:
     """Turns Ctrl-C (SIGINT) into a flag the loop reads between iterations (main thread only)."""
 
     def __init__(self) -> None:
-        import signal
-        import threading
-
         self.requested = False
         self._previous = None
         if threading.current_thread() is threading.main_thread():
@@ -451,14 +461,10 @@ class _StopRequest:
         self.requested = True
 
     def restore(self) -> None:
-        import signal
-
         if self._previous is not None:
             signal.signal(signal.SIGINT, self._previous)
 
 
-def _jsonable(value):
-    """The value as it reads back from JSON (tuples become lists)."""
-    import json
-
+def as_json(value):
+    """The value as it reads back from JSON (tuples become lists): what a saved description compares to."""
     return json.loads(json.dumps(value))
