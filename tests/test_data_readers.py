@@ -67,7 +67,7 @@ def test_every_bundled_file_is_listed_with_provenance_and_its_cut(test_data: Pat
     spec = importlib.util.spec_from_file_location("make_test_data", test_data / "make_test_data.py")
     maker = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(maker)
-    tooling = {"README.md", "make_test_data.py"}
+    tooling = {"README.md", "make_test_data.py", ".gitattributes"}
     present = {path.relative_to(test_data).as_posix() for path in test_data.rglob("*")
                if path.is_file() and "__pycache__" not in path.parts} - tooling
     rows = _readme_rows(test_data / "README.md")
