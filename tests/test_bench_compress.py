@@ -20,13 +20,14 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
-def c60_block(shared_data, tmp_path_factory):
+def c60_block(test_data, tmp_path_factory):
     """A real 40x40x24 block of the C60 field, in memory (float32) and as .npy.
 
     Not one of the NetCDF previews: those were made by ZFP itself, which then restores them exactly.
+    The voxels [20:44, 20:60, 20:60] of the 128^3 source; the bundled crop starts at (16, 16, 16).
     """
-    volume = open_volume(shared_data / "c60_128x128x128_uint8.raw")
-    data = volume.read(slice(20, 44), slice(20, 60), slice(20, 60))
+    volume = open_volume(test_data / "c60_80x64x48_uint8.raw")
+    data = volume.read(slice(4, 28), slice(4, 44), slice(4, 44))
     path = tmp_path_factory.mktemp("compress") / "c60_block.npy"
     np.save(path, data)
     return path, data

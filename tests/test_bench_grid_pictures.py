@@ -15,13 +15,13 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
-def trained(shared_data, tmp_path_factory):
+def trained(hcci_oh, tmp_path_factory):
     """A real 24x28x32 (z, y, x) crop of the hcci OH field and an APMGSRN model of it after 12 iterations.
 
     The density step starts at iteration 1 (5 % of 12), so the grids have moved.
     """
     folder = tmp_path_factory.mktemp("grids")
-    data = open_volume(shared_data / "hcci_oh_187.nc", variable="oh").read(
+    data = open_volume(hcci_oh, variable="oh").read(
         slice(70, 94), slice(70, 98), slice(70, 102)
     )
     path = folder / "hcci_crop.npy"

@@ -20,9 +20,9 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
-def crop(shared_data, tmp_path_factory):
+def crop(hcci_oh, tmp_path_factory):
     """A real 20^3 crop of the hcci OH field (NetCDF), saved as .npy, and its label."""
-    volume = open_volume(shared_data / "hcci_oh_187.nc", variable="oh")
+    volume = open_volume(hcci_oh, variable="oh")
     data = volume.read(slice(80, 100), slice(80, 100), slice(80, 100))
     path = tmp_path_factory.mktemp("quality") / "hcci_crop.npy"
     np.save(path, data)
@@ -81,11 +81,11 @@ def test_table_marks_the_best_per_size_and_leaves_missing_cells_empty():
     assert cells[1:] == ["31.00 ± 1.41 / 40.00", "– / **41.25**", "**33.50** / –"]
 
 
-def test_data_spec_takes_a_variable_after_the_last_colon(shared_data):
-    spec = parse_data_spec(f"{shared_data / 'hcci_oh_187.nc'}:oh")
+def test_data_spec_takes_a_variable_after_the_last_colon(hcci_oh):
+    spec = parse_data_spec(f"{hcci_oh}:oh")
     assert spec.variable == "oh" and spec.label == "hcci_oh_187.nc:oh"
     with pytest.raises(ApmgsrnError, match="no such volume file"):
-        parse_data_spec(str(shared_data / "missing.nc") + ":oh")
+        parse_data_spec(str(hcci_oh.parent / "missing.nc") + ":oh")
 
 
 def test_quality_benchmark_refuses_a_file_as_results_folder(crop, tmp_path, capsys):

@@ -70,16 +70,16 @@ def assert_same_model(a, b):
 
 
 @pytest.fixture(scope="module")
-def reference(shared_data, client, tmp_path_factory):
+def reference(test_data, client, tmp_path_factory):
     """One complete run on the in-process cluster; the model every other run must reproduce."""
     READS.clear()
     out = tmp_path_factory.mktemp("reference") / "bricks"
-    volume = RecordingRawVolume(shared_data / NEGHIP)
+    volume = RecordingRawVolume(test_data / NEGHIP)
     summary = train_bricks(volume, GRID, FIELD, TRAIN, out, queue_for(client))
     return out, summary, list(READS)
 
 
-def test_bricks_train_on_dask_reading_only_their_own_box(reference, shared_data):
+def test_bricks_train_on_dask_reading_only_their_own_box(reference, test_data):
     out, summary, reads = reference
     plan = plan_bricks((64, 64, 64), GRID)
     assert summary.complete and not summary.failed and len(summary.trained) == 4
@@ -91,10 +91,10 @@ def test_bricks_train_on_dask_reading_only_their_own_box(reference, shared_data)
     assert description.parameters == 4 * model.field.bricks[0].parameter_count()
     assert description.file_bytes == sum(p.stat().st_size for p in out.iterdir())
     assert model_kind(out) == "bricks"
-    result = evaluate(model, RawVolume(shared_data / NEGHIP))
+    result = evaluate(model, RawVolume(test_data / NEGHIP))
     assert result.psnr > NEGHIP_PSNR_BAR
     model.field.blend = True  # blending keeps the quality (it only mixes bricks inside their shared voxels)
-    assert evaluate(model, RawVolume(shared_data / NEGHIP)).psnr > NEGHIP_PSNR_BAR
+    assert evaluate(model, RawVolume(test_data / NEGHIP)).psnr > NEGHIP_PSNR_BAR
     assert all(r.worker and r.peak_rss_bytes > 0 for r in summary.trained)
 
 
@@ -121,10 +121,10 @@ def flaky(packed):
     return fn(job)
 
 
-def test_a_job_that_fails_once_is_retried_and_gives_the_same_model(reference, shared_data, client, tmp_path):
+def test_a_job_that_fails_once_is_retried_and_gives_the_same_model(reference, test_data, client, tmp_path):
     marker = tmp_path / "attempts"
     queue = FlakyQueue(client, marker, index=1, failures=1, retries=1)
-    summary = train_bricks(RawVolume(shared_data / NEGHIP), GRID, FIELD, TRAIN, tmp_path / "m", queue)
+    summary = train_bricks(RawVolume(test_data / NEGHIP), GRID, FIELD, TRAIN, tmp_path / "m", queue)
     assert marker.read_text() == "x" and summary.complete and not summary.failed
     assert_same_model(apmgsrn.load(tmp_path / "m"), apmgsrn.load(reference[0]))
 
@@ -153,14 +153,14 @@ class DyingWorkerQueue(DaskJobQueue):
         return super().submit(die_once, (argument, self.marker), key)
 
 
-def test_a_brick_whose_worker_dies_is_rescheduled_on_another(reference, shared_data, tmp_path):
+def test_a_brick_whose_worker_dies_is_rescheduled_on_another(reference, test_data, tmp_path):
     marker = tmp_path / "died"
     cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0",
                                        worker_dashboard_address=None)
     try:
         with distributed.Client(cluster) as own_client:
             queue = DyingWorkerQueue(own_client, marker)  # retries=0: only the rescheduling can save it
-            summary = train_bricks(RawVolume(shared_data / NEGHIP), GRID, FIELD, TRAIN, tmp_path / "m", queue)
+            summary = train_bricks(RawVolume(test_data / NEGHIP), GRID, FIELD, TRAIN, tmp_path / "m", queue)
             survivors = list(own_client.scheduler_info()["workers"])
     finally:
         cluster.close()
@@ -169,10 +169,10 @@ def test_a_brick_whose_worker_dies_is_rescheduled_on_another(reference, shared_d
     assert_same_model(apmgsrn.load(tmp_path / "m"), apmgsrn.load(reference[0]))
 
 
-def test_a_brick_that_keeps_failing_is_named_and_the_others_finish(reference, shared_data, client, tmp_path):
+def test_a_brick_that_keeps_failing_is_named_and_the_others_finish(reference, test_data, client, tmp_path):
     queue = FlakyQueue(client, tmp_path / "attempts", index=3, failures=99, retries=2)
     out = tmp_path / "m"
-    summary = train_bricks(RawVolume(shared_data / NEGHIP), GRID, FIELD, TRAIN, out, queue)
+    summary = train_bricks(RawVolume(test_data / NEGHIP), GRID, FIELD, TRAIN, out, queue)
     assert list(summary.failed) == ["brick_001_001_000"]
     assert "simulated failure 3" in summary.failed["brick_001_001_000"]  # 1 try + 2 retries
     assert not summary.complete and len(summary.trained) == 3
@@ -180,12 +180,12 @@ def test_a_brick_that_keeps_failing_is_named_and_the_others_finish(reference, sh
         apmgsrn.load(out)
     # Running the same call again trains only that brick and reaches the reference model.
     rerun = FlakyQueue(client, tmp_path / "none", index=-1, failures=0, retries=2)
-    summary = train_bricks(RawVolume(shared_data / NEGHIP), GRID, FIELD, TRAIN, out, rerun)
+    summary = train_bricks(RawVolume(test_data / NEGHIP), GRID, FIELD, TRAIN, out, rerun)
     assert rerun.submitted == ["brick_001_001_000"] and summary.complete
     assert_same_model(apmgsrn.load(out), apmgsrn.load(reference[0]))
 
 
-def test_rerun_after_a_kill_trains_missing_and_resumes_interrupted_bricks(reference, shared_data, client, tmp_path,
+def test_rerun_after_a_kill_trains_missing_and_resumes_interrupted_bricks(reference, test_data, client, tmp_path,
                                                                           monkeypatch):
     from apmgsrn.training.trainer import Trainer
 
@@ -213,30 +213,30 @@ def test_rerun_after_a_kill_trains_missing_and_resumes_interrupted_bricks(refere
 
     monkeypatch.setattr(Trainer, "save_checkpoint", save_then_die)
     first = FlakyQueue(client, tmp_path / "none", index=-1, failures=0, retries=0)
-    summary = train_bricks(RawVolume(shared_data / NEGHIP), GRID, FIELD, TRAIN, out, first)
+    summary = train_bricks(RawVolume(test_data / NEGHIP), GRID, FIELD, TRAIN, out, first)
     assert sorted(first.submitted) == sorted([names[0], names[3]])
     assert list(summary.failed) == [names[3]] and (out / f"{brick_file_name(plan.bricks[3].name)}.ckpt").exists()
 
     second = FlakyQueue(client, tmp_path / "none", index=-1, failures=0, retries=0)
-    summary = train_bricks(RawVolume(shared_data / NEGHIP), GRID, FIELD, TRAIN, out, second)
+    summary = train_bricks(RawVolume(test_data / NEGHIP), GRID, FIELD, TRAIN, out, second)
     assert second.submitted == [names[3]] and summary.complete
     assert [r.resumed_from for r in summary.trained] == [TRAIN.checkpoint_every]
     assert not list(out.glob("*.ckpt"))
     assert_same_model(apmgsrn.load(out), apmgsrn.load(reference[0]))
 
 
-def test_rerun_with_other_settings_is_refused(reference, shared_data, client, tmp_path):
+def test_rerun_with_other_settings_is_refused(reference, test_data, client, tmp_path):
     out = tmp_path / "m"
     shutil.copytree(reference[0], out)
     other = TrainConfig(iterations=151, batch_size=4096, lr_schedule="plateau", stop_after_lr_cuts=3, checkpoint_every=50)
     with pytest.raises(ApmgsrnError, match="other settings .*training.*same options"):
-        train_bricks(RawVolume(shared_data / NEGHIP), GRID, FIELD, other, out, queue_for(client))
+        train_bricks(RawVolume(test_data / NEGHIP), GRID, FIELD, other, out, queue_for(client))
 
 
-def test_local_queue_without_dask_gives_the_same_model(reference, shared_data, tmp_path):
+def test_local_queue_without_dask_gives_the_same_model(reference, test_data, tmp_path):
     with open_job_queue(ExecutorConfig(use_dask=False, workers=2)) as queue:
         queue.threads_per_job = 1
-        summary = train_bricks(RawVolume(shared_data / NEGHIP), GRID, FIELD, TRAIN, tmp_path / "m", queue)
+        summary = train_bricks(RawVolume(test_data / NEGHIP), GRID, FIELD, TRAIN, tmp_path / "m", queue)
     assert summary.complete
     assert_same_model(apmgsrn.load(tmp_path / "m"), apmgsrn.load(reference[0]))
 
@@ -265,11 +265,15 @@ def test_bricks_train_under_cosine_by_default_and_plateau_bricks_stop_after_the_
     assert brick_train_config(plateau, brick) == replace(plateau, stop_after_lr_cuts=3, seed=3)
 
 
-def test_constant_bricks_need_no_training_and_the_cli_handles_brick_models(shared_data, client, tmp_path, capsys):
-    """CTH armour: the two outer bricks along x are empty, so they finish at once and are exact."""
+def test_constant_bricks_need_no_training_and_the_cli_handles_brick_models(test_data, client, tmp_path, capsys):
+    """CTH armour: the two outer bricks along x are empty, so they finish at once and are exact.
+
+    The bundled crop is cut so that its plate (cells 25..61 of 88 along x) misses both outer bricks and their
+    ghost cells, as the plate of the whole 128-cell source did.
+    """
     from apmgsrn.cli.main import main
 
-    data = str(shared_data / "cth_armor_penetration.vtr")
+    data = str(test_data / "cth_armor_penetration_88x32x32.vtr")
     variable = "Volume Fraction for Armor Plate"
     out = tmp_path / "cth"
     args = ["train", data, "--variable", variable, "--bricks", "4,1,1", "--scheduler", client.scheduler.address,
@@ -294,13 +298,14 @@ def test_constant_bricks_need_no_training_and_the_cli_handles_brick_models(share
     assert "4 x 1 x 1 (x, y, z), ghost cells 1" in text and text.count("exact") == 2
     assert main(["eval", str(out), data, "--variable", variable, "--json"]) == 0
     evaluation = json.loads(capsys.readouterr().out)
+    # On the bundled crop: 18.7-19.1 dB over seeds 0, 1, 2 (measured once); the bar leaves margin.
     assert evaluation["model_bytes"] == model.description.file_bytes and evaluation["psnr"] > 10
     decoded = tmp_path / "decoded.npy"
     assert main(["decode", str(out), "--out", str(decoded)]) == 0
     capsys.readouterr()
     import numpy as np
 
-    assert np.load(decoded).shape == (64, 64, 128)
+    assert np.load(decoded).shape == (32, 32, 88)
     # The same command again trains nothing.
     assert main(args) == 0
     assert json.loads(capsys.readouterr().out)["trained"] == 0
@@ -367,10 +372,10 @@ class UnpicklableRawVolume(RawVolume):
         self.reference = lambda: None
 
 
-def test_a_volume_whose_reader_does_not_pickle_is_reopened_by_path(reference, shared_data, tmp_path):
+def test_a_volume_whose_reader_does_not_pickle_is_reopened_by_path(reference, test_data, tmp_path):
     from apmgsrn.decomposition.brick_training import BrickJob, VolumeRecipe, brick_train_config, shippable_volume
 
-    volume = UnpicklableRawVolume(shared_data / NEGHIP)
+    volume = UnpicklableRawVolume(test_data / NEGHIP)
     shipped = shippable_volume(volume)
     assert isinstance(shipped, VolumeRecipe) and shipped.shape_xyz == (64, 64, 64) and shipped.dtype == "uint8"
     brick = plan_bricks(volume.shape, GRID).bricks[0]
@@ -382,7 +387,7 @@ def test_a_volume_whose_reader_does_not_pickle_is_reopened_by_path(reference, sh
 
 
 @pytest.mark.slow
-def test_kill_9_of_the_cli_then_the_same_command_finishes_the_same_model(shared_data, tmp_path):
+def test_kill_9_of_the_cli_then_the_same_command_finishes_the_same_model(test_data, tmp_path):
     """A real ``kill -9`` of ``apmgsrn train --bricks`` (coordinator and its local worker processes)."""
     import os
     import signal
@@ -390,7 +395,7 @@ def test_kill_9_of_the_cli_then_the_same_command_finishes_the_same_model(shared_
     import sys
 
     def command(out):
-        return [sys.executable, "-m", "apmgsrn", "train", str(shared_data / NEGHIP), "--bricks", "2,2,1",
+        return [sys.executable, "-m", "apmgsrn", "train", str(test_data / NEGHIP), "--bricks", "2,2,1",
                 "--workers", "2", "--out", str(out), "--grids", "4", "--resolution", "8", "--width", "32",
                 "--iterations", "400", "--batch-size", "4096", "--lr-schedule", "cosine", "--json"]
 
@@ -412,14 +417,15 @@ def test_kill_9_of_the_cli_then_the_same_command_finishes_the_same_model(shared_
     assert_same_model(apmgsrn.load(out), apmgsrn.load(fresh))
 
 
-def test_memory_mapped_bricks_are_read_in_slabs_and_the_map_released(shared_data, monkeypatch):
+def test_memory_mapped_bricks_are_read_in_slabs_and_the_map_released(test_data, monkeypatch):
     from apmgsrn.decomposition import brick_training
 
-    volume = RawVolume(shared_data / "c60_128x128x128_uint8.raw")
+    volume = RawVolume(test_data / "c60_80x64x48_uint8.raw")
     brick = plan_bricks(volume.shape, DecompositionConfig((2, 2, 2), 1)).bricks[5]
-    monkeypatch.setattr(brick_training, "MAPPED_SLAB_BYTES", 3 * 128 * 66)  # 3 z-slices of the box's rows
+    assert brick.shape == (26, 34, 42)  # (z, y, x) with its ghost cells
+    monkeypatch.setattr(brick_training, "MAPPED_SLAB_BYTES", 3 * 80 * 34)  # 3 z-slices of the box's rows
     READS.clear()
-    recording = RecordingRawVolume(shared_data / "c60_128x128x128_uint8.raw")
+    recording = RecordingRawVolume(test_data / "c60_80x64x48_uint8.raw")
     region = brick_training.read_brick(recording, brick)
     assert region.shape == brick.shape
     assert (region == volume.read(*brick.slices())).all()

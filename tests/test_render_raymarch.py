@@ -119,8 +119,8 @@ def test_image_does_not_change_when_samples_per_ray_double():
     assert (uncorrected - images[128]).abs().max() > 0.05
 
 
-def test_skipping_leaves_the_raw_volume_image_unchanged(shared_data):
-    volume = np.fromfile(shared_data / "neghip_64x64x64_uint8.raw", dtype=np.uint8).reshape(64, 64, 64)
+def test_skipping_leaves_the_raw_volume_image_unchanged(test_data):
+    volume = np.fromfile(test_data / "neghip_64x64x64_uint8.raw", dtype=np.uint8).reshape(64, 64, 64)
     volume = volume.astype(np.float32)
     tf = make_transfer_function("plasma", (0.0, 255.0), opacity=((0.0, 0.0), (0.35, 0.0), (0.6, 0.6), (1.0, 0.9)))
     camera = Camera.orbit(azimuth=50, elevation=35, width=48, height=48)
