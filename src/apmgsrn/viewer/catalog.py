@@ -12,14 +12,15 @@ import os
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
+from apmgsrn.data import SUPPORTED_SUFFIXES
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.sources import is_model_path
 
 MODEL = "model"
 VOLUME = "volume"
 PRESET = "preset"
 
-# Suffixes of model files and colour-map presets; volumes use the readers' own list.
-MODEL_SUFFIXES = (".apmgsrn",)
+# Suffixes of colour-map presets; volumes use the readers' own list, models are told by the render source.
 PRESET_SUFFIXES = (".json",)
 
 
@@ -47,8 +48,6 @@ class CatalogEntry:
 
 
 def _volume_suffixes() -> tuple[str, ...]:
-    from apmgsrn.data import SUPPORTED_SUFFIXES
-
     return tuple(suffix for group in SUPPORTED_SUFFIXES.values() for suffix in group)
 
 
@@ -95,11 +94,9 @@ class Catalog:
 
     # ------------------------------------------------------------------ classification
     def _kind_of_directory(self, path: Path) -> str | None:
-        from apmgsrn.decomposition.brick_model import is_brick_model_directory
-
         if path.suffix.lower() == ".zarr":
             return VOLUME
-        if is_brick_model_directory(path):
+        if is_model_path(path):  # a brick model
             return MODEL
         return None
 
@@ -112,12 +109,8 @@ class Catalog:
             return PRESET
         if suffix in self._volume_suffixes:
             return VOLUME
-        if suffix in MODEL_SUFFIXES:
-            return MODEL
-        # A model saved under another name still has its self-describing header (read, never executed).
-        from apmgsrn.training.checkpoint import is_model_file
-
-        return MODEL if is_model_file(path) else None
+        # A .apmgsrn file, or a model saved under another name: its header is read, never executed.
+        return MODEL if is_model_path(path) else None
 
     # ------------------------------------------------------------------ listing
     def entries(self) -> list[CatalogEntry]:
