@@ -31,7 +31,7 @@ from apmgsrn.render.transfer_function import TransferFunction, TransferTable
 
 @dataclass(frozen=True)
 class RendererConfig:
-    """What the renderer does; see the module notes for the meaning of each step length."""
+    """What the renderer does; ``sampling`` and ``compositing`` explain the two step lengths."""
 
     samples_per_ray: int = 256  # samples across the box's longest side
     reference_samples: int = 256  # opacity is per step of (longest side / reference_samples)
