@@ -11,15 +11,11 @@ import torch
 from viewer_data import make_viewer_folder
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render import Camera, RendererConfig, VolumeRenderer
+from apmgsrn.render import Camera, RendererConfig
 from apmgsrn.viewer.catalog import Catalog
-from apmgsrn.viewer.session import (
-    OrbitView,
-    ViewerConfig,
-    ViewerSession,
-    lattice_passes,
-    upsample_lattice,
-)
+from apmgsrn.viewer.orbit import OrbitView
+from apmgsrn.viewer.session import ViewerSession
+from apmgsrn.viewer.settings import ViewerConfig
 
 SMALL = ViewerConfig(image_width=40, image_height=32, samples_per_ray=32, batch_size=4096, chunk_pixels=256)
 
@@ -75,21 +71,6 @@ def test_orbit_view_turns_pans_and_zooms():
     assert np.allclose(np.subtract(moved.position, moved.target), np.subtract(start.position, start.target))
 
 
-def test_lattice_passes_cover_every_pixel_once_and_upsampling_keeps_the_lattice():
-    passes = lattice_passes(13, 10, (8, 4, 2, 1))
-    every = torch.cat(passes)
-    assert sorted(every.tolist()) == list(range(130))
-    assert passes[0].tolist() == [0, 8, 104, 112]  # rows 0 and 8, columns 0 and 8
-    # A linear image is reproduced exactly inside the lattice by bilinear interpolation.
-    rows = torch.arange(10, dtype=torch.float32)[:, None, None]
-    cols = torch.arange(13, dtype=torch.float32)[None, :, None]
-    image = (0.02 * rows + 0.03 * cols).expand(10, 13, 3).contiguous()
-    up = upsample_lattice(image, 4)
-    assert torch.equal(up[::4, ::4], image[::4, ::4])
-    assert torch.allclose(up[:9, :13 - 1], image[:9, :13 - 1], atol=1e-6)  # rows 0..8 and cols 0..11: inside
-    assert torch.equal(upsample_lattice(image, 1), image)
-
-
 # ------------------------------------------------------------------------------------------ rendering
 def test_progressive_passes_end_in_the_exact_render(folder):
     session, recorder = _session(folder)
@@ -99,12 +80,8 @@ def test_progressive_passes_end_in_the_exact_render(folder):
     assert strides == [8, 4, 2, 1]
     final = recorder.frames[-1]
     assert final.done and final.generation == session.generation
-    reference = VolumeRenderer(
-        source.field,
-        session.transfer_function(),
-        RendererConfig(samples_per_ray=32, batch_size=4096, macro_cells=16),
-        extent=session.extent(),
-        bounds=source.bounds,
+    reference = source.renderer(
+        session.transfer_function(), RendererConfig(samples_per_ray=32, batch_size=4096, macro_cells=16)
     ).render(session.camera())
     expected = (reference.image.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
     assert np.abs(final.image.astype(int) - expected.astype(int)).max() <= 1
@@ -144,7 +121,7 @@ def test_a_camera_change_during_a_pass_abandons_it(folder):
             session.end_interaction()
         return inner(points)
 
-    session._renderer.field = field_that_sees_the_user_move  # the renderer's public attribute
+    session.worker.renderer.field = field_that_sees_the_user_move  # the renderer's public attribute
     recorder.frames.clear()
     session.orbit(0.1, 0.0)
     session.end_interaction()
@@ -268,7 +245,7 @@ def test_worker_thread_renders_and_stops(folder):
         assert recorder.frames and recorder.frames[-1].done
     finally:
         session.stop()
-    assert session._thread is None
+    assert session.worker._thread is None
 
 
 def test_cameras_match_the_render_module_convention():

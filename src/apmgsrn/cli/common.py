@@ -19,19 +19,24 @@ def add_data_arguments(parser: argparse.ArgumentParser) -> None:
                        help="replace NaN/Inf voxels by VALUE instead of refusing the volume")
 
 
+def volume_options(args: argparse.Namespace) -> dict:
+    """Keyword arguments of :func:`apmgsrn.data.open_volume` from the data options of ``args``."""
+    from apmgsrn.data import parse_shape
+
+    return {
+        "variable": getattr(args, "variable", None),
+        "time": getattr(args, "time", None),
+        "shape": parse_shape(args.shape) if getattr(args, "shape", None) else None,
+        "dtype": getattr(args, "dtype", None),
+        "fill_nonfinite": getattr(args, "fill_nonfinite", None),
+    }
+
+
 def open_data(args: argparse.Namespace, path: str):
     """Open the volume at ``path`` with the data options of ``args``."""
-    from apmgsrn.data import open_volume, parse_shape
+    from apmgsrn.data import open_volume
 
-    shape = parse_shape(args.shape) if getattr(args, "shape", None) else None
-    return open_volume(
-        path,
-        variable=getattr(args, "variable", None),
-        time=getattr(args, "time", None),
-        shape=shape,
-        dtype=getattr(args, "dtype", None),
-        fill_nonfinite=getattr(args, "fill_nonfinite", None),
-    )
+    return open_volume(path, **volume_options(args))
 
 
 def add_device_argument(parser: argparse.ArgumentParser) -> None:

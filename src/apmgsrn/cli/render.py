@@ -8,7 +8,7 @@ import math
 import time
 from pathlib import Path
 
-from apmgsrn.cli.common import add_data_arguments, add_device_argument, open_data
+from apmgsrn.cli.common import add_data_arguments, add_device_argument, volume_options
 from apmgsrn.errors import ApmgsrnError
 
 
@@ -75,12 +75,14 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # torch and the renderer load here, not when the CLI starts.
     from apmgsrn.device import resolve_device
-    from apmgsrn.render.camera import Camera, extent_from_shape
-    from apmgsrn.render.colormaps import make_transfer_function
+    from apmgsrn.render import Camera, RendererConfig, image_psnr, image_ssim, make_transfer_function
+    from apmgsrn.render.animation import render_frames, turntable_cameras, write_animation
     from apmgsrn.render.images import error_image, save_image, side_by_side
-    from apmgsrn.render.metrics import image_psnr, image_ssim
-    from apmgsrn.render.raymarch import RendererConfig, default_batch_size
+    from apmgsrn.render.paraview import save_transfer_function
+    from apmgsrn.render.raymarch import default_batch_size
+    from apmgsrn.sources import SourceOptions, open_source
 
     _check_numbers(args)
     out = Path(args.out)
@@ -108,7 +110,8 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         background=parse_background(args.background),
     )
-    source = _open_source(args, args.input, device)
+    options = SourceOptions(volume=volume_options(args))
+    source = open_source(args.input, device, options)
     value_range = parse_range(args.range) if args.range else source.value_range
     opacity = parse_opacity(args.opacity) if args.opacity else None
     transfer_function = make_transfer_function(
@@ -116,18 +119,14 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.range and args.colormap.lower().endswith(".json"):
         transfer_function = transfer_function.rescaled(*value_range)  # an explicit range always wins
-    extent = (1.0, 1.0, 1.0) if args.no_aspect else extent_from_shape(source.shape)
-    renderer = source.renderer(transfer_function, config, extent, device)
+    extent = (1.0, 1.0, 1.0) if args.no_aspect else source.extent
+    renderer = source.renderer(transfer_function, config, extent)
     report: dict = {"input": args.input, "out": str(out), "device": str(device)}
     if args.save_tf:
-        from apmgsrn.render.paraview import save_transfer_function
-
         save_transfer_function(transfer_function, args.save_tf)
         report["transfer_function"] = args.save_tf
 
     if animate:
-        from apmgsrn.render.animation import render_frames, turntable_cameras, write_animation
-
         cameras = turntable_cameras(
             args.frames, args.azimuth, args.elevation, args.distance, args.fov, args.width, args.height, extent
         )
@@ -158,8 +157,8 @@ def run(args: argparse.Namespace) -> int:
                                      f"field evaluated at {stats.field_evaluations:,} of {stats.samples_in_box:,} "
                                      f"samples in the box ({100 * skipped:.0f}% skipped or past opacity)")
 
-    reference_source = _open_source(args, args.compare, device)
-    reference = reference_source.renderer(transfer_function, config, extent, device).render(camera).image
+    reference_source = open_source(args.compare, device, options)
+    reference = reference_source.renderer(transfer_function, config, extent).render(camera).image
     psnr = image_psnr(result.image, reference)
     ssim = image_ssim(result.image, reference) if min(args.width, args.height) >= 11 else float("nan")
     save_image(side_by_side(result.image, reference), out)
@@ -173,41 +172,6 @@ def run(args: argparse.Namespace) -> int:
         f"PSNR {psnr:.2f} dB\nSSIM {ssim:.4f}\nwrote {out} (left: {args.input}, right: {args.compare}) and "
         f"{error_path} (mean |error| over RGB, full colour scale = {scale:.3g})",
     )
-
-
-class _Source:
-    """A model or a volume, ready to be rendered."""
-
-    def __init__(self, field, value_range, shape, volume=None):
-        self.field = field
-        self.value_range = value_range
-        self.shape = shape
-        self.volume = volume
-
-    def renderer(self, transfer_function, config, extent, device):
-        from apmgsrn.render.raymarch import VolumeRenderer
-
-        if self.volume is not None:
-            return VolumeRenderer.for_volume(self.volume, transfer_function, config, extent=extent, device=device)
-        return VolumeRenderer(self.field, transfer_function, config, extent=extent, device=device)
-
-
-def _open_source(args: argparse.Namespace, path: str, device) -> _Source:
-    if not Path(path).exists():
-        raise ApmgsrnError(f"{path}: no such file; give a model file or a volume file")
-    from apmgsrn.io import model_kind
-
-    if model_kind(path) is not None:
-        import apmgsrn
-
-        model = apmgsrn.load(path, device=device)
-        return _Source(model.field, model.description.value_range, model.description.volume_shape)
-    from apmgsrn.data import check_finite
-
-    volume = open_data(args, path)
-    check_finite(volume)
-    stats = volume.stats()
-    return _Source(None, (float(stats.min), float(stats.max)), tuple(volume.shape), volume=volume.to_numpy())
 
 
 def _finish(args: argparse.Namespace, report: dict, text: str) -> int:

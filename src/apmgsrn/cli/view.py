@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     from apmgsrn.device import resolve_device
     from apmgsrn.viewer.app import ViewerApp, ViewerAppConfig
     from apmgsrn.viewer.catalog import Catalog
-    from apmgsrn.viewer.session import ViewerConfig
+    from apmgsrn.viewer.settings import ViewerConfig
 
     device = resolve_device(args.device)
     catalog = Catalog(args.path)

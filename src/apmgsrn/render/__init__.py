@@ -1,6 +1,12 @@
 """Neural volume rendering (SPEC section 7): ray marching any field ``[N, 3] -> [N, 1]`` with a transfer
 function, empty-space skipping, early ray termination and progressive refinement, on any torch device.
 
+Stages, each usable on its own: ``bounds`` (box intersection, macro-cell value bounds and occupancy),
+``sampling`` (where a ray's samples lie and the length each stands for), ``field`` (batched evaluation,
+the raw volume as a field), ``compositing`` (step-corrected opacity, front-to-back compositing, early
+termination), ``raymarch`` (:class:`VolumeRenderer`, composing them) and ``progressive`` (the
+coarse-to-fine pixel schedule). The renderer knows fields only, never models or training.
+
 Typical use::
 
     from apmgsrn.render import Camera, VolumeRenderer, make_transfer_function
@@ -8,22 +14,26 @@ Typical use::
     image = VolumeRenderer(field, tf).render(Camera.orbit(width=512, height=512)).image  # [H, W, 3]
 """
 
+from apmgsrn.render.bounds import Occupancy, ValueBounds
 from apmgsrn.render.camera import Camera, extent_from_shape
 from apmgsrn.render.colormaps import BUILTIN_COLORMAPS, builtin_colormap, make_transfer_function
-from apmgsrn.render.empty_space import ValueBounds
+from apmgsrn.render.field import Field, VolumeField
+from apmgsrn.render.images import as_uint8
 from apmgsrn.render.metrics import image_psnr, image_ssim
 from apmgsrn.render.paraview import load_transfer_function, read_presets, save_transfer_function
-from apmgsrn.render.progressive import ProgressiveImage, render_progressive
+from apmgsrn.render.progressive import ProgressiveImage, ProgressiveRender, render_progressive
 from apmgsrn.render.raymarch import RendererConfig, RenderResult, RenderStatistics, VolumeRenderer
 from apmgsrn.render.transfer_function import ColorMap, OpacityMap, TransferFunction, TransferTable
-from apmgsrn.render.volume_field import VolumeField
 
 __all__ = [
     "BUILTIN_COLORMAPS",
     "Camera",
     "ColorMap",
+    "Field",
+    "Occupancy",
     "OpacityMap",
     "ProgressiveImage",
+    "ProgressiveRender",
     "RenderResult",
     "RenderStatistics",
     "RendererConfig",
@@ -32,6 +42,7 @@ __all__ = [
     "ValueBounds",
     "VolumeField",
     "VolumeRenderer",
+    "as_uint8",
     "builtin_colormap",
     "extent_from_shape",
     "image_psnr",

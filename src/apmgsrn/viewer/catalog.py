@@ -12,15 +12,15 @@ import os
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
+from apmgsrn.data import SUPPORTED_SUFFIXES
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.io import model_kind
+from apmgsrn.sources import is_model_path
 
 MODEL = "model"
 VOLUME = "volume"
 PRESET = "preset"
 
-# Suffixes of model files and colour-map presets; volumes use the readers' own list.
-MODEL_SUFFIXES = (".apmgsrn",)
+# Suffixes of colour-map presets; volumes use the readers' own list, models are told by the render source.
 PRESET_SUFFIXES = (".json",)
 
 
@@ -48,8 +48,6 @@ class CatalogEntry:
 
 
 def _volume_suffixes() -> tuple[str, ...]:
-    from apmgsrn.data import SUPPORTED_SUFFIXES
-
     return tuple(suffix for group in SUPPORTED_SUFFIXES.values() for suffix in group)
 
 
@@ -98,7 +96,9 @@ class Catalog:
     def _kind_of_directory(self, path: Path) -> str | None:
         if path.suffix.lower() == ".zarr":
             return VOLUME
-        return MODEL if model_kind(path) is not None else None
+        if is_model_path(path):  # a brick model
+            return MODEL
+        return None
 
     def _kind(self, path: Path) -> str | None:
         """What an existing path is to the viewer (None: not shown)."""
@@ -109,10 +109,8 @@ class Catalog:
             return PRESET
         if suffix in self._volume_suffixes:
             return VOLUME
-        if suffix in MODEL_SUFFIXES:
-            return MODEL
-        # A model saved under another name still has its self-describing header (read, never executed).
-        return MODEL if model_kind(path) is not None else None
+        # A .apmgsrn file, or a model saved under another name: its header is read, never executed.
+        return MODEL if is_model_path(path) else None
 
     # ------------------------------------------------------------------ listing
     def entries(self) -> list[CatalogEntry]:
