@@ -219,7 +219,8 @@ def test_legacy_xml_presets(tmp_path):
     assert np.ptp(middle) < 1e-4 and rgb_to_lab(middle)[0] == pytest.approx(50.0, abs=0.01)
     with pytest.raises(ApmgsrnError, match="categorical"):
         load_transfer_function(path, (0.0, 1.0), name="categories")
-    bad = _write(tmp_path, "bad.xml", '<ColorMaps><ColorMap name="x"><Point x="a" r="0" g="0" b="0"/></ColorMap></ColorMaps>')
+    point = '<Point x="a" r="0" g="0" b="0"/>'
+    bad = _write(tmp_path, "bad.xml", f'<ColorMaps><ColorMap name="x">{point}</ColorMap></ColorMaps>')
     with pytest.raises(ApmgsrnError, match="not a number"):
         read_presets(bad)
     with pytest.raises(ApmgsrnError, match="not valid XML"):

@@ -21,6 +21,7 @@ import pytest
 import torch
 
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.render.colormaps import builtin_colormap
 from apmgsrn.render.paraview import apply_preset, load_transfer_function, read_presets
 
 pytestmark = pytest.mark.paraview
@@ -38,7 +39,10 @@ FRACTIONS = np.concatenate(
         np.random.default_rng(0).random(60),
     ]
 )
-TOLERANCE = 1.0 / 255.0  # one step of an 8-bit colour
+TOLERANCE = 1.0 / 255.0  # one step of an 8-bit colour: what the renderer's table must meet
+# The colour maps themselves do ParaView's arithmetic, so they agree far closer (measured: 2e-14); a
+# tight bound catches any drift that one 8-bit step would hide.
+SAME = 1e-9
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +58,8 @@ def paraview(tmp_path_factory) -> dict:
     (folder / "request.json").write_text(json.dumps(request))
     # A private HOME: importing presets makes ParaView save them to its user settings.
     env = {**os.environ, "HOME": str(folder), "XDG_CONFIG_HOME": str(folder / "config")}
-    command = [shutil.which("pvpython"), str(SCRIPTS / "dump_colors.py"), str(folder / "request.json"), str(folder / "out.json")]
+    script = SCRIPTS / "dump_colors.py"
+    command = [shutil.which("pvpython"), str(script), str(folder / "request.json"), str(folder / "out.json")]
     done = subprocess.run(command, env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     result = json.loads((folder / "out.json").read_text())
@@ -104,13 +109,13 @@ def test_our_lenient_json_and_xml_files_hold_what_paraview_imports(paraview):
     # ParaView's reader takes the comments and trailing commas of EXTRA_JSON, and converts LEGACY_XML; we
     # find the same presets in both files (continuous and categorical alike).
     imported = paraview["imported"]
-    assert imported[str(EXTRA_JSON)] == 12 and imported[str(LEGACY_XML)] == 6
+    assert imported[str(EXTRA_JSON)] == 13 and imported[str(LEGACY_XML)] == 6
     builtin = paraview["builtin_count"]
-    theirs = [e["name"] for e in paraview["presets"][builtin:]]
-    categorical = {e["name"] for e in paraview["presets"][builtin:] if e["categorical"]}
+    imported_entries = paraview["presets"][builtin:]
     ours = [p.name for p in read_presets(EXTRA_JSON)] + [p.name for p in read_presets(LEGACY_XML)]
-    assert ours == [name for name in theirs if name not in categorical]
-    assert categorical == {"apmgsrn categorical", "xml categorical"}
+    assert ours == [e["name"] for e in imported_entries if "normalized" in e]
+    categorical = {e["name"] for e in imported_entries if e["categorical"]}
+    assert categorical == {"apmgsrn categorical", "apmgsrn indexed with nodes", "xml categorical"}
 
 
 def test_every_continuous_preset_matches_paraview_over_a_rescaled_range(paraview):
@@ -125,16 +130,16 @@ def test_every_continuous_preset_matches_paraview_over_a_rescaled_range(paraview
             # With ParaView's order of the tied nodes our lookup gives ParaView's colours everywhere ...
             nodes = np.asarray(entry["normalized"]["rgb_points"]).reshape(-1, 4)
             same_nodes = replace(preset.color_map, points=tuple(map(tuple, nodes)))
-            np.testing.assert_allclose(same_nodes.evaluate(values), theirs, rtol=0, atol=TOLERANCE)
+            np.testing.assert_allclose(same_nodes.evaluate(values), theirs, rtol=0, atol=SAME)
             # ... and with the file's order everywhere but the segment just above the tie.
             xs = nodes[:, 0]
             for x in reordered:
                 above = xs[xs > x + 1e-12][0]
                 compared &= ~((values > x) & (values <= above))
         error = np.abs(ours - theirs).max(axis=1)[compared]
-        if error.max() > TOLERANCE:
+        if error.max() > SAME:
             worst = np.argmax(error)
-            failures.append(f"{entry['name']!r}: {error.max():.4f} at {values[compared][worst]:.6g}")
+            failures.append(f"{entry['name']!r}: {error.max():.2g} at {values[compared][worst]:.6g}")
     assert not failures, "colours differ from ParaView's: " + "; ".join(failures)
 
 
@@ -147,8 +152,8 @@ def test_every_continuous_preset_in_its_own_units_matches_paraview(paraview):
         tf = apply_preset(preset, None, units="data")
         assert tf.color_map.log_scale == entry["data"]["log_scale"], entry["name"]
         error = np.abs(tf.color_map.evaluate(values) - np.asarray(entry["data"]["rgb"])).max()
-        if error > TOLERANCE:
-            failures.append(f"{entry['name']!r}: {error:.4f}")
+        if error > SAME:
+            failures.append(f"{entry['name']!r}: {error:.2g}")
     assert not failures, "colours differ from ParaView's: " + "; ".join(failures)
     assert any(entry["data"]["log_scale"] for entry, _ in _continuous(paraview))  # the log case was there
 
@@ -161,7 +166,7 @@ def test_opacity_points_match_paraview_both_ways(paraview):
         for units, range_ in (("normalized", RANGE), ("data", None)):
             values = np.asarray(entry[units]["values"])
             ours = apply_preset(preset, range_, units=units).opacity_map.evaluate(values)
-            np.testing.assert_allclose(ours, entry[units]["opacity"], rtol=0, atol=1e-6, err_msg=entry["name"])
+            np.testing.assert_allclose(ours, entry[units]["opacity"], rtol=0, atol=SAME, err_msg=entry["name"])
         checked += 1
     assert checked == 3  # the presets of EXTRA_JSON with Points (midpoints, sharpness, log scale)
 
@@ -195,9 +200,27 @@ def test_the_renderer_table_matches_paraview_away_from_jumps(paraview):
 
 
 def test_categorical_presets_are_what_paraview_applies_as_categories(paraview):
-    # ParaView switches the lookup table to categories for every preset with IndexedColors and no colour
-    # nodes; those are exactly the ones we leave out, and asking for one by name says why.
+    # ParaView switches the lookup table to categories for every preset with IndexedColors. Those with no
+    # colour nodes are exactly the ones we leave out, and asking for one by name says why. One with nodes
+    # as well ("apmgsrn indexed with nodes") is read for its nodes, which ParaView's volume lookup uses
+    # (compared with the others above).
     for entry in paraview["presets"]:
-        assert entry["categorical"] == ("normalized" not in entry), entry["name"]
+        if "normalized" not in entry:
+            assert entry["categorical"], entry["name"]
+    both = [e["name"] for e in paraview["presets"] if e["categorical"] and "normalized" in e]
+    assert both == ["apmgsrn indexed with nodes"]
     with pytest.raises(ApmgsrnError, match="categorical"):
         load_transfer_function(paraview["presets_file"], RANGE, name="KAAMS")  # the first KAAMS is indexed
+
+
+@pytest.mark.parametrize(
+    "ours, theirs",
+    [("Cool to Warm", "Cool to Warm"), ("grayscale", "Grayscale"), ("viridis", "Viridis (matplotlib)"),
+     ("plasma", "Plasma (matplotlib)"), ("inferno", "Inferno (matplotlib)"), ("magma", "Magma (matplotlib)"),
+     ("turbo", "Turbo")],
+)
+def test_built_in_maps_match_paraviews_presets_of_the_same_name(paraview, ours, theirs):
+    entry = next(e for e in paraview["presets"] if e["name"] == theirs)
+    values = np.asarray(entry["normalized"]["values"])
+    colours = builtin_colormap(ours).rescaled(*RANGE).evaluate(values)
+    np.testing.assert_allclose(colours, entry["normalized"]["rgb"], rtol=0, atol=TOLERANCE)

@@ -52,7 +52,8 @@ def rgb_to_lab(rgb: np.ndarray) -> np.ndarray:
     """
     xyz = srgb_to_linear(rgb) @ _RGB_TO_XYZ.T / _WHITE
     f = np.where(xyz > _LAB_EPSILON, np.cbrt(xyz), _LAB_SLOPE * xyz + 16.0 / 116.0)
-    return np.stack([116.0 * f[..., 1] - 16.0, 500.0 * (f[..., 0] - f[..., 1]), 200.0 * (f[..., 1] - f[..., 2])], axis=-1)
+    lightness = 116.0 * f[..., 1] - 16.0
+    return np.stack([lightness, 500.0 * (f[..., 0] - f[..., 1]), 200.0 * (f[..., 1] - f[..., 2])], axis=-1)
 
 
 def lab_to_rgb(lab: np.ndarray) -> np.ndarray:
@@ -103,8 +104,11 @@ def rgb_to_hsv(rgb: np.ndarray) -> np.ndarray:
     chroma = high - rgb.min(axis=-1)
     safe = np.where(chroma > 0, chroma, 1.0)
     r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    # VTK's order: red first, then green, then blue when channels tie for the largest.
     hue = np.where(
-        r == high, (g - b) / safe / 6.0, np.where(g == high, 1.0 / 3.0 + (b - r) / safe / 6.0, 2.0 / 3.0 + (r - g) / safe / 6.0)
+        r == high,
+        (g - b) / safe / 6.0,
+        np.where(g == high, 1.0 / 3.0 + (b - r) / safe / 6.0, 2.0 / 3.0 + (r - g) / safe / 6.0),
     )
     hue = np.where(chroma > 0, np.where(hue < 0.0, hue + 1.0, hue), 0.0)
     saturation = np.where(high > 0, chroma / np.where(high > 0, high, 1.0), 0.0)
@@ -155,7 +159,8 @@ def interpolate_diverging(rgb0: np.ndarray, rgb1: np.ndarray, t: np.ndarray) -> 
     msh1 = rgb_to_msh(rgb1)
     t = np.asarray(t, dtype=np.float64).copy()
     split = (msh0[:, 1] > 0.05) & (msh1[:, 1] > 0.05) & (_angle_between(msh0[:, 2], msh1[:, 2]) > 0.33 * np.pi)
-    centre = np.stack([np.maximum(np.maximum(msh0[:, 0], msh1[:, 0]), 88.0), np.zeros_like(t), np.zeros_like(t)], axis=1)
+    white = np.maximum(np.maximum(msh0[:, 0], msh1[:, 0]), 88.0)
+    centre = np.stack([white, np.zeros_like(t), np.zeros_like(t)], axis=1)
     first_half = split & (t < 0.5)
     second_half = split & ~(t < 0.5)
     msh1 = np.where(first_half[:, None], centre, msh1)
@@ -191,7 +196,9 @@ def interpolate_hsv(rgb0: np.ndarray, rgb1: np.ndarray, t: np.ndarray, wrap: boo
     return hsv_to_rgb(hsv)
 
 
-def interpolate_colors(rgb0: np.ndarray, rgb1: np.ndarray, t: np.ndarray, space: str, hsv_wrap: bool = False) -> np.ndarray:
+def interpolate_colors(
+    rgb0: np.ndarray, rgb1: np.ndarray, t: np.ndarray, space: str, hsv_wrap: bool = False
+) -> np.ndarray:
     """The colour a fraction ``t`` of the way between two colour-map nodes, in one of ParaView's spaces.
 
     Args:

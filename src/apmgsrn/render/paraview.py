@@ -11,8 +11,10 @@ Formats read:
   ``<ColorMap>``) with ``<Point x r g b o/>`` and ``<NaN r g b/>`` children; ``space="Wrapped"`` is HSV
   with ``HSVWrap``, a missing ``space`` keeps the lookup table's own.
 
-Categorical presets (``IndexedColors``, XML ``indexedLookup="true"``) are skipped: ParaView applies them by
-switching the lookup table to categories (annotated values), not to scalar colouring.
+Categorical presets (``IndexedColors`` and no ``RGBPoints``, XML ``indexedLookup="true"``) are skipped:
+ParaView applies them by switching the lookup table to categories (annotated values), not to scalar
+colouring. A preset with both is read for its ``RGBPoints``: ParaView switches the table to categories for
+surfaces, but its volume lookup (like this renderer) uses the nodes.
 
 Applying (:func:`apply_preset`), as ParaView's ``ApplyPreset(name, rescale=True)`` followed by
 ``RescaleTransferFunction(min, max)``: the colour nodes are sorted by position (nodes at one position keep

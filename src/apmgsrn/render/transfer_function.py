@@ -107,9 +107,8 @@ def _segments(xs: np.ndarray, values: np.ndarray, log_scale: bool) -> tuple[np.n
     k = np.clip(upper, 1, len(xs) - 1)
     x0, x1 = xs[k - 1], xs[k]  # x0 < x1 wherever inside
     v = values
-    if log_scale and xs[0] > 0:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            v, x0, x1 = np.log10(np.where(inside, values, 1.0)), np.log10(x0), np.log10(x1)
+    if log_scale and xs[0] > 0:  # every node positive, and so every value inside a segment
+        v, x0, x1 = np.log10(np.where(inside, values, 1.0)), np.log10(x0), np.log10(x1)
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(inside, (v - x0) / np.where(inside, x1 - x0, 1.0), 0.0)
     return upper, inside, t
@@ -180,7 +179,9 @@ class ColorMap:
         return replace(self, points=_rescaled_nodes(self.points, value_min, value_max, self.log_scale))
 
 
-def stretch_nodes(points: tuple, value_min: float, value_max: float, from_log: bool = False, to_log: bool = False) -> tuple:
+def stretch_nodes(
+    points: tuple, value_min: float, value_max: float, from_log: bool = False, to_log: bool = False
+) -> tuple:
     """Nodes (position first) spread over ``[value_min, value_max]`` with :func:`rescale_positions`.
 
     A single node becomes two, one at each end, as in ParaView.
@@ -189,7 +190,8 @@ def stretch_nodes(points: tuple, value_min: float, value_max: float, from_log: b
         ApmgsrnError: several nodes all at one position (nothing to stretch), or see :func:`rescale_positions`.
     """
     if len(points) == 1:
-        return tuple((float(x), *points[0][1:]) for x in rescale_positions([0.0, 1.0], value_min, value_max, to_log=to_log))
+        ends = rescale_positions([0.0, 1.0], value_min, value_max, to_log=to_log)
+        return tuple((float(x), *points[0][1:]) for x in ends)
     xs = np.array([p[0] for p in points], dtype=np.float64)
     if not xs[-1] > xs[0]:
         raise ApmgsrnError(
