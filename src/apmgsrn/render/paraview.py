@@ -21,16 +21,16 @@ Applying (:func:`apply_preset`), as ParaView's ``ApplyPreset(name, rescale=True)
 their file order), normalised by their own span (in log10 if the preset says ``UseLogScale`` and its span
 is positive) and spread linearly over the range; ``Points`` likewise by their own span. ``units="data"``
 keeps the nodes where they are (ParaView's "use preset range", ``rescale=False``); there ParaView also
-switches the lookup table to log scale when the preset says ``UseLogScale``. ParaView reads the flags two
-ways and so does this module: stretching reads ``UseLogScale`` as a boolean (``true`` or a non-zero
-number), but the settings it copies onto the lookup table (``UseLogScale`` when kept in data units,
-``HSVWrap`` always) take effect only as numbers (``1``, what ParaView writes), a JSON ``true`` being
-ignored there. ``ColorSpace`` is matched as
+switches the lookup table to log scale when the preset says ``UseLogScale``.
+
+ParaView reads the flags two ways and so does this module: stretching reads ``UseLogScale`` as a boolean
+(``true`` or a non-zero number), but the settings it copies onto the lookup table (``UseLogScale`` when
+kept in data units, ``HSVWrap`` always) take effect only as numbers (``1``, what ParaView writes), a JSON
+``true`` being ignored there. ``HSVWrap`` is off unless the preset sets it. ``ColorSpace`` is matched as
 ParaView matches it: exactly ``RGB``, ``HSV``, ``Lab``, ``Diverging`` or ``Step`` (or their number in
 ParaView's list); any other spelling is applied as RGB (ParaView does so with its own "CIELAB" preset) and
-a missing one as Diverging (the space of ParaView's default lookup table). ``HSVWrap`` is off unless the
-preset sets it. ``Lab/CIEDE2000`` is refused: ParaView follows a shortest path through the colour space
-there, which is not implemented.
+a missing one as Diverging (the space of ParaView's default lookup table). ``Lab/CIEDE2000`` is refused:
+ParaView follows a shortest path through the colour space there, which is not implemented.
 """
 
 from __future__ import annotations
@@ -177,8 +177,6 @@ def load_transfer_function(
         ApmgsrnError: bad file, unknown or categorical preset name, unknown ``units``.
     """
     path = Path(path)
-    if units not in PRESET_UNITS:
-        raise ApmgsrnError(f"unknown preset units {units!r}: use {' or '.join(PRESET_UNITS)}")
     if name is None:
         preset = read_presets(path)[0]
     else:
