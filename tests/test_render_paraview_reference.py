@@ -97,7 +97,7 @@ def _tied_positions_reordered(entry: dict, preset) -> list[float]:
 
 def test_paraview_presets_load_as_paraview_prints_them(paraview):
     # All of ParaView's presets (195 in 5.11) as ParaView prints them, plus the imported ones: every entry
-    # with colour nodes is read, every categorical one (IndexedColors) is left out.
+    # with colour nodes is read, every categorical one (IndexedColors and no nodes) is left out.
     names = [p.name for p in read_presets(paraview["presets_file"])]
     entries = paraview["presets"]
     assert paraview["builtin_count"] >= 195
