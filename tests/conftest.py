@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
@@ -40,8 +41,11 @@ def _deterministic_threads():
 def pytest_collection_modifyitems(config, items):
     has_cuda = torch.cuda.is_available()
     chromium = Path("/usr/bin/chromium").exists()
+    pvpython = shutil.which("pvpython") is not None
     for item in items:
         if "gpu" in item.keywords and not has_cuda:
             item.add_marker(pytest.mark.skip(reason="needs a CUDA device"))
         if "browser" in item.keywords and not chromium:
             item.add_marker(pytest.mark.skip(reason="needs /usr/bin/chromium"))
+        if "paraview" in item.keywords and not pvpython:
+            item.add_marker(pytest.mark.skip(reason="needs ParaView's pvpython on PATH (Debian: apt-get install paraview)"))

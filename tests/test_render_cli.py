@@ -81,8 +81,15 @@ def test_saved_transfer_function_reproduces_the_image(test_data, tmp_path, capsy
     opts = [*SMALL, "--colormap", "plasma", "--opacity", "0,0,0.25,0,1,0.9", "--range", "10,240"]
     assert _run(capsys, "render", data, "--out", str(first), *opts, "--save-tf", str(preset))[0] == 0
     assert json.loads(preset.read_text())[0]["ColorSpace"] == "RGB"
-    assert _run(capsys, "render", data, "--out", str(second), *SMALL, "--colormap", str(preset))[0] == 0
+    # Kept in its data units (ParaView's "use preset range") it needs no range ...
+    kept = [*SMALL, "--colormap", str(preset), "--preset-units", "data"]
+    assert _run(capsys, "render", data, "--out", str(second), *kept)[0] == 0
     assert np.abs(_pixels(first) - _pixels(second)).max() <= 1
+    # ... stretched (the default, as ParaView applies presets) over the range it was saved on, the same.
+    third = tmp_path / "c.png"
+    stretched = [*SMALL, "--colormap", str(preset), "--range", "10,240"]
+    assert _run(capsys, "render", data, "--out", str(third), *stretched)[0] == 0
+    assert np.abs(_pixels(first) - _pixels(third)).max() <= 1
 
 
 @pytest.mark.parametrize(

@@ -36,11 +36,11 @@ def register(subparsers) -> None:
     tf = parser.add_argument_group("transfer function")
     tf.add_argument("--colormap", default="Cool to Warm",
                     help="built-in name (Cool to Warm, viridis, plasma, coolwarm, grayscale, jet, ... any "
-                         "matplotlib name) or a ParaView preset .json file (default: Cool to Warm)")
-    tf.add_argument("--preset-name", help="which preset of a .json file holding several (default: the first)")
-    tf.add_argument("--preset-units", choices=["auto", "normalized", "data"], default="auto",
-                    help="auto: a preset spanning exactly 0..1 is stretched to the range, other spans are "
-                         "data units (a session export)")
+                         "matplotlib name) or a ParaView preset .json/.xml file (default: Cool to Warm)")
+    tf.add_argument("--preset-name", help="which preset of a file holding several (default: the first)")
+    tf.add_argument("--preset-units", choices=["normalized", "data"], default="normalized",
+                    help="normalized: stretch the preset over the range, as ParaView applies presets "
+                         "(default); data: keep its node positions, e.g. a transfer function saved from a session")
     tf.add_argument("--opacity", metavar="X0,A0,X1,A1,...",
                     help="opacity nodes: positions on 0..1 of the range and their opacity per reference step "
                          "(default: a preset's own, else 0,0,1,1)")
@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     transfer_function = make_transfer_function(
         args.colormap, value_range, opacity=opacity, preset_name=args.preset_name, preset_units=args.preset_units
     )
-    if args.range and args.colormap.lower().endswith(".json"):
+    if args.range and args.preset_units == "data":
         transfer_function = transfer_function.rescaled(*value_range)  # an explicit range always wins
     extent = (1.0, 1.0, 1.0) if args.no_aspect else source.extent
     renderer = source.renderer(transfer_function, config, extent)
