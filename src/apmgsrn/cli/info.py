@@ -57,7 +57,7 @@ def describe_field(field, description) -> dict:
     """
     import dataclasses
 
-    config = field.config
+    config = description.config  # the spatial network (of every step, for a time-series model)
     info = {
         "model": config.model,
         "encoder": {k: v for k, v in config.to_dict()["encoder"].items()},
@@ -97,11 +97,18 @@ def run(args: argparse.Namespace) -> int:
     model = apmgsrn.load(args.model)
     if model.description.kind == "bricks":
         return _run_bricks(args, model)
+    series = None
+    if model.description.series is not None:
+        from apmgsrn.cli.series import describe_series, print_series_info, strict_json
+
+        series = describe_series(model)
     info = describe_field(model.field, model.description)
+    if series is not None:
+        info["series"] = series
     if args.plot:
         plot_training_curves(model.description.training, args.plot)
     if args.json:
-        print(json.dumps(info))
+        print(json.dumps(info if series is None else strict_json(info)))
         return 0
     enc = info["encoder"]
     t = info["training"]
@@ -124,6 +131,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"hash levels     {len(levels)}: resolution {levels[0]['resolution']}..{levels[-1]['resolution']}, "
               f"table entries {min(v['table_entries'] for v in levels):,}..{max(v['table_entries'] for v in levels):,} "
               f"per level ({dense} stored densely)")
+    if series is not None:
+        print_series_info(series)
     for i, grid in enumerate(info.get("grids", [])):
         c, e = grid["center"], grid["extent"]
         print(f"  grid {i:2d}  center ({c[0]:+.3f}, {c[1]:+.3f}, {c[2]:+.3f})  extent ({e[0]:.3f}, {e[1]:.3f}, {e[2]:.3f})")

@@ -18,6 +18,7 @@ from apmgsrn.errors import ApmgsrnError
 
 
 def register(subparsers) -> None:
+    from apmgsrn.cli.series import add_series_arguments
     from apmgsrn.cli.train_bricks import add_brick_arguments
     from apmgsrn.models.encoders.adaptive_multigrid import GRID_INITS
     from apmgsrn.models.registry import ENCODERS
@@ -29,7 +30,9 @@ def register(subparsers) -> None:
         help="fit a model to a volume",
         description="Fit an adaptive multi-grid network to a volume and save it as one safe model file.",
     )
-    parser.add_argument("data", help="volume file (.nc, .h5, .zarr, .raw, .npy, .vti, .vtr)")
+    parser.add_argument("data", nargs="+",
+                        help="volume file (.nc, .h5, .zarr, .raw, .npy, .vti, .vtr); several files, a quoted glob "
+                             "or a .pvd for a time series")
     parser.add_argument("--out", required=True, help="model file to write")
     add_data_arguments(parser)
     parser.add_argument("--transform", choices=TRANSFORMS, default="none", help="value transform before fitting")
@@ -72,17 +75,26 @@ def register(subparsers) -> None:
     training.add_argument("--checkpoint-every", type=int, default=250)
     training.add_argument("--resume", action="store_true", help="continue an interrupted run from MODEL.ckpt")
     add_brick_arguments(parser)
+    add_series_arguments(parser)
     add_device_argument(parser)
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
     parser.set_defaults(func=run)
 
 
-def build_configs(args: argparse.Namespace, device):
-    """(FieldConfig, TrainConfig) from the command line, presets overridden by explicit flags."""
+def build_configs(args: argparse.Namespace, device, steps: int | None = None):
+    """(FieldConfig, TrainConfig) from the command line, presets overridden by explicit flags.
+
+    Args:
+        args: the parsed command line.
+        device: the training device (sizes the default budget).
+        steps: the number of steps of a time series (None: one volume); sizes the default budget.
+    """
     from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
-    from apmgsrn.training.trainer import TrainConfig, default_budget
+    from apmgsrn.training.trainer import TrainConfig, default_budget, series_budget
 
     iterations, batch_size = default_budget(device)
+    if steps is not None:
+        iterations = series_budget(iterations, steps)
     overrides = {
         "grids": args.grids,
         "features": args.features,
@@ -111,6 +123,7 @@ def build_configs(args: argparse.Namespace, device):
             decoder_precision=args.decoder_precision,
             seed=args.seed,
             checkpoint_every=args.checkpoint_every,
+            **({"steps_per_iteration": args.steps_per_iteration} if getattr(args, "steps_per_iteration", None) else {}),
         )
     except (TypeError, ValueError) as exc:
         raise ApmgsrnError(f"invalid model or training options: {exc}") from None
@@ -118,6 +131,11 @@ def build_configs(args: argparse.Namespace, device):
 
 
 def run(args: argparse.Namespace) -> int:
+    from apmgsrn.cli.series import is_series, run_series_train, single_input
+
+    if is_series(args):
+        return run_series_train(args)
+    args.data = single_input(args)
     if getattr(args, "bricks", None):
         from apmgsrn.cli.train_bricks import run_bricks
 

@@ -1,4 +1,4 @@
-"""`VolumeWriter`: write a float32 volume slab by slab (``.nc``, ``.raw``/``.bin``, ``.npy``).
+"""`VolumeWriter`: write a float32 volume (or a series of them) slab by slab (``.nc``, ``.raw``/``.bin``, ``.npy``).
 
 Used by ``apmgsrn decode``, which produces the volume chunk by chunk, so outputs larger than
 memory work. The file is written under a temporary name beside the target and renamed into place
@@ -47,7 +47,9 @@ class VolumeWriter:
 
     Formats: ``.nc`` NetCDF-4 with dims ``(z, y, x)``, one float32 variable and `attributes`
     as global attributes; ``.raw``/``.bin`` headerless little-endian float32, x fastest (no
-    attributes); ``.npy`` a float32 array (no attributes).
+    attributes); ``.npy`` a float32 array (no attributes). With `steps`, a time series: a leading
+    time dimension (NetCDF dims ``(time, z, y, x)`` and a ``time`` coordinate of `time_values`; raw and
+    ``.npy`` steps one after the other), and every step is written slab by slab.
 
     Args:
         path: Output file; its folder must exist.
@@ -55,6 +57,8 @@ class VolumeWriter:
         variable: Variable name in a NetCDF output.
         attributes: Global attributes of a NetCDF output (numbers, strings, numeric lists;
             anything else is stored as JSON text).
+        steps: Number of time steps of a series (None: one volume, no time dimension).
+        time_values: The ``time`` coordinate of a NetCDF series (default 0, 1, ...).
 
     Raises:
         ApmgsrnError: For an unknown suffix, a missing or unwritable output folder, or a
@@ -67,11 +71,17 @@ class VolumeWriter:
         shape: tuple[int, int, int],
         variable: str = "value",
         attributes: dict | None = None,
+        steps: int | None = None,
+        time_values=None,
     ) -> None:
         self.path = Path(path).expanduser()
         self.shape = tuple(int(n) for n in shape)
         if len(self.shape) != 3 or min(self.shape) <= 0:
             raise ValueError(f"VolumeWriter needs a shape (D, H, W) of positive sizes, got {shape}")
+        if steps is not None and steps < 1:
+            raise ValueError(f"VolumeWriter needs a positive number of steps, got {steps}")
+        self.steps = steps
+        self._time_values = list(time_values) if time_values is not None else list(range(steps or 0))
         self.variable = variable
         self.suffix = self.path.suffix.lower()
         if self.suffix not in WRITABLE_SUFFIXES:
@@ -88,7 +98,7 @@ class VolumeWriter:
         # Same folder as the target, so the final rename is atomic (same file system); the real
         # suffix is kept so libraries that look at it behave.
         self._temporary = folder / f".{self.path.stem}.{uuid.uuid4().hex[:12]}.partial{self.suffix}"
-        self._written = np.zeros(self.shape[0], dtype=bool)
+        self._written = np.zeros((steps or 1, self.shape[0]), dtype=bool)  # [steps, D]
         self._handle: Any = None
         self._closed = False
         try:
@@ -114,7 +124,12 @@ class VolumeWriter:
                 dataset.set_fill_off()
                 for name, size in zip(("z", "y", "x"), self.shape):
                     dataset.createDimension(name, size)
-                dataset.createVariable(self.variable, "f4", ("z", "y", "x"), contiguous=True)
+                dims = ("z", "y", "x")
+                if self.steps is not None:
+                    dataset.createDimension("time", self.steps)
+                    dataset.createVariable("time", "f8", ("time",))[:] = np.asarray(self._time_values, np.float64)
+                    dims = ("time", *dims)
+                dataset.createVariable(self.variable, "f4", dims, contiguous=True)
                 for key, value in attributes.items():
                     dataset.setncattr(str(key), _attribute_value(value))
             except BaseException:
@@ -123,14 +138,15 @@ class VolumeWriter:
             return dataset
         # raw and .npy: plain writes at known offsets (never a memory map: on a full disk a write to a mapped
         # page kills the process with SIGBUS, where a write() call fails with ENOSPC that we can report).
-        needed = depth * height * width * 4
+        needed = (self.steps or 1) * depth * height * width * 4
         free = shutil.disk_usage(self.path.parent).free
         if needed > free:
             raise OSError(errno.ENOSPC, f"needs {needed:,} bytes, {free:,} free")
         handle = open(self._temporary, "wb")
         try:
             if self.suffix == ".npy":
-                header = {"descr": "<f4", "fortran_order": False, "shape": self.shape}
+                shape = self.shape if self.steps is None else (self.steps, *self.shape)
+                header = {"descr": "<f4", "fortran_order": False, "shape": shape}
                 np.lib.format.write_array_header_1_0(handle, header)
             self._data_offset = handle.tell()
             # Size the file up front (sparse) so slabs can be written in any order.
@@ -140,12 +156,15 @@ class VolumeWriter:
             raise
         return handle
 
-    def _store(self, z: slice, block: np.ndarray) -> None:
+    def _store(self, z: slice, block: np.ndarray, step: int | None) -> None:
         if self.suffix == ".nc":
-            self._handle[self.variable][z.start:z.stop, :, :] = block
+            if step is None:
+                self._handle[self.variable][z.start:z.stop, :, :] = block
+            else:
+                self._handle[self.variable][step, z.start:z.stop, :, :] = block
         else:
-            _, height, width = self.shape
-            self._handle.seek(self._data_offset + z.start * height * width * 4)
+            depth, height, width = self.shape
+            self._handle.seek(self._data_offset + ((step or 0) * depth + z.start) * height * width * 4)
             self._handle.write(np.ascontiguousarray(block, dtype="<f4").data)
 
     def _finish(self) -> None:
@@ -156,20 +175,23 @@ class VolumeWriter:
         self._handle = None
 
     # ----------------------------------------------------------------- public
-    def write(self, z: slice, block: np.ndarray) -> None:
-        """Write the slab ``z`` of the volume.
+    def write(self, z: slice, block: np.ndarray, step: int | None = None) -> None:
+        """Write the slab ``z`` of the volume (of step ``step`` of a series).
 
         Args:
             z: Range of z-slices, step 1, within ``[0, D)``.
             block: float32 (or convertible) array ``[dz, H, W]`` with ``dz`` = length of `z`.
+            step: the time step, ``0 .. steps-1``, when writing a series (else None).
 
         Raises:
             ApmgsrnError: If the disk write fails (full disk, lost folder).
         """
         if self._closed:
             raise ValueError(f"VolumeWriter for {self.path} is closed")
-        start, stop, step = z.indices(self.shape[0])
-        if step != 1 or stop <= start:
+        if (step is None) != (self.steps is None) or (step is not None and not 0 <= step < self.steps):
+            raise ValueError(f"VolumeWriter.write: step {step} for a writer of {self.steps} steps")
+        start, stop, stride = z.indices(self.shape[0])
+        if stride != 1 or stop <= start:
             raise ValueError(f"VolumeWriter.write needs a non-empty z slice with step 1, got {z}")
         block = np.asarray(block, dtype=np.float32)
         expected = (stop - start, self.shape[1], self.shape[2])
@@ -178,10 +200,10 @@ class VolumeWriter:
                 f"VolumeWriter.write: block shape {block.shape} does not match z={start}:{stop} -> {expected}"
             )
         try:
-            self._store(slice(start, stop), block)
+            self._store(slice(start, stop), block, step)
         except (OSError, RuntimeError) as exc:
             raise ApmgsrnError(f"{self.path}: writing failed ({exc}); check free disk space and the folder") from exc
-        self._written[start:stop] = True
+        self._written[step or 0, start:stop] = True
 
     def close(self) -> None:
         """Finish the file and rename it into place (all of z must have been written).
@@ -193,11 +215,12 @@ class VolumeWriter:
         if self._closed:
             return
         if not self._written.all():
-            missing = np.flatnonzero(~self._written)
+            missing = np.argwhere(~self._written)  # [n, 2] (step, z)
             self.abort()
+            first = f"step {missing[0][0]}, z={missing[0][1]}" if self.steps is not None else f"z={missing[0][1]}"
             raise ValueError(
-                f"VolumeWriter for {self.path}: {missing.size} z-slices were never written "
-                f"(first missing: z={missing[0]}); nothing was saved"
+                f"VolumeWriter for {self.path}: {len(missing)} z-slices were never written "
+                f"(first missing: {first}); nothing was saved"
             )
         try:
             self._finish()

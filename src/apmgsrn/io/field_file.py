@@ -65,7 +65,13 @@ def save_field(path: str | os.PathLike, field: NeuralField, source: SourceInfo, 
     Returns:
         Bytes written.
     """
-    description = {
+    return save_tensors(path, dict(field.state_dict()), FIELD_KIND, field_description(field, source, training))
+
+
+def field_description(field, source: SourceInfo, training: dict) -> dict:
+    """The description entries every field file has (a series file adds its own): the field's config, value
+    scaling and transform, volume shape, source and training summary."""
+    return {
         "field": field.config.to_dict(),
         "fit_min": field.fit_min,
         "fit_max": field.fit_max,
@@ -76,7 +82,6 @@ def save_field(path: str | os.PathLike, field: NeuralField, source: SourceInfo, 
         "source": source.to_dict(),
         "training": training,
     }
-    return save_tensors(path, dict(field.state_dict()), FIELD_KIND, description)
 
 
 def parse_field_description(description: dict) -> FieldDescription:
@@ -108,8 +113,13 @@ def parse_field_description(description: dict) -> FieldDescription:
     )
 
 
-def _check_declared_tensors(header: Header, config: FieldConfig) -> None:
-    """The file must store exactly the float32 parameters the config implies, no more, no fewer."""
+def check_declared_tensors(header: Header, config) -> None:
+    """The file must store exactly the float32 parameters the config implies, no more, no fewer.
+
+    Args:
+        header: the file's validated header.
+        config: anything with ``parameter_shapes()`` (a field's or a series field's config).
+    """
     expected = config.parameter_shapes()
     declared = {name: entry.shape for name, entry in header.tensors.items()}
     if declared != expected:
@@ -144,7 +154,7 @@ def load_field(path: str | os.PathLike, device: torch.device | str = "cpu",
         raise ApmgsrnError(f"{path}: is a {header.kind or 'unknown'} file, not a single model; pass a model file")
     try:
         parsed = parse_field_description(header.description)
-        _check_declared_tensors(header, parsed.config)
+        check_declared_tensors(header, parsed.config)
     except (DescriptionError, ValueError, TypeError) as exc:
         raise inconsistent(path, exc) from None
     tensors = load_tensors(path)

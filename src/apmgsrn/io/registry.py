@@ -20,6 +20,7 @@ from apmgsrn.io.brick_folder import BRICKS_KIND, MANIFEST_NAME, is_brick_folder,
 from apmgsrn.io.container import read_header
 from apmgsrn.io.description import ModelDescription
 from apmgsrn.io.field_file import FIELD_KIND, load_field
+from apmgsrn.io.series_file import SERIES_KIND, load_series
 
 
 @dataclass(frozen=True)
@@ -37,7 +38,10 @@ class LoadedModel:
 
 #: kind -> loader(path, device) returning (field, description).
 Loader = Callable[[Path, torch.device], tuple[nn.Module, ModelDescription]]
-_LOADERS: dict[str, Loader] = {FIELD_KIND: lambda path, device: load_field(path, device)}
+_LOADERS: dict[str, Loader] = {
+    FIELD_KIND: lambda path, device: load_field(path, device),
+    SERIES_KIND: lambda path, device: load_series(path, device),
+}
 
 
 def register_loader(kind: str, loader: Loader) -> None:
@@ -46,7 +50,7 @@ def register_loader(kind: str, loader: Loader) -> None:
 
 
 def model_kind(path: str | os.PathLike) -> str | None:
-    """``"field"``, ``"bricks"`` (or another registered kind) for a model file or folder, else None.
+    """``"field"``, ``"series"``, ``"bricks"`` (or another registered kind) for a model file or folder, else None.
 
     Reads only a file's header or a folder's manifest, never tensors.
     """

@@ -72,6 +72,10 @@ class PageState:
                 "status_message": "",
                 "saved_message": "",
                 "upload_limit": upload_limit,
+                "time_steps": 1,
+                "time_step": 0,
+                "time_playing": False,
+                "time_label": "",
                 "trame__title": title,
             }
         )
@@ -149,6 +153,8 @@ class PageState:
             self.push({"status_message": str(payload)})
         elif kind == "source" and isinstance(payload, RenderSource):
             self.push(self._source_state(payload))
+        elif kind == "step" and isinstance(payload, RenderSource):
+            self.push({**_time_state(payload), "source_description": f"{payload.name}: {payload.description}"})
 
     def _source_state(self, source: RenderSource) -> dict:
         low, high = self.session.settings.value_range
@@ -163,4 +169,12 @@ class PageState:
             "overlay_available": source.grid_boxes is not None or source.brick_boxes is not None,
             "error_message": "",
             "status_message": "rendering",
+            **_time_state(source),
         }
+
+
+def _time_state(source: RenderSource) -> dict:
+    """The time slider's state: steps, the one shown and its number (one step: the slider hides)."""
+    label = f"step {source.step} of {source.steps} (number {source.step_labels[source.step]:g})" \
+        if source.series is not None else ""
+    return {"time_steps": source.steps, "time_step": source.step, "time_label": label}
