@@ -56,9 +56,19 @@ def is_series(args: argparse.Namespace) -> bool:
 
 
 def single_input(args: argparse.Namespace) -> str:
-    """The one DATA path of a command that reads one volume (several name a series)."""
+    """The one DATA path of a command that reads one volume (several name a series); the options that only a
+    series takes are refused.
+
+    Raises:
+        ApmgsrnError: several inputs, or a series option given.
+    """
     if len(args.data) != 1:
         raise ApmgsrnError(f"{len(args.data)} inputs given where one volume is read; name one file")
+    for option in ("basis", "coefficients", "residual", "steps_per_iteration"):
+        if getattr(args, option, None) is not None:
+            flag = "--" + option.replace("_", "-")
+            raise ApmgsrnError(f"{flag} applies to a time series (several files, a glob, a .pvd or --time all); "
+                               f"drop {flag} for one volume")
     return args.data[0]
 
 
