@@ -2,6 +2,7 @@
 
     python benchmarks/bench_time_series.py baseline --threads 1   # 30 independent small models -> CSV
     python benchmarks/bench_time_series.py series --threads 1     # one time-series model -> CSV
+    python benchmarks/bench_time_series.py timing --threads 1     # one step's training right before and after
     python benchmarks/bench_time_series.py report                 # docs/time_series_results.md + chart
 
 Protocol (REFERENCE.md, CPU): 2,000 iterations x 32,768 points, lr 0.01, seed 0, the small preset, PSNR
@@ -27,6 +28,13 @@ RESULTS = ROOT / "benchmarks" / "results"
 BASELINE_CSV = RESULTS / "time_series_baseline.csv"
 BASELINE_FIELDS = ["step", "file", "psnr", "max_abs_error", "seconds", "iterations", "model_bytes", "parameters",
                    "threads", "load_average", "cpu"]
+SERIES_CSV = RESULTS / "time_series_model.csv"
+SERIES_FIELDS = ["step", "file", "psnr", "max_abs_error", "model_bytes", "train_seconds", "iterations", "config",
+                 "threads", "load_average", "cpu"]
+TIMING_CSV = RESULTS / "time_series_timing.csv"
+TIMING_FIELDS = ["what", "seconds", "iterations", "threads", "load_average_start", "load_average_end", "cpu"]
+DOCS = ROOT / "docs"
+CHART = DOCS / "images" / "time_series_psnr.png"
 
 
 def _cpu() -> str:
@@ -56,7 +64,7 @@ def run_baseline(args: argparse.Namespace) -> None:
     from apmgsrn.training.fit import fit_volume
     from apmgsrn.training.trainer import TrainConfig
 
-    files = sorted(p for p in Path(args.data).iterdir() if p.suffix == ".vti")
+    files = _series_files(args.data)
     done = {row["file"] for row in _done_rows(args.csv)}
     config = TrainConfig(iterations=args.iterations, batch_size=args.batch_size, lr=0.01, seed=0)
     with tempfile.TemporaryDirectory() as tmp:
@@ -75,21 +83,160 @@ def run_baseline(args: argparse.Namespace) -> None:
             print(" ".join(f"{k}={v}" for k, v in row.items() if k != "cpu"), flush=True)
 
 
+def _series_files(folder: Path) -> list[Path]:
+    return sorted(p for p in Path(folder).iterdir() if p.suffix == ".vti")
+
+
+def run_series(args: argparse.Namespace) -> None:
+    """One time-series model for every step, through ``fit_series`` (the ``train`` command's pipeline)."""
+    from apmgsrn.data.series import open_series
+    from apmgsrn.models.registry import preset_config
+    from apmgsrn.models.series_field import series_config
+    from apmgsrn.training.fit import fit_series
+    from apmgsrn.training.trainer import TrainConfig, series_budget
+
+    series = open_series([str(p) for p in _series_files(args.data)])
+    iterations = args.series_iterations or series_budget(args.iterations, len(series))
+    config = series_config(preset_config("apmgsrn", "small"), len(series), args.basis, args.coefficients,
+                           args.residual, args.storage)
+    train_config = TrainConfig(iterations=iterations, batch_size=args.batch_size, lr=0.01, seed=0)
+    load = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "series.apmgsrn"
+        result = fit_series(series, config, train_config, out, torch.device("cpu"), progress=args.progress)
+        model_bytes = out.stat().st_size
+        if args.keep:
+            args.keep.write_bytes(out.read_bytes())
+    described = f"basis={config.series.basis} {config.series.coefficients} residual={config.series.residual} " \
+                f"storage={config.series.storage} iterations={iterations}"
+    if args.csv.exists():
+        args.csv.unlink()  # one model: the table is replaced, not appended to
+    for step, evaluation in zip(result.evaluation.indices, result.evaluation.steps):
+        _append(args.csv, SERIES_FIELDS, {
+            "step": step, "file": series.step_name(step), "psnr": f"{evaluation.psnr:.4f}",
+            "max_abs_error": f"{evaluation.max_abs_error:.6g}", "model_bytes": model_bytes,
+            "train_seconds": f"{result.seconds:.2f}", "iterations": result.iterations, "config": described,
+            "threads": torch.get_num_threads(), "load_average": f"{(load + os.getloadavg()[0]) / 2:.2f}",
+            "cpu": _cpu()})
+    print(f"series model: {model_bytes:,} bytes, {result.seconds:.1f} s, lowest step PSNR "
+          f"{min(e.psnr for e in result.evaluation.steps):.2f} dB", flush=True)
+
+
+def run_timing(args: argparse.Namespace) -> None:
+    """Train one step's small model under the protocol and record how long it took (for the 5x comparison,
+    measured right before and right after the series model, on the same machine and threads)."""
+    from apmgsrn.data import open_volume
+    from apmgsrn.models.registry import preset_config
+    from apmgsrn.training.fit import fit_volume
+    from apmgsrn.training.trainer import TrainConfig
+
+    path = _series_files(args.data)[args.step]
+    config = TrainConfig(iterations=args.iterations, batch_size=args.batch_size, lr=0.01, seed=0)
+    start_load = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory() as tmp:
+        result = fit_volume(open_volume(path), preset_config("apmgsrn", "small"), config, Path(tmp) / "m.apmgsrn",
+                            torch.device("cpu"), progress=False)
+    _append(args.csv, TIMING_FIELDS, {"what": f"one step ({path.name}) {args.label}", "seconds": f"{result.seconds:.2f}",
+                                      "iterations": result.iterations, "threads": torch.get_num_threads(),
+                                      "load_average_start": f"{start_load:.2f}",
+                                      "load_average_end": f"{os.getloadavg()[0]:.2f}", "cpu": _cpu()})
+    print(f"one step: {result.seconds:.1f} s", flush=True)
+
+
+def write_report(out: Path) -> None:
+    """The per-step table (both methods side by side), the three criteria, and the chart."""
+    from apmgsrn.bench.charts import psnr_over_time_chart
+
+    baseline = {int(r["step"]): r for r in _done_rows(BASELINE_CSV)}
+    series = {int(r["step"]): r for r in _done_rows(SERIES_CSV)}
+    steps = sorted(set(baseline) & set(series))
+    if not steps:
+        raise SystemExit("run the baseline and series commands first")
+    lines = ["| step | file | one model per step: PSNR dB | one model for the series: PSNR dB | difference dB | "
+             "max abs error (per step / series) |", "|---|---|---|---|---|---|"]
+    for t in steps:
+        b, m = baseline[t], series[t]
+        lines.append(f"| {t} | {b['file']} | {float(b['psnr']):.2f} | {float(m['psnr']):.2f} | "
+                     f"{float(m['psnr']) - float(b['psnr']):+.2f} | {float(b['max_abs_error']):.3g} / "
+                     f"{float(m['max_abs_error']):.3g} |")
+    differences = [float(series[t]["psnr"]) - float(baseline[t]["psnr"]) for t in steps]
+    at_least = sum(d >= 0 for d in differences)
+    single_bytes = max(int(baseline[t]["model_bytes"]) for t in steps)
+    series_bytes = int(series[steps[0]]["model_bytes"])
+    series_seconds = float(series[steps[0]]["train_seconds"])
+    timing = _done_rows(TIMING_CSV)
+    if timing:
+        step_seconds = sum(float(r["seconds"]) for r in timing) / len(timing)
+        step_source = (f"the mean of {len(timing)} single-step trainings measured right before and after it "
+                       f"({', '.join(f'{float(r['seconds']):.1f} s' for r in timing)})")
+    else:
+        step_seconds = sorted(float(baseline[t]["seconds"]) for t in steps)[len(steps) // 2]
+        step_source = "the median single-step training of the baseline table"
+    config = series[steps[0]]["config"]
+    loads = ", ".join(sorted({r["load_average"] for r in series.values()}))
+    text = f"""# One model for a whole run: measured (issue 16)
+
+Written by `python benchmarks/bench_time_series.py report` from `benchmarks/results/time_series_*.csv`.
+Data: the 30 consecutive steps of `viscous_fingers_run01` (64^3, float32). Protocol: 2,000 iterations x 32,768
+points per independent small model (lr 0.01, seed 0); the series model `{config}`, same batch, lr and seed.
+CPU: {series[steps[0]]['cpu']}, {series[steps[0]]['threads']} thread(s); the machine was shared with other work
+(1-minute load average during the series run: {loads}; per baseline row in its CSV).
+
+| criterion | target | measured |
+|---|---|---|
+| PSNR on every step | >= the step's own small model | {at_least} of {len(steps)} steps; difference {min(differences):+.2f} .. {max(differences):+.2f} dB (mean {sum(differences) / len(differences):+.2f}) |
+| model file | <= 5 small models ({5 * single_bytes:,} bytes) | {series_bytes:,} bytes ({series_bytes / single_bytes:.2f} small models) |
+| training time | <= 5 x one step ({5 * step_seconds:.0f} s) | {series_seconds:.0f} s ({series_seconds / step_seconds:.2f} x {step_source}) |
+
+![PSNR over time](images/{CHART.name})
+
+{chr(10).join(lines)}
+"""
+    out.write_text(text)
+    psnr_over_time_chart([t for t in steps],
+                         {"one small model per step": [float(baseline[t]["psnr"]) for t in steps],
+                          "one model for the series": [float(series[t]["psnr"]) for t in steps]},
+                         CHART, title="viscous fingering, 30 steps: PSNR of every step")
+    print(f"wrote {out} and {CHART}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     base = sub.add_parser("baseline", help="one small model per step")
     base.add_argument("--csv", type=Path, default=BASELINE_CSV)
-    for p in (base,):
+    series = sub.add_parser("series", help="one model for the whole series")
+    series.add_argument("--csv", type=Path, default=SERIES_CSV)
+    series.add_argument("--basis", type=int)
+    series.add_argument("--coefficients")
+    series.add_argument("--residual", type=int)
+    series.add_argument("--storage")
+    series.add_argument("--series-iterations", type=int, help="default: the train command's series budget")
+    series.add_argument("--keep", type=Path, help="also keep the model file here")
+    series.add_argument("--progress", action="store_true")
+    timing = sub.add_parser("timing", help="one step's training time, for the 5x comparison")
+    timing.add_argument("--csv", type=Path, default=TIMING_CSV)
+    timing.add_argument("--step", type=int, default=15)
+    timing.add_argument("--label", default="")
+    report = sub.add_parser("report", help="the per-step table and chart in docs/")
+    report.add_argument("--out", type=Path, default=DOCS / "time_series_results.md")
+    for p in (base, series, timing):
         p.add_argument("--data", type=Path, default=SERIES)
         p.add_argument("--threads", type=int, default=1)
         p.add_argument("--iterations", type=int, default=2000)
         p.add_argument("--batch-size", type=int, default=32768)
+    report.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     start = time.perf_counter()
     if args.command == "baseline":
         run_baseline(args)
+    elif args.command == "series":
+        run_series(args)
+    elif args.command == "timing":
+        run_timing(args)
+    else:
+        write_report(args.out)
     print(f"done in {time.perf_counter() - start:.0f} s")
 
 

@@ -8,6 +8,7 @@ import torch
 from torch import nn
 
 import apmgsrn.decomposition.brick_model  # noqa: F401 - registers the brick-model loader
+import apmgsrn.decomposition.series_bricks  # noqa: F401 - registers the time-series brick-model loader
 from apmgsrn.io import ModelDescription, open_model
 
 

@@ -191,10 +191,16 @@ def _load_model(path: Path, name: str, device: torch.device, step: int | None = 
     shape = description.volume_shape
     if description.series is not None:
         labels = tuple(step.label for step in description.series.steps)
-        text = f"time-series {description.model} model, {len(labels)} steps, {field.encoder.config.grids} feature " \
-               f"grids, volume {shape[2]}x{shape[1]}x{shape[0]}"
-        source = RenderSource(name, "model", field, description.value_range, shape, device, text,
-                              _grid_boxes_of(field), series=field, step_labels=labels)
+        bricks = description.bricks
+        if bricks is None:
+            parts, grid_boxes, brick_boxes = f"{description.config.encoder.grids} feature grids", _grid_boxes_of(field), None
+        else:
+            counts = bricks.counts
+            parts, grid_boxes, brick_boxes = f"{counts[0]}x{counts[1]}x{counts[2]} bricks", None, routing_boxes(counts)
+        text = (f"time-series {description.model} {'brick ' if bricks else ''}model, {len(labels)} steps, {parts}, "
+                f"volume {shape[2]}x{shape[1]}x{shape[0]}")
+        source = RenderSource(name, "brick model" if bricks else "model", field, description.value_range, shape,
+                              device, text, grid_boxes, brick_boxes, series=field, step_labels=labels)
         return source.at_step(step or 0)
     if step is not None:
         raise ApmgsrnError(f"{path}: holds one volume; --time picks a step of a time-series model only")

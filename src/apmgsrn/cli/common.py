@@ -12,7 +12,7 @@ def add_data_arguments(parser: argparse.ArgumentParser) -> None:
     """Options that say how to read a volume file."""
     group = parser.add_argument_group("input volume")
     group.add_argument("--variable", help="variable / dataset / array name (default: the only 3-D one)")
-    group.add_argument("--time", type=_time_option, metavar="K|all|A:B[:S]",
+    group.add_argument("--time", type=time_option, metavar="K|all|A:B[:S]",
                        help="index along a leading time dimension, or of a time-series model's steps; all or "
                             "A:B[:S] (stop exclusive) for several steps")
     group.add_argument("--shape", help="X,Y,Z dimensions of a raw file (else parsed from NAME_XxYxZ_dtype.raw)")
@@ -21,10 +21,14 @@ def add_data_arguments(parser: argparse.ArgumentParser) -> None:
                        help="replace NaN/Inf voxels by VALUE instead of refusing the volume")
 
 
-def _time_option(text: str):
-    from apmgsrn.cli.series import time_option
+def time_option(text: str):
+    """``--time``: an index, ``all`` or ``A:B[:S]`` (argparse type; a bad value is a usage error)."""
+    from apmgsrn.data.series import parse_time
 
-    return time_option(text)
+    try:
+        return parse_time(text)
+    except ApmgsrnError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def volume_options(args: argparse.Namespace, allow_series: bool = False) -> dict:

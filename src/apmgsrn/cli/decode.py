@@ -5,8 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from apmgsrn.cli.common import add_device_argument, parse_triple
-from apmgsrn.cli.series import time_option
+from apmgsrn.cli.common import add_device_argument, parse_triple, time_option
 from apmgsrn.errors import ApmgsrnError
 
 

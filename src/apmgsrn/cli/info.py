@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
     from apmgsrn.cli.common import format_bytes
 
     model = apmgsrn.load(args.model)
-    if model.description.kind == "bricks":
+    if model.description.bricks is not None:
         return _run_bricks(args, model)
     series = None
     if model.description.series is not None:
@@ -176,6 +176,11 @@ def _run_bricks(args: argparse.Namespace, model) -> int:
     from apmgsrn.cli.common import format_bytes
 
     info = describe_bricks(model)
+    series = None
+    if model.description.series is not None:
+        from apmgsrn.cli.series import describe_series, print_series_info
+
+        series = info["series"] = describe_series(model)
     if args.json:
         # Strict JSON: an exact (constant) brick's infinite PSNR becomes null.
         for brick in info["per_brick"]:
@@ -209,4 +214,6 @@ def _run_bricks(args: argparse.Namespace, model) -> int:
         seconds = f"{brick['seconds']:.1f}" if isinstance(brick["seconds"], (int, float)) else "?"
         print(f"  {brick['name']:<17}  {f'{x0}:{x1}':>9}  {f'{y0}:{y1}':>9}  {f'{z0}:{z1}':>9}  {psnr_text:>8}  "
               f"{iterations:>10}  {seconds:>8}{early}")
+    if series is not None:
+        print_series_info(series)
     return 0

@@ -20,19 +20,9 @@ from apmgsrn.errors import ApmgsrnError
 STEP_FIELD = "{step}"
 
 
-def time_option(text: str):
-    """``--time``: an index, ``all`` or ``A:B[:S]`` (argparse type; a bad value is a usage error)."""
-    from apmgsrn.data.series import parse_time
-
-    try:
-        return parse_time(text)
-    except ApmgsrnError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
 def add_series_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``train`` on a time series (the model and training options apply as for one volume)."""
-    from apmgsrn.models.series_field import COEFFICIENT_KINDS, SERIES_DEFAULTS
+    from apmgsrn.models.series_options import COEFFICIENT_KINDS, SERIES_DEFAULTS, STORAGE_KINDS
 
     group = parser.add_argument_group(
         "time series (DATA: several files, a quoted glob such as 'run/*.vti', a .pvd, or --time all|A:B[:S])"
@@ -46,6 +36,8 @@ def add_series_arguments(parser: argparse.ArgumentParser) -> None:
                        help=f"per-step residual grids of R^3 nodes (0: none; default {SERIES_DEFAULTS['residual']})")
     group.add_argument("--steps-per-iteration", type=int, metavar="G",
                        help="steps each iteration's points are spread over (default 4)")
+    group.add_argument("--storage", choices=STORAGE_KINDS,
+                       help=f"dtype the feature grids are stored in (default {SERIES_DEFAULTS['storage']})")
 
 
 def is_series(args: argparse.Namespace) -> bool:
@@ -64,7 +56,7 @@ def single_input(args: argparse.Namespace) -> str:
     """
     if len(args.data) != 1:
         raise ApmgsrnError(f"{len(args.data)} inputs given where one volume is read; name one file")
-    for option in ("basis", "coefficients", "residual", "steps_per_iteration"):
+    for option in ("basis", "coefficients", "residual", "steps_per_iteration", "storage"):
         if getattr(args, option, None) is not None:
             flag = "--" + option.replace("_", "-")
             raise ApmgsrnError(f"{flag} applies to a time series (several files, a glob, a .pvd or --time all); "
@@ -80,25 +72,20 @@ def open_series_data(args: argparse.Namespace):
     return open_series(args.data, **options)
 
 
-def run_series_train(args: argparse.Namespace) -> int:
-    """``apmgsrn train`` on a series: one model for every step."""
-    from apmgsrn.cli.train import build_configs
+def run_series_train(args: argparse.Namespace, series, field_config, train_config) -> int:
+    """``apmgsrn train`` on a series: one model for every step.
+
+    Args:
+        args: the command line.
+        series: the opened series.
+        field_config, train_config: from the command line (the budget sized for the series).
+    """
     from apmgsrn.device import resolve_device
-    from apmgsrn.models.series_field import series_config
     from apmgsrn.training.fit import fit_series
     from apmgsrn.training.trainer import TrainingInterrupted
 
-    if getattr(args, "bricks", None):
-        from apmgsrn.cli.train_bricks import run_series_bricks
-
-        return run_series_bricks(args)
-    device = resolve_device(args.device)
-    series = open_series_data(args)
-    field_config, train_config = build_configs(args, device, steps=len(series))
-    try:
-        config = series_config(field_config, len(series), args.basis, args.coefficients, args.residual)
-    except ValueError as exc:
-        raise ApmgsrnError(f"invalid time-series options: {exc}") from None
+    device = resolve_device(args.device)  # the same device build_configs sized the budget for
+    config = build_series_config(args, field_config, len(series))
     out = Path(args.out)
     try:
         result = fit_series(series, config, train_config, out, device, transform=args.transform,
@@ -136,6 +123,20 @@ def run_series_train(args: argparse.Namespace) -> int:
         print(f"training    {result.iterations} iterations in {result.seconds:.1f} s "
               f"({summary['ms_per_iteration']:.1f} ms/iteration), grids frozen at {result.frozen_at}")
     return 0
+
+
+def build_series_config(args: argparse.Namespace, field_config, steps: int):
+    """The time-series model the command line asks for (defaults where options are not given).
+
+    Raises:
+        ApmgsrnError: options out of range.
+    """
+    from apmgsrn.models.series_field import series_config
+
+    try:
+        return series_config(field_config, steps, args.basis, args.coefficients, args.residual, args.storage)
+    except ValueError as exc:
+        raise ApmgsrnError(f"invalid time-series options: {exc}") from None
 
 
 def step_rows(labels, names, evaluation) -> list[dict]:

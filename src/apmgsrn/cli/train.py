@@ -131,16 +131,21 @@ def build_configs(args: argparse.Namespace, device, steps: int | None = None):
 
 
 def run(args: argparse.Namespace) -> int:
-    from apmgsrn.cli.series import is_series, run_series_train, single_input
+    from apmgsrn.cli.series import is_series, open_series_data, run_series_train, single_input
+    from apmgsrn.device import resolve_device
 
     if is_series(args):
-        return run_series_train(args)
+        if getattr(args, "bricks", None):
+            from apmgsrn.cli.train_bricks import run_series_bricks
+
+            return run_series_bricks(args)
+        series = open_series_data(args)
+        return run_series_train(args, series, *build_configs(args, resolve_device(args.device), steps=len(series)))
     args.data = single_input(args)
     if getattr(args, "bricks", None):
         from apmgsrn.cli.train_bricks import run_bricks
 
         return run_bricks(args)
-    from apmgsrn.device import resolve_device
     from apmgsrn.training.fit import fit_volume
     from apmgsrn.training.trainer import TrainingInterrupted
 

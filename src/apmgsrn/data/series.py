@@ -136,6 +136,20 @@ class VolumeSeries:
     def __len__(self) -> int:
         return len(self.steps)
 
+    @property
+    def path(self) -> Path:
+        """The first step's file (what messages and model files name the series by)."""
+        return self.steps[0].path
+
+    def absolute(self) -> VolumeSeries:
+        """The same series with absolute paths (for workers that reopen the files from another folder)."""
+        steps = [SeriesStep(step.path.absolute(), step.time) for step in self.steps]
+        return VolumeSeries(steps, self.labels, self.options)
+
+    def subseries(self, indices: Sequence[int]) -> VolumeSeries:
+        """The steps ``indices`` (in that order) as a series of their own, e.g. one group of a long run."""
+        return VolumeSeries([self.steps[i] for i in indices], [self.labels[i] for i in indices], self.options)
+
     def _open(self, index: int) -> Volume:
         step = self.steps[index]
         return open_volume(step.path, time=step.time, **self.options)

@@ -113,12 +113,14 @@ def parse_field_description(description: dict) -> FieldDescription:
     )
 
 
-def check_declared_tensors(header: Header, config) -> None:
-    """The file must store exactly the float32 parameters the config implies, no more, no fewer.
+def check_declared_tensors(header: Header, config, dtype_names: dict | None = None) -> None:
+    """The file must store exactly the parameters the config implies, no more, no fewer, in their dtypes.
 
     Args:
         header: the file's validated header.
-        config: anything with ``parameter_shapes()`` (a field's or a series field's config).
+        config: anything with ``parameter_shapes()`` (a field's or a series field's config); a config with
+            ``stored_dtypes()`` says each tensor's dtype, else every tensor is float32.
+        dtype_names: safetensors name of each torch dtype (with ``stored_dtypes()``).
     """
     expected = config.parameter_shapes()
     declared = {name: entry.shape for name, entry in header.tensors.items()}
@@ -129,7 +131,12 @@ def check_declared_tensors(header: Header, config) -> None:
         detail = (f"missing {missing[:3]}" if missing else f"unexpected {extra[:3]}" if extra
                   else f"{wrong[0]} is {list(declared[wrong[0]])}, the config says {list(expected[wrong[0]])}")
         raise DescriptionError(f"stored tensors do not match the model config: {detail}")
-    if any(entry.dtype != "F32" for entry in header.tensors.values()):
+    if dtype_names is not None:
+        stored = {name: dtype_names[dtype] for name, dtype in config.stored_dtypes().items()}
+        wrong = sorted(name for name, entry in header.tensors.items() if entry.dtype != stored[name])
+        if wrong:
+            raise DescriptionError(f"{wrong[0]} is stored as {header.tensors[wrong[0]].dtype}, not {stored[wrong[0]]}")
+    elif any(entry.dtype != "F32" for entry in header.tensors.values()):
         raise DescriptionError("stored tensors are not float32")
 
 

@@ -34,7 +34,11 @@ from apmgsrn.io.description import (
 )
 from apmgsrn.io.field_file import check_declared_tensors, field_description, parse_field_description
 from apmgsrn.models.encoders.adaptive_multigrid import MAX_RESOLUTION
-from apmgsrn.models.series_field import COEFFICIENT_KINDS, MAX_BASIS, MAX_STEPS, SeriesConfig, SeriesField, SeriesFieldConfig
+from apmgsrn.models.series_field import SeriesConfig, SeriesField, SeriesFieldConfig
+from apmgsrn.models.series_options import COEFFICIENT_KINDS, MAX_BASIS, MAX_STEPS, STORAGE_KINDS
+
+#: The safetensors name of each dtype a series file stores.
+SAFETENSORS_DTYPES = {torch.float32: "F32", torch.float16: "F16"}
 
 SERIES_KIND = "series"
 
@@ -59,21 +63,26 @@ def save_series(path: str | os.PathLike, field: SeriesField, source: SourceInfo,
     description["field"] = field.config.field.to_dict()  # the spatial field; the series part beside it
     description["series"] = field.config.series.to_dict()
     description["steps"] = [step.to_dict() for step in steps]
-    return save_tensors(path, dict(field.state_dict()), SERIES_KIND, description)
+    stored = field.config.stored_dtypes()
+    tensors = {name: tensor.to(stored[name]) for name, tensor in field.state_dict().items()}
+    return save_tensors(path, tensors, SERIES_KIND, description)
 
 
 def _series_config(value) -> SeriesConfig:
     data = require_dict(value, "series")
-    if set(data) - {"steps", "basis", "coefficients", "residual"}:
+    if set(data) - {"steps", "basis", "coefficients", "residual", "storage"}:
         raise DescriptionError("series holds unknown entries")
-    coefficients = data.get("coefficients")
+    coefficients, storage = data.get("coefficients"), data.get("storage", "float32")
     if coefficients not in COEFFICIENT_KINDS:
         raise DescriptionError("series.coefficients is not a known kind")
+    if storage not in STORAGE_KINDS:
+        raise DescriptionError("series.storage is not a known dtype")
     return SeriesConfig(
         steps=require_int(data.get("steps"), "series.steps", 1, MAX_STEPS),
         basis=require_int(data.get("basis"), "series.basis", 1, MAX_BASIS),
         coefficients=coefficients,
         residual=require_int(data.get("residual", 0), "series.residual", 0, MAX_RESOLUTION),
+        storage=storage,
     )
 
 
@@ -133,10 +142,10 @@ def load_series(path: str | os.PathLike, device: torch.device | str = "cpu",
         parsed = parse_field_description(header.description)
         config = SeriesFieldConfig(parsed.config, _series_config(header.description.get("series")))
         steps = _step_entries(header.description.get("steps"), config.series.steps)
-        check_declared_tensors(header, config)
+        check_declared_tensors(header, config, SAFETENSORS_DTYPES)
     except (DescriptionError, ValueError, TypeError) as exc:
         raise inconsistent(path, exc) from None
-    tensors = load_tensors(path)
+    tensors = {name: tensor.float() for name, tensor in load_tensors(path).items()}
     try:
         field = SeriesField(
             config,

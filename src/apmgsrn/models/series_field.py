@@ -28,12 +28,13 @@ from apmgsrn.models.encoders.adaptive_multigrid import MAX_RESOLUTION, AdaptiveM
 from apmgsrn.models.encoders.base import Encoder
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
+from apmgsrn.models.series_options import COEFFICIENT_KINDS, MAX_BASIS, MAX_STEPS, SERIES_DEFAULTS, STORAGE_KINDS
 from apmgsrn.models.value_transform import ValueTransform
 from apmgsrn.ops.multigrid import multigrid_features
 
-COEFFICIENT_KINDS = ("learned", "keyframes")
-#: Sanity bounds of a config (a model file claiming more is refused before anything is allocated).
-MAX_STEPS, MAX_BASIS = 1 << 20, 4096
+STORAGE_DTYPES = {"float32": torch.float32, "float16": torch.float16}
+#: The parameters stored in ``SeriesConfig.storage`` (the rest is float32).
+GRID_PARAMETERS = ("encoder.grids", "encoder.residuals")
 
 
 @dataclass(frozen=True)
@@ -43,14 +44,19 @@ class SeriesConfig:
     Attributes:
         steps: number of time steps ``T``.
         basis: basis grids per grid ``K`` (at most ``T``; ``K = T`` gives every step its own grids).
-        coefficients: ``"learned"`` (per step, grid and channel) or ``"keyframes"`` (fixed hat functions:
-            linear interpolation in time between ``K`` evenly spaced keyframes).
+        coefficients: ``"learned"`` (per step, grid and channel), ``"keyframes"`` (fixed hat functions:
+            linear interpolation in time between ``K`` evenly spaced keyframes) or ``"cumulative"`` (the same
+            interpolation parametrised by what changes at each keyframe; residuals summed over the steps).
+        residual: resolution ``r`` of per-step residual grids ``[T, M, C, r, r, r]``, upsampled to the grids
+            and added (0: none).
+        storage: dtype the grids are stored in (``"float32"`` or ``"float16"``).
     """
 
     steps: int
     basis: int = 4
     coefficients: str = "learned"
     residual: int = 0
+    storage: str = "float32"
 
     def __post_init__(self) -> None:
         for name in ("steps", "basis", "residual"):
@@ -64,9 +70,12 @@ class SeriesConfig:
             raise ValueError(f"series residual resolution must be 0 (none) or 2..{MAX_RESOLUTION}, not {self.residual}")
         if self.coefficients not in COEFFICIENT_KINDS:
             raise ValueError(f"series coefficients must be one of {COEFFICIENT_KINDS}, not {self.coefficients!r}")
+        if self.storage not in STORAGE_KINDS:
+            raise ValueError(f"series storage must be one of {STORAGE_KINDS}, not {self.storage!r}")
 
     def to_dict(self) -> dict:
-        return {"steps": self.steps, "basis": self.basis, "coefficients": self.coefficients, "residual": self.residual}
+        return {"steps": self.steps, "basis": self.basis, "coefficients": self.coefficients, "residual": self.residual,
+                "storage": self.storage}
 
 
 @dataclass(frozen=True)
@@ -95,13 +104,15 @@ class SeriesFieldConfig:
             shapes["encoder.residuals"] = (self.series.steps, m, c, *(self.series.residual,) * 3)  # [T, M, C, r, r, r]
         return shapes
 
-
-#: Series options a user does not set (chosen by measurement, docs/time_series.md).
-SERIES_DEFAULTS = {"basis": 4, "coefficients": "learned", "residual": 0}
+    def stored_dtypes(self) -> dict[str, torch.dtype]:
+        """The dtype every parameter is stored in: the grids (basis and residuals) in ``series.storage``, the
+        rest (weights, maps, decoder) in float32."""
+        grids = STORAGE_DTYPES[self.series.storage]
+        return {name: grids if name in GRID_PARAMETERS else torch.float32 for name in self.parameter_shapes()}
 
 
 def series_config(field: FieldConfig, steps: int, basis: int | None = None, coefficients: str | None = None,
-                  residual: int | None = None) -> SeriesFieldConfig:
+                  residual: int | None = None, storage: str | None = None) -> SeriesFieldConfig:
     """A series model's config: the spatial field extended over ``steps`` steps, defaults where None.
 
     The basis never exceeds the steps (a short series gets one basis grid per step).
@@ -109,14 +120,11 @@ def series_config(field: FieldConfig, steps: int, basis: int | None = None, coef
     Raises:
         ValueError: options out of range, or a field that is not an ``apmgsrn`` model.
     """
-    basis = min(SERIES_DEFAULTS["basis"], steps) if basis is None else basis
-    series = SeriesConfig(
-        steps=steps,
-        basis=basis,
-        coefficients=SERIES_DEFAULTS["coefficients"] if coefficients is None else coefficients,
-        residual=SERIES_DEFAULTS["residual"] if residual is None else residual,
-    )
-    return SeriesFieldConfig(field, series)
+    chosen = {"basis": basis, "coefficients": coefficients, "residual": residual, "storage": storage}
+    options = {k: SERIES_DEFAULTS[k] if v is None else v for k, v in chosen.items()}
+    if basis is None:
+        options["basis"] = min(options["basis"], steps)
+    return SeriesFieldConfig(field, SeriesConfig(steps=steps, **options))
 
 
 def step_time(step: int | float, steps: int) -> float:
@@ -142,6 +150,19 @@ def keyframe_weights(steps: int, keyframes: int) -> torch.Tensor:
     return (1.0 - (position[:, None] - knots[None, :]).abs()).clamp(min=0.0).float()  # [T, K]
 
 
+def cumulative(weights: torch.Tensor, dim: int) -> torch.Tensor:
+    """Sums from the end along ``dim``: entry ``k`` becomes the sum of entries ``k, k+1, ...``.
+
+    Applied to keyframe weights ``[T, K]`` it gives step ``t`` every keyframe increment up to it (1 for the
+    keyframes before, the interpolation weight for the next): the same interpolation, parametrised by what
+    changes at each keyframe. Applied to per-step residuals over ``T`` (dim 0) read the other way, step ``t``
+    holds the sum of the increments of steps ``0 .. t``.
+    """
+    if dim == 0:
+        return torch.cumsum(weights, dim=0)
+    return torch.flip(torch.cumsum(torch.flip(weights, (dim,)), dim), (dim,))
+
+
 class SeriesMultiGridEncoder(AdaptiveMultiGridEncoder):
     """Adaptive grids whose features vary over the steps of a series (see the module docstring).
 
@@ -165,6 +186,8 @@ class SeriesMultiGridEncoder(AdaptiveMultiGridEncoder):
             # Zero: a step starts as its basis mix; the residual learns what the basis cannot share.
             self.residuals = nn.Parameter(torch.zeros(series.steps, *shapes["grids"][:2], *(series.residual,) * 3))
         weights = keyframe_weights(series.steps, series.basis)  # [T, K]
+        if series.coefficients == "cumulative":
+            weights = cumulative(weights, dim=1)
         weights = weights[:, None, None, :].expand(series.steps, config.grids, config.features, series.basis)
         if series.coefficients == "learned":
             self.coefficients = nn.Parameter(weights.clone())  # [T, M, C, K]
@@ -185,7 +208,8 @@ class SeriesMultiGridEncoder(AdaptiveMultiGridEncoder):
         """Feature grids of whole steps: ``steps`` ``[G]`` indices -> ``[G, M, C, D, H, W]``."""
         grids = torch.einsum("gmck,kmcdhw->gmcdhw", self.coefficients[steps], self.grids)
         if self.series.residual:
-            grids = grids + self._upsampled(self.residuals[steps])
+            residuals = cumulative(self.residuals, dim=0) if self.series.coefficients == "cumulative" else self.residuals
+            grids = grids + self._upsampled(residuals[steps])
         return grids
 
     def grids_at(self, position: float) -> torch.Tensor:
@@ -338,3 +362,12 @@ class SeriesField(nn.Module):
 
     # The same checks as a single field's: they read only the encoder and the decoder.
     check_parameters = NeuralField.check_parameters
+
+    @torch.no_grad()
+    def round_to_storage(self) -> None:
+        """Round the grids to the precision they are stored in (a no-op for float32), in place, so that what
+        is measured after training is what the model file gives back."""
+        stored = self.config.stored_dtypes()
+        for name, parameter in self.named_parameters():
+            if stored[name] != torch.float32:
+                parameter.copy_(parameter.to(stored[name]).to(parameter.dtype))

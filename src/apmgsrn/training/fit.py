@@ -250,6 +250,7 @@ def fit(
     trained = train_prepared(prepared, field_config, train_config, tuple(truth.shape[-3:]), checkpoint, fingerprint,
                              callbacks)
     if series:
+        trained.field.round_to_storage()  # measure what the file will give back
         evaluation = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
         summary_extra = {"steps": [{"psnr": e.psnr, "max_abs_error": e.max_abs_error} for e in evaluation.steps],
                          **(summary_extra or {})}
