@@ -64,12 +64,12 @@ def run_baseline(args: argparse.Namespace) -> None:
     from apmgsrn.training.fit import fit_volume
     from apmgsrn.training.trainer import TrainConfig
 
-    files = _series_files(args.data)
-    done = {row["file"] for row in _done_rows(args.csv)}
+    files = list(enumerate(_series_files(args.data)))
     config = TrainConfig(iterations=args.iterations, batch_size=args.batch_size, lr=0.01, seed=0)
     with tempfile.TemporaryDirectory() as tmp:
-        for step, path in enumerate(files):
-            if path.name in done:
+        for step, path in reversed(files) if args.reverse else files:
+            # Read again before every step: a second process may share the table (one from each end).
+            if path.name in {row["file"] for row in _done_rows(args.csv)}:
                 continue
             volume = open_volume(path)
             result = fit_volume(volume, preset_config("apmgsrn", "small"), config, Path(tmp) / "m.apmgsrn",
@@ -167,8 +167,8 @@ def write_report(out: Path) -> None:
     timing = _done_rows(TIMING_CSV)
     if timing:
         step_seconds = sum(float(r["seconds"]) for r in timing) / len(timing)
-        step_source = (f"the mean of {len(timing)} single-step trainings measured right before and after it "
-                       f"({', '.join(f'{float(r['seconds']):.1f} s' for r in timing)})")
+        measured = ", ".join(f"{float(r['seconds']):.1f} s" for r in timing)
+        step_source = f"the mean of {len(timing)} single-step trainings measured right before and after it ({measured})"
     else:
         step_seconds = sorted(float(baseline[t]["seconds"]) for t in steps)[len(steps) // 2]
         step_source = "the median single-step training of the baseline table"
@@ -205,6 +205,7 @@ def main() -> None:
     sub = parser.add_subparsers(dest="command", required=True)
     base = sub.add_parser("baseline", help="one small model per step")
     base.add_argument("--csv", type=Path, default=BASELINE_CSV)
+    base.add_argument("--reverse", action="store_true", help="last step first (a second process shares the work)")
     series = sub.add_parser("series", help="one model for the whole series")
     series.add_argument("--csv", type=Path, default=SERIES_CSV)
     series.add_argument("--basis", type=int)

@@ -279,7 +279,7 @@ class Trainer:
         """
         cfg, st = self.config, self.state
         for group in self.network_optimizer.param_groups:
-            group["lr"] = self.learning_rate(st.iteration)
+            group["lr"] = self.learning_rate(st.iteration) * group.get("lr_scale", 1.0)
         points = torch.rand(cfg.batch_size, 3, generator=self.generator, device=self.device) * 2 - 1
 
         # Step 1: L_rec moves grids and decoder only (transform-detached coordinates).
