@@ -117,7 +117,9 @@ def test_materialising_leaves_the_global_random_state_alone():
 
 @pytest.mark.parametrize("bad", [dict(steps=0), dict(steps=3, basis=4), dict(steps=3, basis=0),
                                  dict(steps=3, residual=1), dict(steps=3, coefficients="splines"),
-                                 dict(steps=3, basis=1, coefficients="keyframes")])
+                                 dict(steps=3, basis=1, coefficients="keyframes"),
+                                 dict(steps=3, mixing=2, coefficients="keyframes"), dict(steps=3, mixing=0),
+                                 dict(steps=3, storage="int8")])
 def test_series_configs_out_of_range_are_refused(bad):
     with pytest.raises(ValueError):
         SeriesConfig(**{"basis": 1, **bad})
@@ -228,6 +230,8 @@ def _set(keys, value):
     ("a step label that is text", _set(["steps", 0, "label"], "zero")),
     ("no series entry", lambda d: d.pop("series")),
     ("an unknown series entry", _set(["series", "splines"], 3)),
+    ("a lattice of weights not stored", _set(["series", "mixing"], 2)),
+    ("an unknown storage", _set(["series", "storage"], "int4")),
 ])
 def test_malformed_series_files_are_refused_before_building(series_file, tmp_path, no_series_built, case, mutate):
     bad = rewrite(series_file, tmp_path / "bad.apmgsrn", description=mutate)
@@ -252,3 +256,57 @@ def test_a_series_file_is_not_a_single_field_and_old_files_still_load(series_fil
     save_field(path, single, SourceInfo(), {})
     model = apmgsrn.load(path)
     assert model.description.kind == "field" and model.description.series is None
+
+
+def test_a_lattice_of_weights_that_is_constant_mixes_like_one_weight_per_grid():
+    plain = random_field(SeriesConfig(5, 3, "learned"))
+    lattice = SeriesField(SeriesFieldConfig(TINY, SeriesConfig(5, 3, "learned", mixing=3)))
+    with torch.no_grad():
+        lattice.load_state_dict({**plain.state_dict(),
+                                 "encoder.coefficients": plain.encoder.coefficients[..., None, None, None].expand(
+                                     -1, -1, -1, -1, 3, 3, 3).clone()})
+        steps = torch.tensor([0, 2, 4])
+        assert torch.allclose(lattice.encoder.step_grids(steps), plain.encoder.step_grids(steps), atol=1e-6)
+        # A weight changed at one lattice node changes the grid near that node only.
+        lattice.encoder.coefficients[2, 0, 0, 1, 0, 0, 0] += 1.0
+        difference = lattice.encoder.step_grids(torch.tensor([2]))[0, 0, 0] - plain.encoder.step_grids(
+            torch.tensor([2]))[0, 0, 0]  # [D, H, W] of grid 0
+        changed = (difference.abs() > 1e-6).nonzero()
+        # 8 grid nodes under a lattice of 3: node 0's weight falls to zero at grid node 3.5.
+        assert len(changed) == 4**3 and changed.max() == 3
+
+
+def test_float16_storage_halves_the_grids_and_reloads_what_was_measured(series, truth, tmp_path):
+    config = SeriesFieldConfig(TINY, SeriesConfig(4, 2, "learned", residual=3, storage="float16", mixing=2))
+    out = tmp_path / "half.apmgsrn"
+    result = fit_series(series, config, TrainConfig(iterations=40, batch_size=1024), out, torch.device("cpu"),
+                        progress=False)
+    stored = load_file(str(out))
+    assert stored["encoder.grids"].dtype == torch.float16 and stored["encoder.coefficients"].dtype == torch.float16
+    assert stored["encoder.residuals"].dtype == torch.float16 and stored["decoder.0.weight"].dtype == torch.float32
+    model = apmgsrn.load(out)
+    for step in range(4):
+        # The PSNR fit_series reported is the reloaded file's.
+        assert evaluate(model.field.step_field(step), truth[step]).psnr == pytest.approx(
+            result.evaluation.steps[step].psnr, abs=1e-9)
+    full = SeriesFieldConfig(TINY, SeriesConfig(4, 2, "learned", residual=3, mixing=2))
+    grid_numbers = sum(v.numel() for k, v in stored.items() if k in ("encoder.grids", "encoder.residuals",
+                                                                   "encoder.coefficients"))
+    float32_file = tmp_path / "full.apmgsrn"
+    save_series(float32_file, SeriesField(full), SourceInfo(), {}, [SeriesStepInfo(t, "", (0.0, 1.0)) for t in range(4)])
+    save_series(tmp_path / "half_again.apmgsrn", model.field, SourceInfo(), {},
+                [SeriesStepInfo(t, "", (0.0, 1.0)) for t in range(4)])
+    # Compare the tensor bytes (the JSON headers differ in length: offsets, value scaling).
+    assert _tensor_bytes(float32_file) - _tensor_bytes(tmp_path / "half_again.apmgsrn") == 2 * grid_numbers
+
+
+def _tensor_bytes(path: Path) -> int:
+    """Bytes of a safetensors file after its 8-byte length prefix and JSON header."""
+    data = path.read_bytes()
+    return len(data) - 8 - int.from_bytes(data[:8], "little")
+
+
+def test_a_float16_file_claiming_float32_grids_is_refused(series_file, tmp_path):
+    bad = rewrite(series_file, tmp_path / "f16.apmgsrn", description=_set(["series", "storage"], "float16"))
+    with pytest.raises(ApmgsrnError, match="stored as F32, not F16"):
+        apmgsrn.load(bad)

@@ -70,7 +70,7 @@ def save_series(path: str | os.PathLike, field: SeriesField, source: SourceInfo,
 
 def _series_config(value) -> SeriesConfig:
     data = require_dict(value, "series")
-    if set(data) - {"steps", "basis", "coefficients", "residual", "storage"}:
+    if set(data) - {"steps", "basis", "coefficients", "residual", "storage", "mixing"}:
         raise DescriptionError("series holds unknown entries")
     coefficients, storage = data.get("coefficients"), data.get("storage", "float32")
     if coefficients not in COEFFICIENT_KINDS:
@@ -83,6 +83,7 @@ def _series_config(value) -> SeriesConfig:
         coefficients=coefficients,
         residual=require_int(data.get("residual", 0), "series.residual", 0, MAX_RESOLUTION),
         storage=storage,
+        mixing=require_int(data.get("mixing", 1), "series.mixing", 1, MAX_RESOLUTION),
     )
 
 

@@ -34,7 +34,7 @@ from apmgsrn.ops.multigrid import multigrid_features
 
 STORAGE_DTYPES = {"float32": torch.float32, "float16": torch.float16}
 #: The parameters stored in ``SeriesConfig.storage`` (the rest is float32).
-GRID_PARAMETERS = ("encoder.grids", "encoder.residuals")
+GRID_PARAMETERS = ("encoder.grids", "encoder.residuals", "encoder.coefficients")
 
 
 @dataclass(frozen=True)
@@ -49,7 +49,9 @@ class SeriesConfig:
             interpolation parametrised by what changes at each keyframe; residuals summed over the steps).
         residual: resolution ``r`` of per-step residual grids ``[T, M, C, r, r, r]``, upsampled to the grids
             and added (0: none).
-        storage: dtype the grids are stored in (``"float32"`` or ``"float16"``).
+        storage: dtype the grids (and learned weights) are stored in (``"float32"`` or ``"float16"``).
+        mixing: learned weights only: an ``r^3`` lattice of weights over each grid (trilinear between its nodes),
+            so that each part of a grid mixes the basis its own way; 1: one weight per grid.
     """
 
     steps: int
@@ -57,9 +59,10 @@ class SeriesConfig:
     coefficients: str = "learned"
     residual: int = 0
     storage: str = "float32"
+    mixing: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("steps", "basis", "residual"):
+        for name in ("steps", "basis", "residual", "mixing"):
             if isinstance(getattr(self, name), bool) or not isinstance(getattr(self, name), int):
                 raise ValueError(f"series {name} must be an integer")
         if not 1 <= self.steps <= MAX_STEPS or not 1 <= self.basis <= min(self.steps, MAX_BASIS):
@@ -70,12 +73,14 @@ class SeriesConfig:
             raise ValueError(f"series residual resolution must be 0 (none) or 2..{MAX_RESOLUTION}, not {self.residual}")
         if self.coefficients not in COEFFICIENT_KINDS:
             raise ValueError(f"series coefficients must be one of {COEFFICIENT_KINDS}, not {self.coefficients!r}")
+        if not 1 <= self.mixing <= MAX_RESOLUTION or (self.mixing > 1 and self.coefficients != "learned"):
+            raise ValueError(f"series mixing must be 1, or 2..{MAX_RESOLUTION} with learned weights, not {self.mixing}")
         if self.storage not in STORAGE_KINDS:
             raise ValueError(f"series storage must be one of {STORAGE_KINDS}, not {self.storage!r}")
 
     def to_dict(self) -> dict:
         return {"steps": self.steps, "basis": self.basis, "coefficients": self.coefficients, "residual": self.residual,
-                "storage": self.storage}
+                "storage": self.storage, "mixing": self.mixing}
 
 
 @dataclass(frozen=True)
@@ -99,7 +104,8 @@ class SeriesFieldConfig:
         shapes["encoder.grids"] = (self.series.basis, *grids)  # [K, M, C, D, H, W]
         m, c = grids[:2]
         if self.series.coefficients == "learned":
-            shapes["encoder.coefficients"] = (self.series.steps, m, c, self.series.basis)  # [T, M, C, K]
+            lattice = (self.series.mixing,) * 3 if self.series.mixing > 1 else ()
+            shapes["encoder.coefficients"] = (self.series.steps, m, c, self.series.basis, *lattice)  # [T, M, C, K(, r^3)]
         if self.series.residual:
             shapes["encoder.residuals"] = (self.series.steps, m, c, *(self.series.residual,) * 3)  # [T, M, C, r, r, r]
         return shapes
@@ -189,24 +195,31 @@ class SeriesMultiGridEncoder(AdaptiveMultiGridEncoder):
         if series.coefficients == "cumulative":
             weights = cumulative(weights, dim=1)
         weights = weights[:, None, None, :].expand(series.steps, config.grids, config.features, series.basis)
+        if series.mixing > 1:  # the same weights at every node of the lattice
+            weights = weights[..., None, None, None].expand(*weights.shape, *(series.mixing,) * 3)
         if series.coefficients == "learned":
-            self.coefficients = nn.Parameter(weights.clone())  # [T, M, C, K]
+            self.coefficients = nn.Parameter(weights.clone())  # [T, M, C, K] or [T, M, C, K, r, r, r]
         else:
             self.register_buffer("coefficients", weights.clone(), persistent=False)
 
-    def _upsampled(self, residuals: torch.Tensor) -> torch.Tensor:
-        """Per-step residual grids at the grid resolution: ``[G, M, C, r, r, r]`` -> ``[G, M, C, D, H, W]``.
+    def _upsampled(self, lattices: torch.Tensor) -> torch.Tensor:
+        """Lattices at the grid resolution: ``[G, ..., r, r, r]`` -> ``[G, ..., D, H, W]`` (residuals, weights).
 
-        Trilinear and corner-aligned, like the grids themselves, so a residual node sits where a grid node does.
+        Trilinear and corner-aligned, like the grids themselves, so a lattice node sits where a grid node does.
         """
-        g, m, c = residuals.shape[:3]
-        up = nn.functional.interpolate(residuals.reshape(g, m * c, *residuals.shape[3:]), size=self.config.resolution,
-                                       mode="trilinear", align_corners=True)  # [G, M * C, D, H, W]
-        return up.view(g, m, c, *self.config.resolution)
+        lead = lattices.shape[:-3]
+        flat = lattices.reshape(lead[0], -1, *lattices.shape[-3:])  # [G, channels, r, r, r]
+        up = nn.functional.interpolate(flat, size=self.config.resolution, mode="trilinear", align_corners=True)
+        return up.view(*lead, *self.config.resolution)
 
     def step_grids(self, steps: torch.Tensor) -> torch.Tensor:
         """Feature grids of whole steps: ``steps`` ``[G]`` indices -> ``[G, M, C, D, H, W]``."""
-        grids = torch.einsum("gmck,kmcdhw->gmcdhw", self.coefficients[steps], self.grids)
+        weights = self.coefficients[steps]  # [G, M, C, K] or [G, M, C, K, r, r, r]
+        if self.series.mixing == 1:
+            grids = torch.einsum("gmck,kmcdhw->gmcdhw", weights, self.grids)
+        else:
+            # Every node mixes the basis with the weights of the lattice around it.
+            grids = (self._upsampled(weights) * self.grids.permute(1, 2, 0, 3, 4, 5)).sum(3)  # [G, M, C, D, H, W]
         if self.series.residual:
             residuals = cumulative(self.residuals, dim=0) if self.series.coefficients == "cumulative" else self.residuals
             grids = grids + self._upsampled(residuals[steps])
