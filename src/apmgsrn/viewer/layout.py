@@ -59,6 +59,10 @@ def build_page(server, title: str, settings: RenderSettings):
                     hide_details=True,
                     id="apm-source-select",
                 )
+                # Files under PATH the listing left out (unreadable, foreign, hostile), with the reason.
+                with html.Details(v_if="skipped_count", classes="text-caption mt-1", id="apm-skipped"):
+                    html.Summary("{{ skipped_count }} file(s) under the folder not listed")
+                    html.Div("{{ line }}", v_for="(line, index) in skipped_files", key="index")
                 html.Div("colour map", classes="apm-section")
                 with html.Div(classes="d-flex align-center"):
                     v.VSelect(
@@ -75,7 +79,7 @@ def build_page(server, title: str, settings: RenderSettings):
                         size="small",
                         id="apm-upload-button",
                     )
-                    html.Input(type="file", accept=".json,application/json", id="apm-upload", style="display:none")
+                    html.Input(type="file", accept=".json,.xml", id="apm-upload", style="display:none")
                 html.Div("opacity", classes="apm-section")
                 html.Div(id="apm-tf-editor")
                 html.Div(
@@ -138,6 +142,16 @@ def build_page(server, title: str, settings: RenderSettings):
                     closable=True,
                     click_close="error_message = ''",
                     id="apm-error",
+                    classes="mb-1",
+                )
+                v.VAlert(
+                    "{{ upload_error }}",
+                    v_if="upload_error",
+                    type="error",
+                    density="compact",
+                    closable=True,
+                    click_close="upload_error = ''",
+                    id="apm-upload-error",
                     classes="mb-1",
                 )
                 v.VAlert(
