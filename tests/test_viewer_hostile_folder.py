@@ -105,6 +105,7 @@ def test_only_listed_files_open(hostile):
     # Past the entry limit: what the listing did not reach is not opened either.
     short = Catalog(hostile, CatalogConfig(max_entries=2))
     assert short.truncated and len(short.entries()) == 2
+    assert any("stops at 2 entries" in skipped.reason for skipped in short.skipped)
     with pytest.raises(ApmgsrnError, match="not a file this viewer lists"):
         short.resolve("tiny.apmgsrn")
     # A listed file that changed since: a pipe now, or a link out of the folder.

@@ -174,7 +174,10 @@ class Catalog:
             return
         for child in children:
             if len(self._entries) >= self.config.max_entries:
-                self.truncated = True
+                if not self.truncated:
+                    self.truncated = True
+                    note = f"the listing stops at {self.config.max_entries} entries; serve a smaller folder"
+                    self.skipped.append(SkippedFile(child.relative_to(self.root).as_posix(), note))
                 return
             if child.name.startswith("."):
                 continue  # hidden: never listed, never mentioned

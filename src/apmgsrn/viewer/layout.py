@@ -134,35 +134,22 @@ def build_page(server, title: str, settings: RenderSettings):
                 html.Pre("{{ stats_text }}", classes="text-caption", style="white-space: pre-wrap", id="apm-stats")
         with v.VMain(), html.Div(id="apm-viewport"):
             with html.Div(id="apm-messages"):
-                v.VAlert(
-                    "{{ error_message }}",
-                    v_if="error_message",
-                    type="error",
-                    density="compact",
-                    closable=True,
-                    click_close="error_message = ''",
-                    id="apm-error",
-                    classes="mb-1",
-                )
-                v.VAlert(
-                    "{{ upload_error }}",
-                    v_if="upload_error",
-                    type="error",
-                    density="compact",
-                    closable=True,
-                    click_close="upload_error = ''",
-                    id="apm-upload-error",
-                    classes="mb-1",
-                )
-                v.VAlert(
-                    "{{ saved_message }}",
-                    v_if="saved_message",
-                    type="success",
-                    density="compact",
-                    closable=True,
-                    click_close="saved_message = ''",
-                    id="apm-saved",
-                )
+                # Each message is one state key the page may only clear (upload_error is the page's own).
+                for key, kind, element in (
+                    ("error_message", "error", "apm-error"),
+                    ("upload_error", "error", "apm-upload-error"),
+                    ("saved_message", "success", "apm-saved"),
+                ):
+                    v.VAlert(
+                        f"{{{{ {key} }}}}",
+                        v_if=key,
+                        type=kind,
+                        density="compact",
+                        closable=True,
+                        click_close=f"{key} = ''",
+                        id=element,
+                        classes="mb-1",
+                    )
             html.Img(
                 src=("frame_src",),
                 v_show="frame_src",
