@@ -10,7 +10,6 @@ import pytest
 from viewer_data import make_viewer_folder
 
 from apmgsrn.cli.main import build_parser, main
-from apmgsrn.viewer.guard import is_loopback_name
 
 
 def _fails(capsys, argv, fragment):
@@ -22,6 +21,9 @@ def _fails(capsys, argv, fragment):
 def test_defaults_bind_to_loopback():
     args = build_parser().parse_args(["view"])
     assert args.host == "127.0.0.1" and args.path == "." and args.port == 8080
+    pytest.importorskip("msgpack", reason="needs the [viewer] extra")
+    from apmgsrn.viewer.guard import is_loopback_name
+
     assert is_loopback_name("127.0.0.1") and is_loopback_name("localhost") and is_loopback_name("::1")
     assert not is_loopback_name("0.0.0.0") and not is_loopback_name("192.168.1.5")
     assert not is_loopback_name("localhost.evil.example") and not is_loopback_name("")

@@ -98,7 +98,13 @@ class WslinkClient:
 
         self.http = aiohttp.ClientSession()
         socket_url = self.url.replace("http://", "ws://") + "ws"
-        self.socket = await self.http.ws_connect(socket_url, headers=self.headers, max_msg_size=0, autoclose=False)
+        try:
+            self.socket = await self.http.ws_connect(
+                socket_url, headers=self.headers, max_msg_size=0, autoclose=False
+            )
+        except BaseException:
+            await self.http.close()
+            raise
         return self
 
     async def __aexit__(self, *_) -> None:
@@ -148,6 +154,15 @@ class WslinkClient:
                 if str(message.get("id", "")).startswith("publish:"):
                     self.published.append(message.get("result") or {})
                 return message
+
+    async def drain(self, quiet: float = 0.5, limit: float = 30.0) -> None:
+        """Receive until the server has been quiet for ``quiet`` seconds (at most ``limit`` seconds)."""
+        end = time.monotonic() + limit
+        while time.monotonic() < end:
+            try:
+                await self.receive(timeout=quiet)
+            except asyncio.TimeoutError:
+                return
 
     async def closed_by_server(self, timeout: float = 10.0):
         """Wait until the server closes the connection; return its close code (None if it stayed open)."""

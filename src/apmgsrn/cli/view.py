@@ -10,7 +10,6 @@ from pathlib import Path
 
 from apmgsrn.cli.common import add_device_argument
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.viewer.guard import is_loopback_name
 
 LOOPBACK = "127.0.0.1"
 
@@ -55,6 +54,7 @@ def run(args: argparse.Namespace) -> int:
     from apmgsrn.device import resolve_device
     from apmgsrn.viewer.app import ViewerApp, ViewerAppConfig
     from apmgsrn.viewer.catalog import Catalog
+    from apmgsrn.viewer.guard import is_loopback_name
     from apmgsrn.viewer.settings import ViewerConfig
 
     device = resolve_device(args.device)

@@ -29,6 +29,8 @@ from dataclasses import dataclass
 from typing import Callable
 from urllib.parse import urlsplit
 
+import msgpack  # wslink's message format (the [viewer] extra)
+
 from apmgsrn.errors import ApmgsrnError
 
 logger = logging.getLogger(__name__)
@@ -113,8 +115,6 @@ class BoundedUnChunker:
         if len(buffer) < total:
             return None
         del self._pending[identifier]
-        import msgpack  # wslink's, with the [viewer] extra
-
         try:
             return msgpack.unpackb(bytes(buffer))
         except Exception as exc:  # noqa: BLE001 - msgpack raises several types for hostile bytes
@@ -136,7 +136,10 @@ class ConnectionGuard:
         self._socket_path = "/ws"  # the websocket's path, read from the application on install
 
     def install(self, ws_server) -> None:
-        """trame's ``on_server_bind`` hook: guard every wslink endpoint of the aiohttp application.
+        """trame's ``on_server_bind`` hook: guard the wslink endpoint and the HTTP routes of the application.
+
+        Args:
+            ws_server: wslink's aiohttp web server (its ``app`` not started yet).
 
         Raises:
             ApmgsrnError: a wslink/trame version whose internals differ from what this guard relies on
@@ -173,11 +176,11 @@ class ConnectionGuard:
     async def _check_request(self, request, handler):
         from aiohttp import web
 
-        if self.config.loopback_only and not is_loopback_name(urlsplit(f"//{request.host}").hostname):
+        if self.config.loopback_only and not is_loopback_name(_host_name(request.host)):
             return web.Response(status=403, text="this viewer answers on 127.0.0.1 or localhost only\n")
         origin = request.headers.get("Origin")
         if request.headers.get("Upgrade", "").lower() == "websocket" and origin is not None:
-            if urlsplit(origin).netloc.lower() != request.host.lower():
+            if _origin_authority(origin) != request.host.lower():
                 return web.Response(status=403, text="websocket from a page of another origin refused\n")
         return await handler(request)
 
@@ -253,6 +256,22 @@ async def _close(handler, client_id: str, code: int, reason: str) -> None:
     socket = handler.connections.get(client_id)
     if socket is not None and not socket.closed:
         await socket.close(code=code, message=reason.encode("utf-8")[:120])
+
+
+def _host_name(authority: str) -> str | None:
+    """``host`` of a ``host:port`` (brackets of an IPv6 address removed); None if it does not parse."""
+    try:
+        return urlsplit(f"//{authority}").hostname
+    except ValueError:
+        return None
+
+
+def _origin_authority(origin: str) -> str | None:
+    """``host:port`` of an ``Origin`` header, lower case; None if it does not parse."""
+    try:
+        return urlsplit(origin).netloc.lower() or None
+    except ValueError:
+        return None
 
 
 def is_loopback_name(host: str | None) -> bool:
