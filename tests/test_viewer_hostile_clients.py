@@ -169,7 +169,8 @@ def test_a_page_cannot_write_the_servers_state(viewer):
         attacker = await _authenticated(viewer)
         try:
             listing = (await attacker.request("trame.state.get", []))["result"]["state"]["entries"]
-            reply = await attacker.request("trame.state.update", [[{"key": k, "value": v} for k, v in injected.items()]])
+            changes = [{"key": key, "value": value} for key, value in injected.items()]
+            reply = await attacker.request("trame.state.update", [changes])
             assert "error" not in reply
             odd = [{"key": "source_name", "value": [1]}, {"key": ["x"], "value": 1}, "entries", None]
             assert "error" not in await attacker.request("trame.state.update", [odd])
