@@ -55,10 +55,10 @@ class CompressPlan:
     """
 
     dataset: DataSpec
-    models: tuple[str, ...] = ("apmgsrn", "fvsrn", "ngp")
+    models: tuple[str, ...] = MODEL_KINDS
     sizes: tuple[str, ...] = ("small",)
     model_files: tuple[Path, ...] = ()
-    compressors: tuple[str, ...] = ("sz3", "zfp")
+    compressors: tuple[str, ...] = COMPRESSORS
     bounds: tuple[float, ...] = DEFAULT_BOUNDS
     iterations: int = 2000
     batch_size: int = 32768

@@ -36,7 +36,7 @@ class QualityPlan:
     """
 
     datasets: tuple[DataSpec, ...]
-    models: tuple[str, ...] = ("apmgsrn", "fvsrn", "ngp")
+    models: tuple[str, ...] = MODEL_KINDS
     sizes: tuple[str, ...] = ("small", "medium")
     seeds: int = 1
     iterations: int = 2000

@@ -126,9 +126,9 @@ def optimizer_layout(name: str, optimizer: torch.optim.Optimizer, with_state: bo
     layout = {}
     parameters = [p for group in optimizer.param_groups for p in group["params"]]
     for index, parameter in enumerate(parameters):
-        layout[f"optim.{name}.{index}.exp_avg"] = (tuple(parameter.shape), parameter.dtype)
-        layout[f"optim.{name}.{index}.exp_avg_sq"] = (tuple(parameter.shape), parameter.dtype)
-        layout[f"optim.{name}.{index}.step"] = ((), torch.float32)
+        for key in ADAM_STATE:  # the moments have the parameter's shape; the step count is a scalar
+            shape = () if key == "step" else tuple(parameter.shape)
+            layout[f"optim.{name}.{index}.{key}"] = (shape, torch.float32 if key == "step" else parameter.dtype)
     return layout
 
 

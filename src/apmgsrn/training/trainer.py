@@ -16,13 +16,13 @@ from typing import NamedTuple
 
 import torch
 
-from apmgsrn.choices import DECODER_PRECISIONS, DENSITY_NORMALIZATIONS, LR_SCHEDULES
 from apmgsrn.arguments import MAX_BATCH_SIZE, check_choice, check_int, check_number, check_optional_int
+from apmgsrn.choices import DECODER_PRECISIONS, DENSITY_NORMALIZATIONS, LR_SCHEDULES
 from apmgsrn.errors import ApmgsrnError, InvalidArgument
 from apmgsrn.io.container import load_tensors, read_header, save_tensors
+from apmgsrn.io.description import DescriptionError
 from apmgsrn.models.field import NeuralField
 from apmgsrn.ops.trilinear import sample_volume
-from apmgsrn.io.description import DescriptionError
 from apmgsrn.training.checkpoint import (
     CHECKPOINT_KIND,
     TrainingState,
@@ -31,7 +31,6 @@ from apmgsrn.training.checkpoint import (
     state_from_json,
 )
 from apmgsrn.training.losses import feature_density_loss
-
 
 
 @dataclass(frozen=True)
