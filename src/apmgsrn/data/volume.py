@@ -57,7 +57,8 @@ def parse_shape(text: str) -> tuple[int, int, int]:
     parts = [p.strip() for p in re.split(r"[,xX*]", str(text).strip())]
     if len(parts) != 3 or not all(p.isdigit() for p in parts) or any(int(p) <= 0 for p in parts):
         raise ApmgsrnError(
-            f"invalid shape {text!r}: give three positive integers X,Y,Z (x first), e.g. --shape 256,256,128"
+            f"invalid shape {text!r}: give three positive integers X,Y,Z (x first), e.g. shape=256,256,128",
+            arguments=("shape",),
         )
     return int(parts[0]), int(parts[1]), int(parts[2])
 
@@ -121,7 +122,8 @@ class Volume:
             fill_nonfinite = float(fill_nonfinite)
             if not math.isfinite(fill_nonfinite):
                 raise ApmgsrnError(
-                    f"{self.path}: --fill-nonfinite must be a finite number, got {fill_nonfinite}"
+                    f"{self.path}: fill_nonfinite={fill_nonfinite}: must be a finite number",
+                    arguments=("fill_nonfinite",),
                 )
         self.fill_nonfinite = fill_nonfinite
         self._stats: VolumeStats | None = None
@@ -332,9 +334,15 @@ class Volume:
     # ----------------------------------------------------------------- description
     @property
     def raw_bytes(self) -> int:
-        """Size of the volume as float32, ``D*H*W*4`` bytes (the reference for compression ratios)."""
-        depth, height, width = self.shape
-        return depth * height * width * 4
+        """Size of the volume as float32, ``D*H*W*4`` bytes: what it takes in memory here, and the second
+        reference of compression ratios (SPEC section 8)."""
+        return math.prod(self.shape) * 4
+
+    @property
+    def stored_bytes(self) -> int:
+        """Size of the volume in its stored dtype (a uint8 volume is 1 byte a voxel): the reference of
+        compression ratios (SPEC section 8)."""
+        return math.prod(self.shape) * self.dtype.itemsize
 
     def describe(self) -> str:
         """One line naming file, variable, dims (x*y*z) and stored dtype.
@@ -400,5 +408,5 @@ def check_finite(volume: Volume) -> None:
         total = volume.shape[0] * volume.shape[1] * volume.shape[2]
         raise ApmgsrnError(
             f"{volume.path}: {stats.nonfinite} of {total} voxels are NaN or Inf; "
-            "pass --fill-nonfinite VALUE to replace them (e.g. --fill-nonfinite 0)"
+            "pass fill_nonfinite=VALUE to replace them (e.g. fill_nonfinite=0)", arguments=("fill_nonfinite",),
         )

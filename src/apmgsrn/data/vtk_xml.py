@@ -148,6 +148,6 @@ class VTKVolume(ArrayVolume):
         if len(info.shape) == 4:
             raise ApmgsrnError(
                 f"{path}: array {info.summary()} has {info.shape[3]} components; "
-                "apmgsrn needs a scalar array: pass --variable with a 1-component array"
+                "apmgsrn needs a scalar array: pass variable= with a 1-component array", arguments=("variable",)
             )
         super().__init__(arrays[info.name][1], path, info.name, fill_nonfinite)

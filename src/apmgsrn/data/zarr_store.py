@@ -63,7 +63,8 @@ class ZarrVolume(Volume):
         node = _open_zarr_node(path)
         if isinstance(node, zarr.Array):
             if variable is not None:
-                raise ApmgsrnError(f"{path}: is a single Zarr array, not a group; drop --variable {variable}")
+                raise ApmgsrnError(f"{path}: is a single Zarr array, not a group; drop variable={variable!r}",
+                                   arguments=("variable",))
             info = ArrayInfo(name=path.name, shape=tuple(node.shape), dtype=_numpy_dtype(node))
             name = None
         else:

@@ -65,8 +65,7 @@ def load_brick_model(path: Path, device: torch.device) -> tuple[BrickedField, Mo
         else:
             state = "every brick file is there, but the run ended before it finished the manifest"
         raise ApmgsrnError(
-            f"{directory}: brick model is unfinished ({state}); run the same 'apmgsrn train --bricks' command "
-            "again to finish it"
+            f"{directory}: brick model is unfinished ({state}); run the same brick training again to finish it"
         )
     layout = brick_layout(manifest)
     fields = []
@@ -79,8 +78,7 @@ def load_brick_model(path: Path, device: torch.device) -> tuple[BrickedField, Mo
         brick_path = directory / entry.file
         if brick_path.is_symlink() or not brick_path.is_file():
             raise ApmgsrnError(
-                f"{brick_path}: brick model file is missing; run the 'apmgsrn train --bricks' command again to "
-                "re-train it"
+                f"{brick_path}: brick model file is missing; run the same brick training again to re-train it"
             )
         field, description = load_field(brick_path, device)
         trained_as = description.training.get("brick")

@@ -23,7 +23,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.io.atomic import atomic_write_text
+from apmgsrn.atomic import atomic_write_text
 from apmgsrn.io.container import FORMAT, FORMAT_VERSION, parse_json, read_header
 from apmgsrn.io.description import (
     BrickEntry,
@@ -114,7 +114,7 @@ def read_manifest(directory: str | os.PathLike) -> dict:
     if not path.is_file():
         raise ApmgsrnError(
             f"{directory}: folder has no {MANIFEST_NAME}, so it is not a brick model; pass a model file or a "
-            "folder written by 'apmgsrn train --bricks'"
+            "folder written by a brick training run"
         )
     not_ours = f"{path}: not an apmgsrn brick model manifest (corrupt or another format); re-train the model"
     try:

@@ -11,6 +11,8 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.models.registry import FieldConfig
 
@@ -27,19 +29,28 @@ class SourceInfo:
         path: the data file's name (no folder: models travel between machines).
         variable: the variable / dataset / array name, or None (raw, npy).
         text: one line describing the volume as the reader saw it.
+        dtype: the stored data type (``uint8``, ``float32``, ...), for compression ratios against the
+            stored bytes; None in files written before it was recorded.
     """
 
     path: str = ""
     variable: str | None = None
     text: str = ""
+    dtype: str | None = None
 
     def to_dict(self) -> dict:
-        return {"path": self.path, "variable": self.variable, "description": self.text}
+        return {"path": self.path, "variable": self.variable, "description": self.text, "dtype": self.dtype}
+
+    @property
+    def itemsize(self) -> int | None:
+        """Bytes one stored voxel takes (a uint8 volume: 1), or None when the dtype is unknown."""
+        return None if self.dtype is None else np.dtype(self.dtype).itemsize
 
     @staticmethod
     def of_volume(volume) -> "SourceInfo":
-        """What a :class:`apmgsrn.data.Volume` (anything with ``path``, ``variable``, ``describe()``) was."""
-        return SourceInfo(Path(str(volume.path)).name, volume.variable, volume.describe())
+        """What a :class:`apmgsrn.data.Volume` (anything with ``path``, ``variable``, ``describe()``,
+        ``dtype``) was."""
+        return SourceInfo(Path(str(volume.path)).name, volume.variable, volume.describe(), str(volume.dtype))
 
     @staticmethod
     def from_dict(data) -> "SourceInfo":
@@ -48,7 +59,23 @@ class SourceInfo:
             path=optional_str(data.get("path"), "source.path") or "",
             variable=optional_str(data.get("variable"), "source.variable"),
             text=optional_str(data.get("description"), "source.description") or "",
+            dtype=_numeric_dtype(data.get("dtype")),
         )
+
+
+def _numeric_dtype(value) -> str | None:
+    """A stored data type name as numpy spells it, or None; anything but an integer, float or bool type of
+    at most 8 bytes is refused."""
+    name = optional_str(value, "source.dtype")
+    if name is None:
+        return None
+    try:
+        dtype = np.dtype(name) if len(name) <= 16 else None
+    except TypeError:
+        dtype = None
+    if dtype is None or dtype.kind not in "uifb" or dtype.itemsize > 8:
+        raise DescriptionError("source.dtype is not a numeric data type")
+    return str(dtype)
 
 
 @dataclass(frozen=True)

@@ -75,7 +75,7 @@ def open_model(path: str | os.PathLike, device: torch.device | str = "cpu") -> L
     if path.is_dir() and not is_brick_folder(path):
         raise ApmgsrnError(
             f"{path}: folder has no {MANIFEST_NAME}, so it is not a brick model; pass a model file or a "
-            "folder written by 'apmgsrn train --bricks'"
+            "folder written by a brick training run"
         )
     kind = BRICKS_KIND if path.is_dir() else read_header(path).kind
     loader = _LOADERS.get(kind)

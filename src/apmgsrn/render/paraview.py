@@ -39,11 +39,12 @@ import json
 import math
 import os
 import re
-import tempfile
 import xml.etree.ElementTree as ElementTree
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from apmgsrn.atomic import atomic_write_text
+from apmgsrn.choices import PRESET_UNITS
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.render.color_spaces import PARAVIEW_COLOR_SPACES
 from apmgsrn.render.transfer_function import (
@@ -54,7 +55,6 @@ from apmgsrn.render.transfer_function import (
     stretch_nodes,
 )
 
-PRESET_UNITS = ("normalized", "data")
 PRESET_SUFFIXES = (".json", ".xml")
 
 # ParaView's lookup-table defaults for what a preset leaves out.
@@ -455,17 +455,5 @@ def save_transfer_function(tf: TransferFunction, path: str | os.PathLike, name: 
     Returns:
         The path written.
     """
-    path = Path(path)
     text = _format_presets([transfer_function_to_preset(tf, name)])
-    directory = path.parent if str(path.parent) else Path(".")
-    if not directory.is_dir():
-        raise ApmgsrnError(f"{path}: folder {directory} does not exist; create it or choose another path")
-    handle, temporary = tempfile.mkstemp(prefix=".tf-", suffix=".json", dir=directory)
-    try:
-        with os.fdopen(handle, "w", encoding="utf-8") as out:
-            out.write(text + "\n")
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
-    return path
+    return atomic_write_text(path, text + "\n", "transfer function")

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from apmgsrn.arguments import MAX_BATCH_SIZE, check_int, check_number
+from apmgsrn.errors import InvalidArgument
 from apmgsrn.render.bounds import Occupancy, ValueBounds
 from apmgsrn.render.camera import Camera
 from apmgsrn.render.compositing import FrontToBack, corrected_alpha
@@ -27,6 +29,10 @@ from apmgsrn.render.field import Field, VolumeField, evaluate_field, field_devic
 from apmgsrn.render.images import as_uint8
 from apmgsrn.render.sampling import RaySamples, sample_offsets
 from apmgsrn.render.transfer_function import TransferFunction, TransferTable
+
+#: Most samples per ray across the box (a 2^16-voxel axis), and macro cells per axis (their value bounds
+#: take ``cells^3`` floats).
+MAX_SAMPLES_PER_RAY, MAX_MACRO_CELLS = 1 << 16, 1024
 
 
 @dataclass(frozen=True)
@@ -46,12 +52,19 @@ class RendererConfig:
     table_size: int = 4096  # entries of the baked transfer function
 
     def __post_init__(self) -> None:
-        if self.samples_per_ray < 1 or self.reference_samples < 1:
-            raise ValueError("samples_per_ray and reference_samples must be positive")
-        if self.batch_size < 16:
-            raise ValueError("batch_size must be at least 16")
-        if not 0.0 <= self.early_termination < 1.0:
-            raise ValueError("early_termination must be in [0, 1)")
+        check_int("samples_per_ray", self.samples_per_ray, 1, MAX_SAMPLES_PER_RAY)
+        check_int("reference_samples", self.reference_samples, 1, MAX_SAMPLES_PER_RAY)
+        check_int("batch_size", self.batch_size, 16, MAX_BATCH_SIZE)
+        check_number("early_termination", self.early_termination, 0.0, 1.0, high_open=True)
+        check_int("macro_cells", self.macro_cells, 1, MAX_MACRO_CELLS)
+        check_int("samples_per_cell", self.samples_per_cell, 1, 64)
+        check_int("seed", self.seed, 0, 2**63 - 1)
+        check_int("table_size", self.table_size, 2, 1 << 20)
+        if len(self.background) != 3:
+            raise InvalidArgument(f"background={self.background!r}: must be three numbers in [0, 1]",
+                                  arguments=("background",))
+        for value in self.background:
+            check_number("background", value, 0.0, 1.0)
 
 
 @dataclass

@@ -22,10 +22,13 @@ import numpy as np
 import torch
 
 from apmgsrn.data import Volume
+from apmgsrn.data.fingerprint import volume_fingerprint
 from apmgsrn.device import keep_large_allocations_cached
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.inference.evaluate import Evaluation, evaluate
 from apmgsrn.io import SourceInfo, save_field
+from apmgsrn.io.container import check_replaceable
+from apmgsrn.io.field_file import FIELD_KIND
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.models.value_transform import ValueTransform, fit_value_transform
@@ -77,7 +80,7 @@ def prepare_values(
     if finite < data.size:
         raise ApmgsrnError(
             f"{where}: {data.size - finite} of {data.size} voxels are NaN or Inf; "
-            "pass --fill-nonfinite VALUE to replace them (e.g. --fill-nonfinite 0)"
+            "pass fill_nonfinite=VALUE to replace them (e.g. fill_nonfinite=0)", arguments=("fill_nonfinite",),
         )
     value_min, value_max = float(data.min()), float(data.max())
     value_transform = fit_value_transform(transform, [data], value_min, log_offset, where)
@@ -94,19 +97,23 @@ def prepare_values(
 
 
 def check_output(out: Path, resume: bool) -> None:
-    """Refuse an output whose folder is missing, or a leftover checkpoint that ``resume`` does not take.
+    """Refuse, before any work, an output whose folder is missing, a file there that is not an older model,
+    or a leftover checkpoint that ``resume`` does not take.
 
     Raises:
-        ApmgsrnError: the folder does not exist, or an interrupted run's checkpoint is there.
+        ApmgsrnError: the folder does not exist, ``out`` is a file a model may not replace, or an
+            interrupted run's checkpoint is there.
     """
     out = Path(out)
+    check_replaceable(out, FIELD_KIND)
     if not out.absolute().parent.is_dir():
-        raise ApmgsrnError(f"{out}: output folder {out.parent} does not exist; create it or choose another --out")
+        raise ApmgsrnError(f"{out}: output folder {out.parent} does not exist; create it or pass another out=",
+                           arguments=("out",))
     checkpoint = checkpoint_path_for(out)
     if checkpoint.exists() and not resume:
         raise ApmgsrnError(
-            f"{checkpoint}: an interrupted run left this checkpoint; pass --resume to continue it, "
-            "or delete it to start over"
+            f"{checkpoint}: an interrupted run left this checkpoint; pass resume=True to continue it, "
+            "or delete it to start over", arguments=("resume",),
         )
 
 
@@ -300,7 +307,9 @@ def fit_volume(
     data = volume.to_numpy()  # [D, H, W] float32, data units
     prepared = prepare_values(data, transform, log_offset, str(volume.path), device)
     source = SourceInfo.of_volume(volume)
-    fingerprint = {"source": source.to_dict(), "shape": list(volume.shape), "field": field_config.to_dict(),
+    # A resume must continue on the same data: the file's real path (any link to it will do) and a hash of a
+    # sample of its values, not its name.
+    fingerprint = {"data": volume_fingerprint(volume), "field": field_config.to_dict(),
                    "transform": asdict(prepared.transform)}
     return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
                callbacks=[TrainingProgress(enabled=progress)])
