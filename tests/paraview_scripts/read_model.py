@@ -1,9 +1,9 @@
 """Open a model through the apmgsrn reader plugin in ParaView and write what ParaView got (run with pvpython).
 
-Usage: ``pvpython read_model.py PLUGIN.py REQUEST.json OUT_FOLDER``. REQUEST holds ``file`` (a model file or a
-brick model's manifest.json) and optionally ``resolution`` (``[x, y, z]``) and ``region`` (an inclusive voxel
-extent ``[x0, x1, y0, y1, z0, z1]``). OUT_FOLDER gets ``values.npy`` (the point array, [z, y, x]) and
-``grid.json`` (array name, dimensions, origin, spacing, extent, number of arrays).
+Usage: ``pvpython read_model.py PLUGIN.py REQUESTS.json``. REQUESTS is a list; each request holds ``file`` (a
+model file or a brick model's manifest.json), ``out`` (a folder) and optionally ``resolution`` (``[x, y, z]``)
+and ``region`` (an inclusive voxel extent ``[x0, x1, y0, y1, z0, z1]``). Each ``out`` gets ``values.npy`` (the
+point array, [z, y, x]) and ``grid.json`` (reader, array name, dimensions, origin, spacing, extent, arrays).
 """
 
 import inspect
@@ -21,10 +21,15 @@ from paraview import servermanager, simple
 from vtkmodules.util.numpy_support import vtk_to_numpy
 
 
-def main(plugin, request_path, out):
-    with open(request_path) as handle:
-        request = json.load(handle)
+def main(plugin, requests_path):
+    with open(requests_path) as handle:
+        requests = json.load(handle)
     simple.LoadPlugin(plugin, remote=False, ns=globals())
+    for request in requests:
+        read(request, request["out"])
+
+
+def read(request, out):
     reader = simple.OpenDataFile(request["file"])  # ParaView picks the reader by the file name, as the GUI does
     if "resolution" in request:
         reader.Resolution = request["resolution"]
@@ -50,4 +55,4 @@ def main(plugin, request_path, out):
 
 
 if __name__ == "__main__":
-    main(*sys.argv[1:4])
+    main(*sys.argv[1:3])

@@ -316,9 +316,12 @@ def sample_grid(
         if bounds is None:
             a, b = 0.0, float(n - 1)
         elif region.units == "index":
+            if any(v is not None and not -n <= v <= n for v in bounds):
+                raise ApmgsrnError(f"region={_text(bounds)} on {name} reaches beyond the {n} voxels there; give "
+                                   f"START:STOP within 0..{n}", arguments=("region",))
             start, stop, _ = slice(*(None if v is None else int(v) for v in bounds)).indices(n)
             if stop <= start:
-                raise ApmgsrnError(f"region={bounds[0]}:{bounds[1]} on {name} holds no voxel of the {n} there; give "
+                raise ApmgsrnError(f"region={_text(bounds)} on {name} holds no voxel of the {n} there; give "
                                    f"START < STOP within 0..{n}", arguments=("region",))
             a, b = float(start), float(stop - 1)
         else:
@@ -340,3 +343,8 @@ def sample_grid(
         raise ApmgsrnError(f"shape={shape}: give three positive sizes", arguments=("shape",))
     return SampleGrid(volume_shape, tuple(low), tuple(high), shape)
 
+
+
+def _text(bounds: tuple) -> str:
+    """``(10, None)`` -> ``"10:"``, as typed."""
+    return ":".join("" if v is None else f"{v:g}" for v in bounds)

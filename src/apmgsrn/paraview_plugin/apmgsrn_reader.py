@@ -86,7 +86,8 @@ class ApmgsrnReader(VTKPythonAlgorithmBase):
         self._file_name = None
         self._resolution = (0, 0, 0)
         self._region = (0, -1, 0, -1, 0, -1)
-        self._plans = {}  # decode arguments -> what apmgsrn says it would write
+        self._time = None  # the time step decoded (None: the model's first)
+        self._decoded = None  # (settings, apmgsrn's report, the .vti it wrote)
 
     # ---------------------------------------------------------------------------------------- properties
     @smproperty.stringvector(name="FileName")
@@ -115,8 +116,9 @@ class ApmgsrnReader(VTKPythonAlgorithmBase):
 
     @smproperty.doublevector(name="TimestepValues", information_only="1", si_class="vtkSITimeStepsProperty")
     def GetTimestepValues(self):
-        plan = self._plan()
-        return list(range(plan["time_steps"])) if plan and plan["time_steps"] > 1 else None
+        decoded = self._decode(self._time)
+        steps = decoded[0]["time_steps"] if decoded else 1
+        return list(range(steps)) if steps > 1 else None
 
     # ------------------------------------------------------------------------------------------ decoding
     def _arguments(self):
@@ -132,45 +134,57 @@ class ApmgsrnReader(VTKPythonAlgorithmBase):
             arguments.append("--region=" + ",".join(parts))
         return arguments
 
-    def _plan(self):
-        """What the decode will write (lattice, origin, spacing, time steps), asked once per setting."""
+    def _decode(self, time=None):
+        """The decoded volume for the current settings and time step: apmgsrn's report (lattice, origin, spacing,
+        time steps) and the ``.vti`` it wrote. One decode per setting: the pipeline asks for information before
+        data, and both come from the same run; only the latest decode is kept on disk."""
         if not self._file_name:
             return None
-        key = (self._file_name, os.path.getmtime(self._file_name), tuple(self._arguments()))
-        if key not in self._plans:
-            text = run_apmgsrn(["decode", *self._arguments(), "--out", "plan.vti", "--dry-run", "--json"])
-            self._plans = {key: json.loads(text)}
-        return self._plans[key]
+        key = (self._file_name, os.path.getmtime(self._file_name), tuple(self._arguments()), time)
+        if self._decoded is None or self._decoded[0] != key:
+            self._forget()
+            folder = tempfile.mkdtemp(prefix="apmgsrn-paraview-")
+            out = os.path.join(folder, "decoded.vti")
+            arguments = ["decode", *self._arguments(), "--out", out, "--json"]
+            try:
+                report = json.loads(run_apmgsrn(arguments + ([] if time is None else ["--time", str(time)])))
+            except BaseException:
+                shutil.rmtree(folder, ignore_errors=True)
+                raise
+            self._decoded = (key, report, out)
+        return self._decoded[1], self._decoded[2]
+
+    def _forget(self):
+        if self._decoded is not None:
+            shutil.rmtree(os.path.dirname(self._decoded[2]), ignore_errors=True)
+            self._decoded = None
+
+    def __del__(self):
+        self._forget()
 
     def RequestInformation(self, request, inInfo, outInfo):
-        plan = self._plan()
-        if plan is None:
+        decoded = self._decode(self._time)
+        if decoded is None:
             return 0
-        x, y, z = plan["shape_xyz"]
+        report = decoded[0]
+        x, y, z = report["shape_xyz"]
         info = outInfo.GetInformationObject(0)
         info.Set(vtkStreamingDemandDrivenPipeline.WHOLE_EXTENT(), 0, x - 1, 0, y - 1, 0, z - 1)
-        steps = plan["time_steps"]
+        steps = report["time_steps"]
         if steps > 1:
             info.Set(vtkStreamingDemandDrivenPipeline.TIME_STEPS(), list(range(steps)), steps)
             info.Set(vtkStreamingDemandDrivenPipeline.TIME_RANGE(), [0, steps - 1], 2)
         return 1
 
     def RequestData(self, request, inInfo, outInfo):
-        plan = self._plan()
         info = outInfo.GetInformationObject(0)
-        arguments = ["decode", *self._arguments(), "--json"]
-        if plan["time_steps"] > 1 and info.Has(vtkStreamingDemandDrivenPipeline.UPDATE_TIME_STEP()):
+        report, _ = self._decode(self._time)
+        if report["time_steps"] > 1 and info.Has(vtkStreamingDemandDrivenPipeline.UPDATE_TIME_STEP()):
             wanted = info.Get(vtkStreamingDemandDrivenPipeline.UPDATE_TIME_STEP())
-            arguments += ["--time", str(min(max(int(round(wanted)), 0), plan["time_steps"] - 1))]
-        folder = tempfile.mkdtemp(prefix="apmgsrn-paraview-")
-        try:
-            out = os.path.join(folder, "decoded.vti")
-            run_apmgsrn(arguments + ["--out", out])
-            reader = vtkXMLImageDataReader()
-            reader.SetFileName(out)
-            reader.Update()
-            output = vtkImageData.GetData(outInfo, 0)
-            output.ShallowCopy(reader.GetOutput())
-        finally:
-            shutil.rmtree(folder, ignore_errors=True)
+            self._time = min(max(int(round(wanted)), 0), report["time_steps"] - 1)  # the nearest step
+        _, out = self._decode(self._time)
+        reader = vtkXMLImageDataReader()
+        reader.SetFileName(out)
+        reader.Update()
+        vtkImageData.GetData(outInfo, 0).ShallowCopy(reader.GetOutput())
         return 1
