@@ -213,9 +213,9 @@ def fit(
         time: the time step of a file or DataArray with a leading time dimension.
         fill_nonfinite: replace NaN/Inf voxels by this value instead of refusing them.
         progress: show training progress (a widget in Jupyter).
-        options: model options (``grids``, ``features``, ``resolution``, ``hidden_layers``, ``width``, ...)
-            (``resolution`` an integer or three) and training options (``lr``, ``seed``, ``lr_schedule``, ...: fields of
-            :class:`~apmgsrn.training.trainer.TrainConfig`).
+        options: model options (``grids``, ``features``, ``resolution`` as an integer or three,
+            ``hidden_layers``, ``width``, ...) and training options (``lr``, ``seed``, ``lr_schedule``, ...:
+            fields of :class:`~apmgsrn.training.trainer.TrainConfig`).
 
     Returns:
         The fitted :class:`Model`; its ``description.training`` holds the PSNR and the largest error.

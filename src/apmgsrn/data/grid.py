@@ -13,7 +13,7 @@ Coordinates map indices to the source's units: evenly (``start + i * step``) or 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -144,6 +144,20 @@ class VolumeMetadata:
         """The variable's ``units`` attribute, or None."""
         units = self.attributes.get("units")
         return units if isinstance(units, str) else None
+
+    def crop(self, start: tuple[int, int, int], stop: tuple[int, int, int]) -> VolumeMetadata:
+        """The metadata of the voxels ``[start, stop)`` per ``(z, y, x)`` axis (a brick): coordinates sliced."""
+        if self.coordinates is None:
+            return self
+        cropped = []
+        for axis, a, b in zip(self.coordinates, start, stop):
+            if axis is None:
+                cropped.append(None)
+            elif axis.values is None:
+                cropped.append(replace(axis, start=axis.start + a * axis.step))
+            else:
+                cropped.append(AxisCoordinates.from_values(axis.name, axis.values[a:b], axis.attributes))
+        return replace(self, coordinates=tuple(cropped))
 
     def axis(self, index: int) -> AxisCoordinates:
         """Coordinates of axis ``index`` (0: z, 1: y, 2: x): the recorded ones, else voxel indices named

@@ -80,8 +80,10 @@ class HDF5Volume(Volume):
             self._dataset_attributes = {k: _plain(v) for k, v in handle[info.name].attrs.items()}
             super().__init__(path, info.name, shape, info.dtype, fill_nonfinite, time=time_index)
             dataset = handle[info.name]
-            compression = ({"zlib": True, "complevel": int(dataset.compression_opts or 4), "shuffle": bool(dataset.shuffle)}
-                           if dataset.compression == "gzip" else None)
+            compression = None
+            if dataset.compression == "gzip":
+                compression = {"zlib": True, "complevel": int(dataset.compression_opts or 4),
+                               "shuffle": bool(dataset.shuffle)}
             self.metadata = VolumeMetadata(attributes=plain_attributes(self._dataset_attributes),
                                            compression=compression)
         except BaseException:

@@ -116,7 +116,7 @@ def netcdf_metadata(handle: Any, name: str) -> VolumeMetadata:
     coordinates = []
     for dimension, length in zip(dimensions, variable.shape[-3:]):
         coordinate = _coordinate_variable(variable.group(), dimension)
-        if coordinate is None or coordinate.ndim != 1 or coordinate.shape[0] != length or coordinate.dtype.kind not in "uif":
+        if coordinate is None or coordinate.shape != (length,) or coordinate.dtype.kind not in "uif":
             coordinates.append(None)
             continue
         values = np.ma.filled(np.ma.asarray(coordinate[:]).astype(np.float64), np.nan)
@@ -126,8 +126,10 @@ def netcdf_metadata(handle: Any, name: str) -> VolumeMetadata:
         attributes = plain_attributes({k: coordinate.getncattr(k) for k in coordinate.ncattrs()})
         coordinates.append(AxisCoordinates.from_values(dimension, values, attributes))
     filters = variable.filters() or {}
-    compression = ({"zlib": True, "complevel": int(filters.get("complevel") or 4), "shuffle": bool(filters.get("shuffle"))}
-                   if filters.get("zlib") else None)
+    compression = None
+    if filters.get("zlib"):
+        compression = {"zlib": True, "complevel": int(filters.get("complevel") or 4),
+                       "shuffle": bool(filters.get("shuffle"))}
     return VolumeMetadata(
         attributes=plain_attributes({k: variable.getncattr(k) for k in variable.ncattrs()}),
         dimensions=dimensions if len(dimensions) == 3 else None,

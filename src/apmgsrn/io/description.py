@@ -8,7 +8,7 @@ description is refused with one message before anything is built from it.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -69,9 +69,9 @@ class SourceInfo:
     @staticmethod
     def of_volume(volume) -> "SourceInfo":
         """What a :class:`apmgsrn.data.Volume` (anything with ``path``, ``variable``, ``describe()``,
-        ``dtype``) was."""
+        ``dtype`` and, optionally, ``metadata``) was."""
         return SourceInfo(Path(str(volume.path)).name, volume.variable, volume.describe(), str(volume.dtype),
-                          volume.metadata)
+                          getattr(volume, "metadata", VolumeMetadata()))
 
     @staticmethod
     def from_dict(data) -> "SourceInfo":
@@ -89,6 +89,10 @@ class SourceInfo:
             ),
         )
 
+    def crop(self, start: tuple[int, int, int], stop: tuple[int, int, int]) -> SourceInfo:
+        """The source of the voxels ``[start, stop)`` per ``(z, y, x)`` axis (a brick's): coordinates sliced."""
+        return replace(self, metadata=self.metadata.crop(start, stop))
+
     def check_shape(self, volume_shape: tuple[int, int, int]) -> None:
         """Uneven coordinates must give one value per voxel of the volume.
 
@@ -96,7 +100,8 @@ class SourceInfo:
             DescriptionError: an axis' coordinate count differs from the volume's.
         """
         for axis, coordinates in enumerate(self.metadata.coordinates or ()):
-            if coordinates is not None and coordinates.values is not None and len(coordinates.values) != volume_shape[axis]:
+            uneven = coordinates is not None and coordinates.values is not None
+            if uneven and len(coordinates.values) != volume_shape[axis]:
                 raise DescriptionError(f"source.coordinates of {coordinates.name} do not match the volume shape")
 
 
@@ -135,7 +140,8 @@ def _attributes(value, name: str) -> dict:
 def _dimensions(value) -> tuple[str, str, str] | None:
     if value is None:
         return None
-    if not isinstance(value, list) or len(value) != 3 or not all(isinstance(v, str) and 0 < len(v) <= 256 for v in value):
+    names = isinstance(value, list) and all(isinstance(v, str) and 0 < len(v) <= 256 for v in value)
+    if not names or len(value) != 3:
         raise DescriptionError("source.dimensions is not a list of three names")
     return tuple(value)
 
@@ -175,8 +181,8 @@ def _compression(value) -> dict | None:
     value = require_dict(value, "source.compression")
     if not isinstance(value.get("zlib"), bool) or not isinstance(value.get("shuffle"), bool):
         raise DescriptionError("source.compression is not a zlib setting")
-    return {"zlib": value["zlib"], "complevel": require_int(value.get("complevel"), "source.compression.complevel", 0, 9),
-            "shuffle": value["shuffle"]}
+    level = require_int(value.get("complevel"), "source.compression.complevel", 0, 9)
+    return {"zlib": value["zlib"], "complevel": level, "shuffle": value["shuffle"]}
 
 
 def _numeric_dtype(value) -> str | None:
