@@ -230,7 +230,7 @@ def fit(
     from apmgsrn.training.trainer import TrainConfig, default_budget
 
     device = _device(device)
-    volume = as_volume(data, variable=variable, time=time, fill_nonfinite=fill_nonfinite)
+    volume = _as_volume(data, variable=variable, time=time, fill_nonfinite=fill_nonfinite)
     train_names = {f.name for f in dataclass_fields(TrainConfig)}
     train_options = {k: v for k, v in options.items() if k in train_names}
     model_options = {k: v for k, v in options.items() if k not in train_names}
@@ -307,7 +307,7 @@ def render(
     return as_uint8(renderer.render(camera, alpha=True).image)  # [H, W, 4]
 
 
-def as_volume(data, variable: str | None = None, time: int | None = None,
+def _as_volume(data, variable: str | None = None, time: int | None = None,
               fill_nonfinite: float | None = None) -> Volume:
     """A volume from what a notebook holds: a numpy array, an xarray DataArray or a file path.
 

@@ -292,12 +292,6 @@ class SampleGrid:
             for a in (2, 1, 0)
         )
 
-    @property
-    def whole(self) -> bool:
-        """Samples exactly the training volume's voxels."""
-        return (self.shape == self.volume_shape and self.low == (0.0, 0.0, 0.0)
-                and self.high == tuple(float(n - 1) for n in self.volume_shape))
-
 
 def sample_grid(
     volume_shape: tuple[int, int, int],

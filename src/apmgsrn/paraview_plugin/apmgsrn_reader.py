@@ -160,7 +160,10 @@ class ApmgsrnReader(VTKPythonAlgorithmBase):
             self._decoded = None
 
     def __del__(self):
-        self._forget()
+        try:
+            self._forget()
+        except Exception:  # noqa: BLE001 - at interpreter exit the modules may already be gone
+            pass
 
     def RequestInformation(self, request, inInfo, outInfo):
         decoded = self._decode(self._time)
