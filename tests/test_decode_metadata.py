@@ -213,3 +213,27 @@ def test_time_steps_beyond_the_model_are_refused(fingers_model: Path) -> None:
     assert model.decode(time=0, shape=(2, 2, 2)).shape == (2, 2, 2)
     with pytest.raises(apmgsrn.ApmgsrnError, match="one time step"):
         model.decode(time=1)
+
+
+def test_hdf5_and_zarr_readers_record_what_they_hold(test_data: Path, tmp_path: Path) -> None:
+    import h5py
+    import xarray
+
+    values = open_volume(test_data / "darkmatter_density_64.h5").to_numpy()[:16, :16, :16]
+    with h5py.File(tmp_path / "dm.h5", "w") as handle:
+        dataset = handle.create_dataset("fields/rho", data=values, compression="gzip", compression_opts=5,
+                                        shuffle=True)
+        dataset.attrs["units"] = "M_sun/Mpc^3"
+        dataset.attrs["scale_factor"] = 2.0  # packing: never carried over
+    metadata = open_volume(tmp_path / "dm.h5").metadata
+    assert metadata.attributes == {"units": "M_sun/Mpc^3"}
+    assert metadata.compression == {"zlib": True, "complevel": 5, "shuffle": True}
+
+    array = xarray.DataArray(values, name="rho", dims=("k", "j", "i"), attrs={"units": "M_sun/Mpc^3"},
+                             coords={"i": ("i", 0.5 + np.arange(16) * 3.125, {"units": "Mpc/h"})})
+    array.to_dataset().to_zarr(tmp_path / "dm.zarr")
+    metadata = open_volume(tmp_path / "dm.zarr", variable="rho").metadata
+    assert metadata.dimensions == ("k", "j", "i") and metadata.units == "M_sun/Mpc^3"
+    x = metadata.coordinates[2]
+    assert (x.name, x.start, x.step, x.even, x.attributes) == ("i", 0.5, 3.125, True, {"units": "Mpc/h"})
+    assert metadata.coordinates[0] is None

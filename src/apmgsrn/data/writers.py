@@ -15,8 +15,8 @@ import shutil
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from xml.sax.saxutils import quoteattr
 from typing import Any
+from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
@@ -120,7 +120,7 @@ def _vti_frame(name: str, shape: tuple[int, int, int], origin, spacing) -> tuple
 
 
 class VolumeWriter:
-    """Write a ``[D, H, W]`` float32 volume to ``.nc``, ``.raw``/``.bin`` or ``.npy``, by z-slabs.
+    """Write a ``[D, H, W]`` float32 volume to ``.nc``, ``.vti``, ``.raw``/``.bin`` or ``.npy``, by z-slabs.
 
     Use it as a context manager; slabs may come in any order, but all of z must be written
     before a clean exit, which renames the temporary file into place. An exception inside the

@@ -46,11 +46,15 @@ def _numpy_dtype(array: Any) -> np.dtype | None:
 
 def _zarr_metadata(node: Any, array: Any) -> VolumeMetadata:
     """Attributes of a Zarr array, and its dimension names and coordinate arrays where xarray wrote them
-    (``_ARRAY_DIMENSIONS``; a dimension's coordinates are the 1-D array of its name in the same group)."""
+    (``_ARRAY_DIMENSIONS`` or Zarr 3's ``dimension_names``; a dimension's coordinates are the 1-D array of its
+    name in the same group)."""
     import zarr
 
     attributes = dict(array.attrs)
-    dimensions = attributes.pop("_ARRAY_DIMENSIONS", None)
+    # Zarr 2 stores: xarray's _ARRAY_DIMENSIONS attribute; Zarr 3: the array's own dimension_names.
+    dimensions = attributes.pop("_ARRAY_DIMENSIONS", None) or getattr(getattr(array, "metadata", None),
+                                                                      "dimension_names", None)
+    dimensions = list(dimensions) if isinstance(dimensions, (list, tuple)) else None
     if not (isinstance(dimensions, list) and len(dimensions) >= 3 and all(isinstance(d, str) for d in dimensions)):
         return VolumeMetadata(attributes=plain_attributes(attributes))
     dimensions = tuple(dimensions[-3:])
