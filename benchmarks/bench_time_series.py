@@ -3,6 +3,7 @@
     python benchmarks/bench_time_series.py baseline --threads 1   # 30 independent small models -> CSV
     python benchmarks/bench_time_series.py series --threads 1     # one time-series model -> CSV
     python benchmarks/bench_time_series.py timing --threads 1     # one step's training right before and after
+    python benchmarks/bench_time_series.py speed --model M        # decode/render one step: series vs single file
     python benchmarks/bench_time_series.py report                 # docs/time_series_results.md + chart
 
 Protocol (REFERENCE.md, CPU): 2,000 iterations x 32,768 points, lr 0.01, seed 0, the small preset, PSNR
@@ -33,6 +34,8 @@ SERIES_FIELDS = ["step", "file", "psnr", "max_abs_error", "model_bytes", "train_
                  "threads", "load_average", "cpu"]
 TIMING_CSV = RESULTS / "time_series_timing.csv"
 TIMING_FIELDS = ["what", "seconds", "iterations", "threads", "load_average_start", "load_average_end", "cpu"]
+SPEED_CSV = RESULTS / "time_series_speed.csv"
+SPEED_FIELDS = ["what", "series_seconds", "single_seconds", "repeats", "threads", "load_average", "cpu"]
 DOCS = ROOT / "docs"
 CHART = DOCS / "images" / "time_series_psnr.png"
 
@@ -143,6 +146,53 @@ def run_timing(args: argparse.Namespace) -> None:
     print(f"one step: {result.seconds:.1f} s", flush=True)
 
 
+def run_speed(args: argparse.Namespace) -> None:
+    """Decode and render one step from the series file, against the same step saved as a single-step model file.
+
+    The single-step file holds exactly the step's materialised network, so both evaluate the same values with
+    the same network shape; what differs is what the series costs on top: reading the larger file and
+    materialising the step's features. Each timing opens the file anew (load + step + decode or render); the
+    table keeps the fastest of ``repeats`` runs of each, interleaved, so a burst of load hits both alike.
+    """
+    import apmgsrn
+    from apmgsrn.io import SourceInfo, save_field
+    from apmgsrn.render import Camera, RendererConfig, VolumeRenderer, make_transfer_function
+
+    series_model = apmgsrn.load(args.model)
+    step = args.step
+    tf = make_transfer_function("Cool to Warm", series_model.description.series.steps[step].value_range)
+    camera = Camera.orbit(width=args.image_size, height=args.image_size)
+    config = RendererConfig(samples_per_ray=256)
+
+    def decode(path: Path, time_step: int | None) -> float:
+        start = time.perf_counter()
+        apmgsrn.load(path).decode(time=time_step)
+        return time.perf_counter() - start
+
+    def render(path: Path, time_step: int | None) -> float:
+        start = time.perf_counter()
+        model = apmgsrn.load(path)
+        VolumeRenderer(model.step_field(time_step), tf, config).render(camera)
+        return time.perf_counter() - start
+
+    with tempfile.TemporaryDirectory() as tmp:
+        single = Path(tmp) / "step.apmgsrn"
+        save_field(single, series_model.step_field(step), SourceInfo(), {})
+        load = os.getloadavg()[0]
+        for what, measure in (("decode one step (64^3, load included)", decode),
+                              (f"render one step ({args.image_size}^2, 256 spp, load included)", render)):
+            series_times, single_times = [], []
+            for _ in range(args.repeats):
+                series_times.append(measure(args.model, step))
+                single_times.append(measure(single, None))
+            _append(args.csv, SPEED_FIELDS, {
+                "what": f"{what}, step {step}", "series_seconds": f"{min(series_times):.4f}",
+                "single_seconds": f"{min(single_times):.4f}", "repeats": args.repeats,
+                "threads": torch.get_num_threads(), "load_average": f"{(load + os.getloadavg()[0]) / 2:.2f}",
+                "cpu": _cpu()})
+            print(f"{what}: series {min(series_times):.3f} s, single {min(single_times):.3f} s", flush=True)
+
+
 def write_report(out: Path) -> None:
     """The per-step table (both methods side by side), the three criteria, and the chart."""
     from apmgsrn.bench.charts import psnr_over_time_chart
@@ -219,6 +269,13 @@ def main() -> None:
     timing.add_argument("--csv", type=Path, default=TIMING_CSV)
     timing.add_argument("--step", type=int, default=15)
     timing.add_argument("--label", default="")
+    speed = sub.add_parser("speed", help="decode/render one step: the series file against a single-step file")
+    speed.add_argument("--csv", type=Path, default=SPEED_CSV)
+    speed.add_argument("--model", type=Path, required=True, help="a series model file (series --keep)")
+    speed.add_argument("--step", type=int, default=15)
+    speed.add_argument("--repeats", type=int, default=5)
+    speed.add_argument("--image-size", type=int, default=256)
+    speed.add_argument("--threads", type=int, default=1)
     report = sub.add_parser("report", help="the per-step table and chart in docs/")
     report.add_argument("--out", type=Path, default=DOCS / "time_series_results.md")
     for p in (base, series, timing):
@@ -236,6 +293,8 @@ def main() -> None:
         run_series(args)
     elif args.command == "timing":
         run_timing(args)
+    elif args.command == "speed":
+        run_speed(args)
     else:
         write_report(args.out)
     print(f"done in {time.perf_counter() - start:.0f} s")

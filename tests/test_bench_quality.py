@@ -45,7 +45,10 @@ def test_quality_benchmark_writes_csv_table_and_chart_and_resumes(crop, tmp_path
     ]
     for record in records:
         assert int(record["parameters"]) * 4 == int(record["parameter_bytes"]) < int(record["file_bytes"])
+        # The crop is stored as float32: both ratios count 4 bytes a voxel.
+        assert record["data_dtype"] == "float32" and int(record["data_bytes"]) == 20**3 * 4
         assert float(record["compression_ratio"]) == pytest.approx(20**3 * 4 / int(record["file_bytes"]))
+        assert float(record["compression_ratio_float32"]) == float(record["compression_ratio"])
         assert (out / "models").joinpath(record["model_file"].split("/")[-1]).is_file()
 
     table = (out / "quality.md").read_text()
@@ -65,8 +68,8 @@ def test_quality_benchmark_writes_csv_table_and_chart_and_resumes(crop, tmp_path
 
 
 def _row(dataset, model, size, seed, psnr):
-    return QualityRow(dataset, "8x8x8", model, size, seed, 10, 64, "cosine", 100, 400, 500, 2048, 4.1, psnr,
-                      1.0, 100.0, "cpu", "m.apmgsrn")
+    return QualityRow(dataset, "8x8x8", model, size, seed, 10, 64, "cosine", 100, 400, 500, "uint8", 512, 1.024,
+                      4.096, psnr, 1.0, 100.0, "cpu", "m.apmgsrn")
 
 
 def test_table_marks_the_best_per_size_and_leaves_missing_cells_empty():

@@ -37,13 +37,15 @@ def neghip_model(tmp_path_factory, test_data):
 def test_train_reaches_psnr_bar_on_real_volume(neghip_model, test_data, capsys):
     # Electron density of a protein, 64^3 uint8: 200 iterations of 4096 points reach ~32 dB (bar: 30).
     result = run_json(capsys, ["eval", str(neghip_model), str(test_data / NEGHIP), "--json"])
-    assert set(result) == {"psnr", "mse", "max_abs_error", "data_min", "data_max", "model_bytes",
-                           "raw_bytes", "compression_ratio"}
+    assert set(result) == {"psnr", "mse", "max_abs_error", "data_min", "data_max", "model_bytes", "data_dtype",
+                           "data_bytes", "float32_bytes", "compression_ratio", "compression_ratio_float32"}
     assert result["psnr"] > 30.0
     assert result["data_min"] == 0 and result["data_max"] == 255
     assert result["model_bytes"] == neghip_model.stat().st_size
-    assert result["raw_bytes"] == 64**3 * 4
-    assert result["compression_ratio"] == pytest.approx(64**3 * 4 / neghip_model.stat().st_size)
+    # A uint8 volume is 1 byte a voxel as stored (SPEC section 8), 4 as float32.
+    assert result["data_dtype"] == "uint8" and result["data_bytes"] == 64**3 and result["float32_bytes"] == 64**3 * 4
+    assert result["compression_ratio"] == pytest.approx(64**3 / neghip_model.stat().st_size)
+    assert result["compression_ratio_float32"] == pytest.approx(64**3 * 4 / neghip_model.stat().st_size)
 
 
 def test_eval_matches_a_direct_computation(neghip_model, test_data, capsys):

@@ -114,7 +114,7 @@ def test_truncated_raw_names_both_sizes(test_data: Path, tmp_path: Path) -> None
 
 def test_wrong_shape_for_a_raw_file(test_data: Path) -> None:
     path = test_data / "c60_80x64x48_uint8.raw"
-    _raises(path, "245760 bytes", "80x64x24", "--shape", shape=(80, 64, 24))
+    _raises(path, "245760 bytes", "80x64x24", "shape=", shape=(80, 64, 24))
     # Right voxel count, wrong type: the size fits 1-byte voxels, not 2.
     _raises(path, "491520 bytes", "1-byte voxels", dtype="uint16")
 
@@ -122,16 +122,16 @@ def test_wrong_shape_for_a_raw_file(test_data: Path) -> None:
 def test_raw_without_dims_or_dtype(test_data: Path, tmp_path: Path) -> None:
     path = tmp_path / "volume.raw"
     shutil.copy(test_data / "neghip_64x64x64_uint8.raw", path)
-    _raises(path, "--shape X,Y,Z and --dtype TYPE", "NAME_XxYxZ_dtype.raw")
-    _raises(path, "--dtype TYPE", shape=(64, 64, 64))
+    _raises(path, "shape=X,Y,Z and dtype=TYPE", "NAME_XxYxZ_dtype.raw")
+    _raises(path, "dtype=TYPE", shape=(64, 64, 64))
     _raises(path, "unknown voxel type 'complex64'", shape=(64, 64, 64), dtype="complex64")
     assert open_volume(path, shape=(64, 64, 64), dtype="uint8").shape == (64, 64, 64)
 
 
 def test_flags_that_do_not_apply(test_data: Path, hcci_oh: Path) -> None:
-    _raises(hcci_oh, "--shape", shape=(187, 187, 187))
-    _raises(test_data / "c60_80x64x48_uint8.raw", "--variable", variable="density")
-    _raises(test_data / "c60_80x64x48_uint8.raw", "--time", time=0)
+    _raises(hcci_oh, "shape=", shape=(187, 187, 187))
+    _raises(test_data / "c60_80x64x48_uint8.raw", "variable=", variable="density")
+    _raises(test_data / "c60_80x64x48_uint8.raw", "time=", time=0)
 
 
 def test_parse_shape_rejects_junk() -> None:
@@ -151,7 +151,7 @@ def test_missing_variable_lists_those_available(test_data: Path) -> None:
 def test_several_3d_variables_need_a_choice(test_data: Path, tmp_path: Path, block: np.ndarray) -> None:
     dims = ("z", "y", "x")
     path = _netcdf(tmp_path / "two.nc", {"a": (dims, block), "b": (dims, block * 2)})
-    _raises(path, "several 3-D variables", "'a'", "'b'", "--variable")
+    _raises(path, "several 3-D variables", "'a'", "'b'", "variable=")
     np.testing.assert_array_equal(open_volume(path, variable="b").to_numpy(), block * 2)
     _raises(test_data / "cth_armor_penetration_88x32x32.vtr", "several 3-D arrays", "'Pressure'", "'X Velocity'")
     h5 = tmp_path / "two.h5"
@@ -180,8 +180,8 @@ def test_two_dimensional_data_states_its_dims(tmp_path: Path, block: np.ndarray)
 def test_time_dimension_without_time_flag(tmp_path: Path, block: np.ndarray) -> None:
     series = np.stack([block, block + 1, block + 2, block + 3])
     path = _netcdf(tmp_path / "series.nc", {"rho": (("time", "z", "y", "x"), series)})
-    _raises(path, "time dimension of length 4", "--time INDEX (0..3)")
-    _raises(path, "--time 4 is out of range", time=4)
+    _raises(path, "time dimension of length 4", "time=INDEX (0..3)")
+    _raises(path, "time=4 is out of range", time=4)
     _raises(path, "out of range", time=-1)
     _raises(_netcdf(tmp_path / "still.nc", {"rho": (("z", "y", "x"), block)}), "no time dimension", time=0)
 
@@ -210,7 +210,7 @@ def test_nonfinite_voxels_are_counted_and_filled(tmp_path: Path, block: np.ndarr
     with pytest.raises(ApmgsrnError) as caught:
         check_finite(volume)
     message = str(caught.value)
-    assert str(path) in message and "5 of 7680 voxels are NaN or Inf" in message and "--fill-nonfinite" in message
+    assert str(path) in message and "5 of 7680 voxels are NaN or Inf" in message and "fill_nonfinite=" in message
 
     filled = open_volume(path, fill_nonfinite=-1.0)
     check_finite(filled)  # the user chose a fill value

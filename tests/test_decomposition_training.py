@@ -13,6 +13,7 @@ import pytest
 import torch
 
 import apmgsrn
+from apmgsrn.data.fingerprint import BLOCK_SIDE
 from apmgsrn.data.raw import RawVolume
 from apmgsrn.decomposition.brick_training import brick_policy, brick_train_config, train_brick
 from apmgsrn.decomposition.coordinator import train_bricks
@@ -84,7 +85,11 @@ def test_bricks_train_on_dask_reading_only_their_own_box(reference, test_data):
     plan = plan_bricks((64, 64, 64), GRID)
     assert summary.complete and not summary.failed and len(summary.trained) == 4
     boxes = sorted((b.start[0], b.stop[0], b.start[1], b.stop[1], b.start[2], b.stop[2]) for b in plan.bricks)
-    assert sorted(reads) == boxes, "the coordinator read nothing, each job read exactly its box once"
+    # The coordinator reads only the data's fingerprint (27 blocks of 16^3 voxels, apmgsrn.data.fingerprint).
+    fingerprint = [r for r in reads if all(stop - start <= BLOCK_SIDE for start, stop in zip(r[::2], r[1::2]))]
+    assert len(fingerprint) == 27
+    assert sorted(set(reads) - set(fingerprint)) == boxes and len(reads) == 27 + len(boxes), \
+        "besides the fingerprint, the coordinator read nothing and each job read exactly its box once"
     model = apmgsrn.load(out)
     description = model.description
     assert description.volume_shape == (64, 64, 64) and description.value_range == (0.0, 255.0)
@@ -196,7 +201,7 @@ def test_rerun_after_a_kill_trains_missing_and_resumes_interrupted_bricks(refere
     # What a kill -9 leaves: a brick never written, a temp file of an atomic write that never finished,
     # and a brick that was stopped after its first training checkpoint (kill simulated right after it).
     (out / brick_file_name(plan.bricks[0].name)).unlink()
-    (out / f".{brick_file_name(plan.bricks[0].name)}.abc.tmp").write_bytes(b"partial")
+    (out / f".{brick_file_name(plan.bricks[0].name)}.abc.partial.apmgsrn").write_bytes(b"partial")
     (out / brick_file_name(plan.bricks[3].name)).unlink()
     manifest = json.loads(manifest_path(out).read_text())
     manifest["complete"] = False
@@ -306,6 +311,13 @@ def test_constant_bricks_need_no_training_and_the_cli_handles_brick_models(test_
     import numpy as np
 
     assert np.load(decoded).shape == (32, 32, 88)
+    # The armour's uneven x coordinates: the whole model's in the manifest, each brick's own slice in its file.
+    whole_x = np.asarray(model.description.source.metadata.coordinates[2].values)
+    assert np.ptp(np.diff(whole_x)) > 0.01
+    entry = model.description.bricks.entries[1]
+    brick = apmgsrn.load(out / entry.file)
+    np.testing.assert_allclose(brick.description.source.metadata.axis(2).at(np.arange(entry.stop[2] - entry.start[2])),
+                               whole_x[entry.start[2]:entry.stop[2]])
     # The same command again trains nothing.
     assert main(args) == 0
     assert json.loads(capsys.readouterr().out)["trained"] == 0

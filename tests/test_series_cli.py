@@ -100,7 +100,8 @@ def test_decode_one_step_every_step_to_one_file_and_one_file_each(series_model, 
     import netCDF4
 
     with netCDF4.Dataset(tmp_path / "all.nc") as dataset:
-        assert dataset["value"].dimensions == ("time", "z", "y", "x")
+        # The source's variable name, as decoding one volume writes it.
+        assert dataset[model.plan_decode(time=0).variable].dimensions == ("time", "z", "y", "x")
         assert list(dataset["time"][:]) == [30, 31, 32, 33]
 
     assert main(["decode", str(series_model), "--time", "1:4:2", "--out", str(tmp_path / "s{step}.npy")]) == 0
@@ -111,7 +112,7 @@ def test_decode_one_step_every_step_to_one_file_and_one_file_each(series_model, 
 @pytest.mark.parametrize("argv, message", [
     (["decode", "{model}", "--out", "{tmp}/x.npy"], "holds 4 time steps; pass --time K"),
     (["decode", "{model}", "--time", "4", "--out", "{tmp}/x.npy"], "--time 4 is outside the model's series of 4"),
-    (["decode", "{model}", "--time", "all", "--out", "{tmp}/x.vti"], "cannot write format"),
+    (["decode", "{model}", "--time", "all", "--out", "{tmp}/x.vti"], "a VTK ImageData file holds one step"),
     (["render", "{model}", "--time", "9", "--out", "{tmp}/x.png"], "step 9 is outside the series of 4"),
     (["render", "{model}", "--time", "all", "--out", "{tmp}/x.png"], "must be a .gif or .mp4"),
 ])
@@ -128,8 +129,11 @@ def test_series_options_on_one_volume_and_time_on_a_single_model_are_refused(tes
     assert "--basis applies to a time series" in capsys.readouterr().err
     assert main(["train", str(volume), "--out", str(tmp_path / "m.apmgsrn"), *FAST]) == 0
     capsys.readouterr()
-    assert main(["decode", str(tmp_path / "m.apmgsrn"), "--time", "0", "--out", str(tmp_path / "d.npy")]) == 2
-    assert "--time applies to time-series models" in capsys.readouterr().err
+    # A single model holds one time step: --time 0 is that step, anything else is refused.
+    assert main(["decode", str(tmp_path / "m.apmgsrn"), "--time", "1", "--out", str(tmp_path / "d.npy")]) == 2
+    assert "--time 1: the model holds one time step" in capsys.readouterr().err
+    assert main(["decode", str(tmp_path / "m.apmgsrn"), "--time", "all", "--out", str(tmp_path / "d.npy")]) == 2
+    assert "holds one volume; drop --time" in capsys.readouterr().err
     assert main(["train", str(volume), "--time", "all", "--out", str(tmp_path / "n.apmgsrn"), *FAST]) == 2
     assert "--time does not apply to raw files" in capsys.readouterr().err
 

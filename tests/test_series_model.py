@@ -310,3 +310,22 @@ def test_a_float16_file_claiming_float32_grids_is_refused(series_file, tmp_path)
     bad = rewrite(series_file, tmp_path / "f16.apmgsrn", description=_set(["series", "storage"], "float16"))
     with pytest.raises(ApmgsrnError, match="stored as F32, not F16"):
         apmgsrn.load(bad)
+
+
+def test_the_python_api_decodes_any_step_and_saves_a_series_model(series_file, tmp_path):
+    model = apmgsrn.load(series_file)
+    shape = model.description.volume_shape
+    for time in (None, 2):
+        expected = decode_array(model.field.step_field(time or 0), shape)
+        np.testing.assert_array_equal(np.asarray(model.decode(time=time)), expected)
+    with pytest.raises(ApmgsrnError, match=r"time=3: the model holds 3 time steps \(time=0..2\)"):
+        model.decode(time=3)
+    copy = model.save(tmp_path / "copy.apmgsrn")
+    again = apmgsrn.load(copy)
+    assert again.description.series == model.description.series
+    np.testing.assert_array_equal(np.asarray(again.decode(time=1)), np.asarray(model.decode(time=1)))
+    other = tmp_path / "other.npy"
+    other.write_bytes(b"not a model")
+    with pytest.raises(ApmgsrnError, match="never overwritten"):
+        again.save(other)
+    assert other.read_bytes() == b"not a model"

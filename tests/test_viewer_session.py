@@ -191,11 +191,53 @@ def test_presets_in_the_folder_bring_their_colours_and_opacity(folder):
     assert keys == ["Two Reds (reds.json)"]
     session.open_now("a_blob.npy")
     opacity = session.set_colormap(keys[0])
-    assert opacity == ((0.0, 0.0), (0.5, 0.1), (1.0, 0.9))
+    assert opacity == [[0.0, 0.0], [0.5, 0.1], [1.0, 0.9]]
     session.run_until_idle()
     image = recorder.frames[-1].image.astype(int)
     tinted = (image[..., 0] - image[..., 2]) > 20
     assert tinted.any()  # red where the blobs are
+
+
+# Opacity nodes on another span than the colours, with ParaView's midpoint and sharpness; and a preset
+# spaced in log10. ParaView stretches each map by its own span (the log one in log10).
+UNEVEN_PRESETS = [
+    {
+        "Name": "Uneven",
+        "ColorSpace": "Lab",
+        "RGBPoints": [-1.0, 0.1, 0.2, 0.7, 1.0, 0.9, 0.9, 0.9, 3.0, 0.8, 0.1, 0.1],
+        "Points": [0.0, 0.0, 0.3, 0.6, 0.5, 0.4, 0.5, 0.0, 2.0, 0.9, 0.7, 0.2],
+    },
+    {
+        "Name": "Decades",
+        "ColorSpace": "RGB",
+        "UseLogScale": 1,
+        "RGBPoints": [1.0, 0.0, 0.0, 0.0, 10.0, 0.2, 0.6, 0.2, 100.0, 1.0, 1.0, 1.0],
+        "Points": [10.0, 0.0, 0.5, 0.0, 100.0, 0.3, 0.4, 0.1, 1000.0, 1.0, 0.5, 0.0],
+    },
+]
+
+
+def test_presets_apply_exactly_as_the_render_command_applies_them(folder):
+    import json
+
+    from apmgsrn.render import make_transfer_function
+
+    path = folder / "uneven.json"
+    path.write_text(json.dumps(UNEVEN_PRESETS), encoding="utf-8")
+    session, _ = _session(folder)
+    keys = session.add_presets(path, "uneven.json")
+    session.open_now("a_blob.npy")
+    for key, preset in zip(keys, UNEVEN_PRESETS):
+        session.set_colormap(key)
+        low, high = session.settings.value_range
+        viewer = session.transfer_function()
+        # What 'apmgsrn render --colormap uneven.json --preset-name NAME' draws over the same range.
+        render = make_transfer_function(str(path), (low, high), preset_name=preset["Name"])
+        assert viewer.color_map.points == render.color_map.points
+        assert viewer.color_map.color_space == render.color_map.color_space
+        assert viewer.opacity_map.points == render.opacity_map.points  # positions, midpoints and sharpness
+        np.testing.assert_array_equal(viewer.table(256).opacity.numpy(), render.table(256).opacity.numpy())
+        np.testing.assert_array_equal(viewer.table(256).colors.numpy(), render.table(256).colors.numpy())
 
 
 def test_overlay_draws_grid_boxes_of_a_model_and_can_be_removed(folder):

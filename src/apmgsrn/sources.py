@@ -203,7 +203,8 @@ def _load_model(path: Path, name: str, device: torch.device, step: int | None = 
                               device, text, grid_boxes, brick_boxes, series=field, step_labels=labels)
         return source.at_step(step or 0)
     if step is not None:
-        raise ApmgsrnError(f"{path}: holds one volume; --time picks a step of a time-series model only")
+        raise ApmgsrnError(f"{path}: holds one volume; time= picks a step of a time-series model only",
+                           arguments=("time",))
     if description.bricks is not None:
         counts = description.bricks.counts  # (I, J, K) along x, y, z
         per_brick = []

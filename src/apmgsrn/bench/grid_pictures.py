@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from apmgsrn.arguments import check_int, check_optional_int
+from apmgsrn.atomic import atomic_write, atomic_write_text
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.inference.evaluate import check_volume_shape
 from apmgsrn.inference.slabs import SLAB_VOXELS
@@ -130,7 +132,7 @@ def grid_picture(
     if title:
         figure.suptitle(title)
     if path is not None:
-        figure.savefig(path)
+        atomic_write(path, figure.savefig, "picture")
     return figure
 
 
@@ -184,7 +186,7 @@ def write_grid_vtk(
     lines += ["12"] * m  # VTK_HEXAHEDRON
     lines += [f"CELL_DATA {m}", "SCALARS grid int 1", "LOOKUP_TABLE default"]
     lines += [str(i) for i in range(m)]
-    Path(path).write_text("\n".join(lines) + "\n")
+    atomic_write_text(path, "\n".join(lines) + "\n", "VTK file")
 
 
 @dataclass(frozen=True)
@@ -217,8 +219,11 @@ def record_grid_history(
         log: receives a line when training starts.
 
     Raises:
-        ApmgsrnError: the file holds no training record, or the volume has another shape.
+        ApmgsrnError: the file holds no training record, the volume has another shape, or ``every`` or
+            ``iterations`` is not a positive integer.
     """
+    check_int("every", every, 1)
+    check_optional_int("iterations", iterations, 1)
     field = model.field
     require_grids(field)
     recorded = model.description.training.get("config")
@@ -250,7 +255,7 @@ class GridRecorder(TrainingCallback):
     """
 
     def __init__(self, every: int):
-        self.every = every
+        self.every = check_int("every", every, 1)
         self.history = GridHistory([], [])
 
     def _record(self, trainer: Trainer, iteration: int) -> None:
@@ -295,5 +300,6 @@ def write_grid_animation(
         frames.append(Image.fromarray(rgba[..., :3].copy()).quantize(colors=128))
     durations = [frame_ms] * len(frames)
     durations[-1] = 3 * frame_ms
-    frames[0].save(path, save_all=True, append_images=frames[1:], duration=durations, loop=0)
+    atomic_write(path, lambda temp: frames[0].save(temp, save_all=True, append_images=frames[1:],
+                                                   duration=durations, loop=0), "animation")
     return len(frames)

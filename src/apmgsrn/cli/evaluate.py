@@ -6,7 +6,16 @@ import argparse
 import json
 import math
 
-from apmgsrn.cli.common import add_data_arguments, add_device_argument, format_bytes, open_data, percent_of_range
+import apmgsrn
+from apmgsrn.cli.common import (
+    add_data_arguments,
+    add_device_argument,
+    compression_figures,
+    compression_text,
+    format_bytes,
+    open_data,
+    percent_of_range,
+)
 
 
 def register(subparsers) -> None:
@@ -23,7 +32,6 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import apmgsrn
     from apmgsrn.device import resolve_device
     from apmgsrn.inference.evaluate import evaluate
 
@@ -38,10 +46,9 @@ def run(args: argparse.Namespace) -> int:
     volume = open_data(args, single_input(args))
     result = evaluate(model.field, volume, trained_shape=model.description.volume_shape, progress=True,
                       batch_size=args.batch_size)
-    raw_bytes = volume.raw_bytes
     model_bytes = model.description.file_bytes
-    figures = {**result.to_dict(), "model_bytes": model_bytes, "raw_bytes": raw_bytes,
-               "compression_ratio": raw_bytes / model_bytes}
+    compression = compression_figures(math.prod(volume.shape), str(volume.dtype), volume.dtype.itemsize, model_bytes)
+    figures = {**result.to_dict(), "model_bytes": model_bytes, **compression}
     if args.json:
         finite = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in figures.items()}
         print(json.dumps(finite))
@@ -52,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"MSE               {result.mse:.6g}")
     print(f"value range       [{result.data_min:.6g}, {result.data_max:.6g}]")
     print(f"model size        {format_bytes(model_bytes)} ({model_bytes:,} bytes)")
-    print(f"raw float32 size  {format_bytes(raw_bytes)}")
-    print(f"compression ratio {figures['compression_ratio']:.1f}x")
+    print(f"data size         {format_bytes(volume.stored_bytes)} as stored ({volume.dtype}), "
+          f"{format_bytes(compression['float32_bytes'])} as float32")
+    print(f"compression ratio {compression_text(compression)}")
     return 0

@@ -3,15 +3,30 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import math
+
+import apmgsrn
+from apmgsrn.atomic import atomic_write
+from apmgsrn.cli.common import compression_figures, compression_text, format_bytes
+from apmgsrn.cli.paths import CommandPaths, Output
+from apmgsrn.errors import ApmgsrnError
 
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser("info", help="describe a model file")
     parser.add_argument("model", help="model file")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
-    parser.add_argument("--plot", metavar="FILE.png", help="also draw the training curves to this image")
-    parser.set_defaults(func=run)
+    parser.add_argument("--plot", metavar="FILE.png",
+                        help="also draw the training curves to this image (a file of that name is replaced, "
+                             "unless it is an apmgsrn model)")
+    parser.set_defaults(func=run, paths=paths)
+
+
+def paths(args: argparse.Namespace) -> CommandPaths:
+    writes = [Output(args.plot, "--plot", "plot")] if args.plot else []
+    return CommandPaths(reads=[args.model], writes=writes)
 
 
 def plot_training_curves(training: dict, out: str) -> None:
@@ -20,9 +35,6 @@ def plot_training_curves(training: dict, out: str) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from apmgsrn.errors import ApmgsrnError
-    from apmgsrn.io import atomic_write
 
     history = training.get("history") or {}
     if not history.get("iteration"):
@@ -55,8 +67,6 @@ def describe_field(field, description) -> dict:
         field: the :class:`~apmgsrn.models.field.NeuralField`.
         description: its file's :class:`~apmgsrn.io.ModelDescription`.
     """
-    import dataclasses
-
     config = description.config  # the spatial network (of every step, for a time-series model)
     info = {
         "model": config.model,
@@ -69,6 +79,7 @@ def describe_field(field, description) -> dict:
         "value_range": list(description.value_range),
         "transform": dataclasses.asdict(field.transform),
         "source": description.source.to_dict(),
+        **_compression(description),
     }
     training = dict(description.training)
     history = training.pop("history", None)
@@ -90,9 +101,13 @@ def describe_field(field, description) -> dict:
     return info
 
 
+def _compression(description) -> dict:
+    """Compression figures of the file against its training volume (stored dtype when the file records it)."""
+    return compression_figures(math.prod(description.volume_shape), description.source.dtype,
+                               description.source.itemsize, description.file_bytes)
+
+
 def run(args: argparse.Namespace) -> int:
-    import apmgsrn
-    from apmgsrn.cli.common import format_bytes
 
     model = apmgsrn.load(args.model)
     if model.description.bricks is not None:
@@ -119,6 +134,8 @@ def run(args: argparse.Namespace) -> int:
     x, y, z = info["volume_shape_xyz"]
     print(f"volume          {x}x{y}x{z} (x*y*z) from {info['source'].get('description') or '?'}")
     print(f"value range     [{info['value_range'][0]:.6g}, {info['value_range'][1]:.6g}], transform {info['transform']['kind']}")
+    _print_source_metadata(model.description)
+    print(f"compression     {compression_text(info)}")
     if t:
         print(f"training        {t.get('iterations')} iterations x {t.get('batch_size')} points, "
               f"{t.get('seconds')} s on {t.get('device')}, PSNR {t.get('psnr', float('nan')):.2f} dB")
@@ -139,6 +156,24 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _print_source_metadata(description) -> None:
+    """The variable's units and the coordinates of its axes, as the input had them (what decode writes back)."""
+    source = description.source
+    metadata = source.metadata
+    if metadata.units is not None:
+        print(f"variable        {source.variable or 'value'} in {metadata.units}")
+    if metadata.coordinates is None:
+        return
+    parts = []
+    for axis in (2, 1, 0):
+        coordinates = metadata.axis(axis)
+        first, last = coordinates.at([0.0, description.volume_shape[axis] - 1.0])
+        units = coordinates.attributes.get("units")
+        spacing = "even" if coordinates.even else "uneven"
+        parts.append(f"{coordinates.name} {first:.6g}..{last:.6g}{f' {units}' if units else ''} ({spacing})")
+    print(f"coordinates     {', '.join(parts)}")
+
+
 def describe_bricks(model) -> dict:
     """A JSON-able description of a brick model (an :class:`apmgsrn.Model` of kind ``bricks``): grid, ghost
     cells, blend and per-brick figures."""
@@ -157,6 +192,7 @@ def describe_bricks(model) -> dict:
         "volume_shape_xyz": list(reversed(description.volume_shape)),
         "value_range": list(description.value_range),
         "source": description.source.to_dict(),
+        **_compression(description),
         "training": description.training,
         "per_brick": [],
     }
@@ -173,8 +209,6 @@ def describe_bricks(model) -> dict:
 
 
 def _run_bricks(args: argparse.Namespace, model) -> int:
-    from apmgsrn.cli.common import format_bytes
-
     info = describe_bricks(model)
     series = None
     if model.description.series is not None:
@@ -199,6 +233,8 @@ def _run_bricks(args: argparse.Namespace, model) -> int:
     x, y, z = info["volume_shape_xyz"]
     print(f"volume          {x}x{y}x{z} (x*y*z) from {info['source'].get('description') or '?'}")
     print(f"value range     [{info['value_range'][0]:.6g}, {info['value_range'][1]:.6g}]")
+    _print_source_metadata(model.description)
+    print(f"compression     {compression_text(info)}")
     t = info["training"] or {}
     if t:
         print(f"last run        {t.get('last_run_trained')} brick(s) in {t.get('last_run_seconds')} s on "

@@ -8,7 +8,9 @@ import math
 import time
 from pathlib import Path
 
+from apmgsrn.choices import PRESET_UNITS
 from apmgsrn.cli.common import add_data_arguments, add_device_argument
+from apmgsrn.cli.paths import CommandPaths, Output
 from apmgsrn.errors import ApmgsrnError
 
 
@@ -23,7 +25,9 @@ def register(subparsers) -> None:
         ),
     )
     parser.add_argument("input", metavar="MODEL_OR_DATA", help="model file or volume file")
-    parser.add_argument("--out", required=True, help="image (.png) or, with --frames, animation (.gif, .mp4)")
+    parser.add_argument("--out", required=True,
+                        help="image (.png) or, with --frames, animation (.gif, .mp4); a file of that name is "
+                             "replaced once the image is complete, unless it is an input or an apmgsrn model")
     view = parser.add_argument_group("camera")
     view.add_argument("--width", type=int, default=512, help="image width in pixels (default 512)")
     view.add_argument("--height", type=int, default=512, help="image height in pixels (default 512)")
@@ -38,7 +42,7 @@ def register(subparsers) -> None:
                     help="built-in name (Cool to Warm, viridis, plasma, coolwarm, grayscale, jet, ... any "
                          "matplotlib name) or a ParaView preset .json/.xml file (default: Cool to Warm)")
     tf.add_argument("--preset-name", help="which preset of a file holding several (default: the first)")
-    tf.add_argument("--preset-units", choices=["normalized", "data"], default="normalized",
+    tf.add_argument("--preset-units", choices=PRESET_UNITS, default="normalized",
                     help="normalized: stretch the preset over the range, as ParaView applies presets "
                          "(default); data: keep its node positions, e.g. a transfer function saved from a session")
     tf.add_argument("--opacity", metavar="X0,A0,X1,A1,...",
@@ -71,7 +75,27 @@ def register(subparsers) -> None:
     add_data_arguments(parser)
     add_device_argument(parser)
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
-    parser.set_defaults(func=run)
+    parser.set_defaults(func=run, paths=paths)
+
+
+def paths(args: argparse.Namespace) -> CommandPaths:
+    """Reads the model or volume, the --compare volume and a preset file; writes the image (and error
+    image), animation and --save-tf preset."""
+    reads = [args.input, args.compare]
+    if Path(args.colormap).suffix.lower() in (".json", ".xml"):
+        reads.append(args.colormap)
+    writes = [Output(args.out, "--out", "image")]
+    if args.compare:
+        writes.append(Output(error_image_path(args), "--error-out", "error image"))
+    if args.save_tf:
+        writes.append(Output(args.save_tf, "--save-tf", "transfer function"))
+    return CommandPaths(reads=reads, writes=writes)
+
+
+def error_image_path(args: argparse.Namespace) -> Path:
+    """``--error-out``, else ``OUT_error.png`` beside ``--out``."""
+    out = Path(args.out)
+    return Path(args.error_out) if args.error_out else out.with_name(out.stem + "_error.png")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -86,7 +110,6 @@ def run(args: argparse.Namespace) -> int:
 
     from apmgsrn.cli.series import render_steps
 
-    _check_numbers(args)
     out = Path(args.out)
     volume, first_step, time_steps = render_steps(args)
     if time_steps and args.frames is not None:
@@ -179,7 +202,7 @@ def run(args: argparse.Namespace) -> int:
     psnr = image_psnr(result.image, reference)
     ssim = image_ssim(result.image, reference) if min(args.width, args.height) >= 11 else float("nan")
     save_image(side_by_side(result.image, reference), out)
-    error_path = Path(args.error_out) if args.error_out else out.with_name(out.stem + "_error.png")
+    error_path = error_image_path(args)
     error, scale = error_image(result.image, reference)
     save_image(error, error_path)
     report.update(compare=args.compare, psnr=psnr, ssim=ssim, error_image=str(error_path), error_scale=scale)
@@ -198,22 +221,6 @@ def _finish(args: argparse.Namespace, report: dict, text: str) -> int:
     else:
         print(text)
     return 0
-
-
-def _check_numbers(args: argparse.Namespace) -> None:
-    for name in ("width", "height", "spp", "reference_samples", "macro_cells"):
-        if getattr(args, name) < 1:
-            raise ApmgsrnError(f"--{name.replace('_', '-')} must be a positive integer")
-    if args.batch_size is not None and args.batch_size < 16:
-        raise ApmgsrnError("--batch-size must be at least 16")
-    if not 0.0 <= args.early_termination < 1.0:
-        raise ApmgsrnError("--early-termination must be in [0, 1)")
-    if not 0.0 < args.fov < 180.0:
-        raise ApmgsrnError("--fov must be between 0 and 180 degrees")
-    if args.distance is not None and args.distance <= 0:
-        raise ApmgsrnError("--distance must be positive")
-    if args.fps <= 0:
-        raise ApmgsrnError("--fps must be positive")
 
 
 def _floats(text: str, option: str) -> list[float]:

@@ -22,21 +22,22 @@ STEP_FIELD = "{step}"
 
 def add_series_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``train`` on a time series (the model and training options apply as for one volume)."""
-    from apmgsrn.models.series_options import COEFFICIENT_KINDS, SERIES_DEFAULTS, STORAGE_KINDS
+    from apmgsrn.choices import SERIES_COEFFICIENTS, SERIES_STORAGE
+    from apmgsrn.models.series_options import SERIES_DEFAULTS
 
     group = parser.add_argument_group(
         "time series (DATA: several files, a quoted glob such as 'run/*.vti', a .pvd, or --time all|A:B[:S])"
     )
     group.add_argument("--basis", type=int, metavar="K",
                        help=f"basis grids shared by the steps (default {SERIES_DEFAULTS['basis']}, at most the steps)")
-    group.add_argument("--coefficients", choices=COEFFICIENT_KINDS,
+    group.add_argument("--coefficients", choices=SERIES_COEFFICIENTS,
                        help="learned: every step mixes the basis its own way (default); keyframes: linear "
                             "interpolation in time between K evenly spaced keyframes")
     group.add_argument("--residual", type=int, metavar="R",
                        help=f"per-step residual grids of R^3 nodes (0: none; default {SERIES_DEFAULTS['residual']})")
     group.add_argument("--steps-per-iteration", type=int, metavar="G",
                        help="steps each iteration's points are spread over (default 4)")
-    group.add_argument("--storage", choices=STORAGE_KINDS,
+    group.add_argument("--storage", choices=SERIES_STORAGE,
                        help=f"dtype the feature grids are stored in (default {SERIES_DEFAULTS['storage']})")
 
 
@@ -135,6 +136,8 @@ def build_series_config(args: argparse.Namespace, field_config, steps: int):
 
     try:
         return series_config(field_config, steps, args.basis, args.coefficients, args.residual, args.storage)
+    except ApmgsrnError:
+        raise  # names the option already (translated by the command line)
     except ValueError as exc:
         raise ApmgsrnError(f"invalid time-series options: {exc}") from None
 
@@ -218,31 +221,51 @@ def selected_steps(model, time) -> list[int]:
     return [model_step(model, time)]
 
 
-def run_series_decode(args: argparse.Namespace, model, shape: tuple[int, int, int]) -> int:
-    """``apmgsrn decode`` of a time-series model: one step, one file per step, or one file with a time axis."""
-    from apmgsrn.inference.decode import decode_series, decode_volume
+def run_series_decode(args: argparse.Namespace, model, shape, region) -> int:
+    """``apmgsrn decode`` of several steps of a time-series model: one file per step (``--out`` holds
+    ``{step}``), or one file with a time axis.
+
+    Args:
+        args: the command line.
+        model: the opened :class:`apmgsrn.Model`.
+        shape: ``(D, H, W)`` samples, or None (the training volume's spacing over the region).
+        region: the box to decode, or None (all of it).
+    """
+    from apmgsrn.cli.paths import CommandPaths, Output, check_paths
+    from apmgsrn.inference.decode import decode_series
 
     layout = model.description.series
     indices = selected_steps(model, args.time)
     out = str(args.out)
-    attributes = {"source_model": Path(args.model).name}
-    if len(indices) == 1 and STEP_FIELD not in out:
-        index = indices[0]
-        decode_volume(model.field.step_field(index), Path(out), shape, batch_size=args.batch_size, progress=True,
-                      attributes={**attributes, "time_step": index, "step_number": layout.steps[index].label})
-        print(f"wrote {out} (step {index}, {shape[2]}x{shape[1]}x{shape[0]} x*y*z, float32)")
-        return 0
+    plan = model.plan_decode(shape=shape, region=region, time=indices[0])
+    d, h, w = plan.shape
     if STEP_FIELD in out:
-        for index in indices:
-            path = Path(out.replace(STEP_FIELD, f"{index:0{len(str(len(layout.steps) - 1))}d}"))
-            decode_volume(model.field.step_field(index), path, shape, batch_size=args.batch_size, progress=True,
-                          attributes={**attributes, "time_step": index, "step_number": layout.steps[index].label})
-        print(f"wrote {len(indices)} files {out} ({shape[2]}x{shape[1]}x{shape[0]} x*y*z each, float32)")
+        width = len(str(len(layout.steps) - 1))
+        targets = [Path(out.replace(STEP_FIELD, f"{index:0{width}d}")) for index in indices]
+    else:
+        targets = [Path(out)]
+    # The step files are known only now: each gets the checks --out had (never onto the model or a model).
+    check_paths(CommandPaths(reads=[args.model], writes=[Output(t, "--out", "decoded volume") for t in targets]))
+    report = {"out": [str(t) for t in targets], "written": not args.dry_run, "steps": indices,
+              "shape_xyz": [w, h, d], "variable": plan.variable, "time_steps": len(layout.steps)}
+    if not args.dry_run and STEP_FIELD in out:
+        for index, target in zip(indices, targets):
+            model.save_decoded(target, shape=shape, region=region, time=index, batch_size=args.batch_size,
+                               progress=not args.json)
+    elif not args.dry_run:
+        options = plan.writer_options()
+        options["attributes"] = {"source_model": Path(args.model).name}
+        decode_series(model.step_field, targets[0], plan.shape, indices,
+                      time_values=[layout.steps[i].label for i in indices], batch_size=args.batch_size,
+                      progress=not args.json, box=plan.grid.box(), **options)
+    if args.json:
+        print(json.dumps(report))
         return 0
-    decode_series(model.field.step_field, Path(out), shape, indices,
-                  time_values=[layout.steps[i].label for i in indices], batch_size=args.batch_size, progress=True,
-                  attributes=attributes)
-    print(f"wrote {out} ({len(indices)} steps x {shape[2]}x{shape[1]}x{shape[0]} x*y*z, float32, time first)")
+    verb = "would write" if args.dry_run else "wrote"
+    if len(targets) > 1:
+        print(f"{verb} {len(indices)} files {out} ({w}x{h}x{d} x*y*z each, float32, variable {plan.variable})")
+    else:
+        print(f"{verb} {out} ({len(indices)} steps x {w}x{h}x{d} x*y*z, float32, time first)")
     return 0
 
 

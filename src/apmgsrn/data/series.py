@@ -55,11 +55,13 @@ class TimeSelection:
         for bound in (self.start, self.stop):
             if bound is not None and not -length <= bound <= length:
                 raise ApmgsrnError(
-                    f"{where}: --time {self} reaches past the time dimension of {length} steps; use indices 0..{length}"
+                    f"{where}: time={self} reaches past the time dimension of {length} steps; use indices 0..{length}",
+                    arguments=("time",),
                 )
         selected = range(length)[slice(self.start, self.stop, self.step)]
         if len(selected) == 0:
-            raise ApmgsrnError(f"{where}: --time {self} selects no step of the {length}; e.g. --time all")
+            raise ApmgsrnError(f"{where}: time={self} selects no step of the {length}; e.g. time=all",
+                               arguments=("time",))
         return selected
 
     def __str__(self) -> str:
@@ -92,7 +94,8 @@ def parse_time(text: str) -> int | TimeSelection:
         step = int(parts[2]) if len(parts) == 3 and parts[2] else 1
         if step > 0:
             return TimeSelection(start, stop, step)
-    raise ApmgsrnError(f"--time {text!r}: give an index (e.g. 3), 'all', or a range A:B[:S] such as 0:30:2")
+    raise ApmgsrnError(f"time={text!r}: give an index (e.g. 3), 'all', or a range A:B[:S] such as 0:30:2",
+                       arguments=("time",))
 
 
 @dataclass(frozen=True)
@@ -268,23 +271,38 @@ def open_series(
     options = {"variable": variable, "shape": shape, "dtype": dtype, "fill_nonfinite": fill_nonfinite}
     if len(paths) == 1 and Path(paths[0]).suffix.lower() == ".pvd":
         if time is not None:
-            raise ApmgsrnError(f"{paths[0]}: --time does not apply to a .pvd collection; drop --time")
+            raise ApmgsrnError(f"{paths[0]}: time= does not apply to a .pvd collection; drop time=",
+                               arguments=("time",))
         steps, labels = _pvd_steps(Path(paths[0]))
         return VolumeSeries(steps, labels, options)
     if len(paths) == 1 and not is_series_input(paths):
         return _time_axis_series(Path(paths[0]), time, options)
     if time is not None:
-        raise ApmgsrnError("--time applies to one file with a time dimension, not to a list of files; drop --time")
+        raise ApmgsrnError("time= applies to one file with a time dimension, not to a list of files; drop time=",
+                           arguments=("time",))
     files = _expand(paths)
     numbered = order_by_step_number(files)
     return VolumeSeries([SeriesStep(path) for _, path in numbered], [number for number, _ in numbered], options)
 
 
+def input_files(inputs: str | Path | Sequence[str | Path]) -> list[Path]:
+    """Every file a series input reads (a ``.pvd`` and the files it lists; the files a glob matches), so that a
+    command can refuse to write onto any of them.
+
+    Raises:
+        ApmgsrnError: a pattern that matches nothing, a missing file, or a damaged ``.pvd``.
+    """
+    paths = [inputs] if isinstance(inputs, (str, Path)) else list(inputs)
+    if len(paths) == 1 and Path(paths[0]).suffix.lower() == ".pvd":
+        return [Path(paths[0]), *(step.path for step in _pvd_steps(Path(paths[0]))[0])]
+    return _expand(paths)
+
+
 def _time_axis_series(path: Path, time: int | TimeSelection | None, options: dict) -> VolumeSeries:
     if not isinstance(time, TimeSelection):
         raise ApmgsrnError(
-            f"{path}: one file is a series only along its time dimension; pass --time all (or A:B[:S]), "
-            "or give several files"
+            f"{path}: one file is a series only along its time dimension; pass time=all (or A:B[:S]), "
+            "or give several files", arguments=("time",)
         )
     with open_volume(path, time=0, **options) as first:
         length = first.time_steps

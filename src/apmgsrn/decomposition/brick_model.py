@@ -108,8 +108,7 @@ def load_bricks(directory: Path, device: torch.device) -> LoadedBricks:
         else:
             state = "every brick file is there, but the run ended before it finished the manifest"
         raise ApmgsrnError(
-            f"{directory}: brick model is unfinished ({state}); run the same 'apmgsrn train --bricks' command "
-            "again to finish it"
+            f"{directory}: brick model is unfinished ({state}); run the same brick training again to finish it"
         )
     layout = brick_layout(manifest)
     load = load_series if kind == SERIES_KIND else load_field
@@ -123,8 +122,7 @@ def load_bricks(directory: Path, device: torch.device) -> LoadedBricks:
         brick_path = directory / entry.file
         if brick_path.is_symlink() or not brick_path.is_file():
             raise ApmgsrnError(
-                f"{brick_path}: brick model file is missing; run the 'apmgsrn train --bricks' command again to "
-                "re-train it"
+                f"{brick_path}: brick model file is missing; run the same brick training again to re-train it"
             )
         field, description = load(brick_path, device)
         trained_as = description.training.get("brick")

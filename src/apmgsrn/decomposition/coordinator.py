@@ -16,6 +16,8 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TextIO
 
+from apmgsrn.data.fingerprint import series_fingerprint, volume_fingerprint
+from apmgsrn.data.series import VolumeSeries
 from apmgsrn.decomposition.brick_model import missing_bricks
 from apmgsrn.decomposition.brick_training import (
     BrickJob,
@@ -166,8 +168,9 @@ def training_settings(volume, plan: BrickPlan, field_config: FieldConfig, train_
 
 def stored_settings(manifest: dict) -> dict:
     """A manifest's settings as this version writes them: the field config read back through
-    :class:`~apmgsrn.models.registry.FieldConfig`, so run-time fields older versions stored (the kernel
-    backend) do not make an unfinished folder look like another run's."""
+    :class:`~apmgsrn.models.registry.FieldConfig` and the training config through
+    :class:`~apmgsrn.training.trainer.TrainConfig`, so run-time fields older versions stored (the kernel
+    backend) or lacked (options added since) do not make an unfinished folder look like another run's."""
     settings = dict(manifest.get("settings") or {})
     try:
         field = settings.get("field")
@@ -176,21 +179,27 @@ def stored_settings(manifest: dict) -> dict:
         else:
             field = FieldConfig.from_dict(field).to_dict()
         settings["field"] = as_json(field)
+        if isinstance(settings.get("training"), dict):  # options added since (steps_per_iteration): defaults
+            settings["training"] = as_json(asdict(TrainConfig(**settings["training"])))
     except (TypeError, ValueError):
         pass  # not a config this version reads: the comparison reports it as differing
     return settings
 
 
-def _prepare_directory(out: Path, settings: dict) -> dict | None:
-    """Create the model folder, or check that an existing one belongs to the same run.
+def _prepare_directory(out: Path, settings: dict, data: dict) -> dict | None:
+    """Create the model folder, or check that an existing one belongs to the same run on the same data
+    (``data``: :func:`~apmgsrn.data.fingerprint.volume_fingerprint`; folders written before it was recorded
+    are finished without that check).
 
     Returns:
         The existing manifest, or None for a new folder.
     """
     if out.exists() and not out.is_dir():
-        raise ApmgsrnError(f"{out}: exists and is a file; a brick model is a folder: choose another --out")
+        raise ApmgsrnError(f"{out}: exists and is a file; a brick model is a folder: pass another out=",
+                           arguments=("out",))
     if not out.absolute().parent.is_dir():
-        raise ApmgsrnError(f"{out}: output folder {out.parent} does not exist; create it or choose another --out")
+        raise ApmgsrnError(f"{out}: output folder {out.parent} does not exist; create it or pass another out=",
+                           arguments=("out",))
     if out.is_dir():
         if manifest_path(out).exists():
             manifest = read_manifest(out)
@@ -199,16 +208,25 @@ def _prepare_directory(out: Path, settings: dict) -> dict | None:
                 differs = sorted(k for k in set(settings) | set(stored) if settings.get(k) != stored.get(k))
                 raise ApmgsrnError(
                     f"{out}: holds a brick model made with other settings ({', '.join(differs)} differ); "
-                    "rerun with the same options to finish it, or choose another --out"
+                    "rerun with the same options to finish it, or pass another out=", arguments=("out",),
+                )
+            stored_data = manifest.get("data")
+            if stored_data is not None and stored_data != data:
+                differs = sorted(k for k in set(data) | set(stored_data) if data.get(k) != stored_data.get(k))
+                raise ApmgsrnError(
+                    f"{out}: holds a brick model of other data ({', '.join(differs)} differ); rerun on the same "
+                    "data file to finish it, or pass another out=", arguments=("out",),
                 )
             return manifest
         if any(out.iterdir()):
-            raise ApmgsrnError(f"{out}: folder is not empty and holds no brick model; choose a new or empty --out")
+            raise ApmgsrnError(f"{out}: folder is not empty and holds no brick model; pass a new or empty folder "
+                               "as out=", arguments=("out",))
         return None
     try:
         out.mkdir()
     except OSError as exc:
-        raise ApmgsrnError(f"{out}: cannot create the model folder ({exc.strerror}); choose another --out") from None
+        raise ApmgsrnError(f"{out}: cannot create the model folder ({exc.strerror}); pass another out=",
+                           arguments=("out",)) from None
     return None
 
 
@@ -283,9 +301,11 @@ def open_brick_run(volume, decomposition: DecompositionConfig, field_config, tra
     source = SourceInfo.of_volume(volume)
     train_config = brick_policy(train_config)
     settings = training_settings(volume, plan, field_config, train_config, transform, log_offset)
-    manifest = _prepare_directory(out, settings) or new_manifest(
+    data = as_json(series_fingerprint(volume) if isinstance(volume, VolumeSeries) else volume_fingerprint(volume))
+    manifest = _prepare_directory(out, settings, data) or new_manifest(
         plan.volume_shape, plan.counts, plan.config.ghost_cells, decomposition.blend, plan.bricks, settings, source
     )
+    manifest["data"] = data
     manifest["blend"] = decomposition.blend
     manifest["complete"] = False
     if isinstance(field_config, SeriesFieldConfig):
@@ -305,7 +325,7 @@ def open_brick_run(volume, decomposition: DecompositionConfig, field_config, tra
             log_offset=log_offset,
             device=device,
             threads=threads,
-            source=source,
+            source=source.crop(brick.start, brick.stop),  # the brick file describes its own voxels
             psnr_voxels=psnr_voxels,
         )
         for brick in todo

@@ -22,7 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from apmgsrn.errors import ApmgsrnError
+from apmgsrn.arguments import check_int, check_optional_int
+from apmgsrn.errors import ApmgsrnError, InvalidArgument
 
 #: Local CPU workers when ``--workers`` is not given (at most; never more than the cores).
 DEFAULT_CPU_WORKERS = 4
@@ -61,10 +62,13 @@ class ExecutorConfig:
     dashboard: bool = False
 
     def __post_init__(self) -> None:
-        if self.workers is not None and self.workers < 1:
-            raise ValueError(f"workers must be >= 1, got {self.workers}")
-        if self.retries < 0:
-            raise ValueError(f"retries must be >= 0, got {self.retries}")
+        check_optional_int("workers", self.workers, 1)
+        check_int("retries", self.retries, 0)
+        if self.scheduler is not None and self.workers is not None:
+            raise InvalidArgument(
+                f"workers={self.workers} starts local workers, but with scheduler={self.scheduler!r} the "
+                "cluster's workers are used: drop one", arguments=("workers", "scheduler"),
+            )
 
 
 def visible_gpus() -> list[str]:
@@ -245,7 +249,8 @@ def open_job_queue(config: ExecutorConfig) -> JobQueue:
     except ImportError:
         if config.scheduler:
             raise ApmgsrnError(
-                f"--scheduler {config.scheduler}: Dask is not installed; run `pip install apmgsrn[distributed]`"
+                f"scheduler={config.scheduler!r}: Dask is not installed; run `pip install apmgsrn[distributed]`",
+                arguments=("scheduler",),
             ) from None
         return LocalJobQueue(config.workers or 1, config.retries)
     if config.scheduler:
@@ -269,7 +274,8 @@ def _join_cluster(config: ExecutorConfig) -> DaskJobQueue:
                 )
             client = Client(scheduler_file=str(path), timeout="30s")
     except (OSError, TimeoutError) as exc:
-        raise ApmgsrnError(f"--scheduler {target}: cannot reach the Dask scheduler ({exc}); check that it runs") from None
+        raise ApmgsrnError(f"scheduler={target!r}: cannot reach the Dask scheduler ({exc}); check that it runs",
+                           arguments=("scheduler",)) from None
     return DaskJobQueue(client, config.retries, owned=(client,))
 
 

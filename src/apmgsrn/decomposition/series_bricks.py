@@ -132,19 +132,22 @@ def train_series_bricks(
 def _prepare_folder(out: Path, settings: dict) -> dict | None:
     """Create the model folder, or check that an existing one belongs to the same run."""
     if out.exists() and not out.is_dir():
-        raise ApmgsrnError(f"{out}: exists and is a file; a brick model is a folder: choose another --out")
+        raise ApmgsrnError(f"{out}: exists and is a file; a brick model is a folder: pass another out=",
+                           arguments=("out",))
     if not out.absolute().parent.is_dir():
-        raise ApmgsrnError(f"{out}: output folder {out.parent} does not exist; create it or choose another --out")
+        raise ApmgsrnError(f"{out}: output folder {out.parent} does not exist; create it or pass another out=",
+                           arguments=("out",))
     if out.is_dir() and series_manifest_path(out).exists():
         manifest = read_series_manifest(out)
         if manifest.get("settings") != settings:
             differs = sorted(k for k in set(settings) | set(manifest["settings"])
                              if settings.get(k) != manifest["settings"].get(k))
             raise ApmgsrnError(f"{out}: holds a time-series brick model made with other settings ({', '.join(differs)} "
-                               "differ); rerun with the same options to finish it, or choose another --out")
+                               "differ); rerun with the same options to finish it, or pass another out=", arguments=("out",))
         return manifest
     if out.is_dir() and any(out.iterdir()):
-        raise ApmgsrnError(f"{out}: folder is not empty and holds no brick model; choose a new or empty --out")
+        raise ApmgsrnError(f"{out}: folder is not empty and holds no brick model; pass a new or empty out=",
+                           arguments=("out",))
     out.mkdir(exist_ok=True)
     return None
 
@@ -220,8 +223,8 @@ def load_series_bricks(path: Path, device: torch.device):
     directory = Path(path)
     manifest = read_series_manifest(directory)
     if not manifest["complete"]:
-        raise ApmgsrnError(f"{directory}: time-series brick model is unfinished; run the same 'apmgsrn train "
-                           "--bricks' command again to finish it")
+        raise ApmgsrnError(f"{directory}: time-series brick model is unfinished; run the same brick training "
+                           "again to finish it")
     groups, loaded = [], []
     for steps, folder in manifest_groups(manifest):
         bricks = load_bricks(directory / folder, device)

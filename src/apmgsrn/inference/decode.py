@@ -1,5 +1,5 @@
-"""Reconstruct a whole volume (or the steps of a time-series model) from a field, slab by slab, at its own or
-another resolution."""
+"""Reconstruct a volume (or the steps of a time-series model) from a field, slab by slab, at its own or another
+resolution, whole or a region."""
 
 from __future__ import annotations
 
@@ -12,10 +12,14 @@ from apmgsrn.data.writers import VolumeWriter
 from apmgsrn.inference.slabs import QUERY_BATCH, SLAB_VOXELS, field_slabs
 from apmgsrn.progress import Progress
 
+#: A box in the field's ``[-1, 1]^3``, ``((x0, x1), (y0, y1), (z0, z1))``.
+Box = tuple[tuple[float, float], tuple[float, float], tuple[float, float]]
+
 
 def decode_volume(field, out: Path, shape: tuple[int, int, int], batch_size: int = QUERY_BATCH,
-                  slab_voxels: int = SLAB_VOXELS, progress: bool = False, attributes: dict | None = None) -> None:
-    """Write the field sampled on a corner-aligned ``(D, H, W)`` grid to ``out`` (.nc, .raw or .npy).
+                  slab_voxels: int = SLAB_VOXELS, progress: bool = False, box: Box | None = None,
+                  **writer_options) -> None:
+    """Write the field sampled on a corner-aligned ``(D, H, W)`` lattice to ``out`` (.nc, .vti, .raw, .npy).
 
     Only one z-slab of the output is in memory at a time; the file appears atomically when complete.
 
@@ -26,16 +30,18 @@ def decode_volume(field, out: Path, shape: tuple[int, int, int], batch_size: int
         batch_size: points per forward pass.
         slab_voxels: voxels per slab.
         progress: show progress (see :mod:`apmgsrn.progress`).
-        attributes: global attributes of a NetCDF output.
+        box: the lattice spans this box of ``[-1, 1]^3`` (default: all of it).
+        writer_options: keyword arguments of :class:`~apmgsrn.data.writers.VolumeWriter` (``variable``,
+            ``attributes``, ``variable_attributes``, ``axes``, ``compression``).
     """
-    with VolumeWriter(out, shape, attributes=attributes) as writer, \
+    with VolumeWriter(out, shape, **writer_options) as writer, \
             Progress(math.prod(shape), unit="voxel", description="decode", enabled=progress) as shown:
-        _write_field(writer, field, shape, None, shown, batch_size, slab_voxels)
+        _write_field(writer, field, shape, None, shown, batch_size, slab_voxels, box)
 
 
 def decode_series(step_field, out: Path, shape: tuple[int, int, int], indices, time_values=None,
                   batch_size: int = QUERY_BATCH, slab_voxels: int = SLAB_VOXELS, progress: bool = False,
-                  attributes: dict | None = None) -> None:
+                  box: Box | None = None, **writer_options) -> None:
     """Write several steps of a time-series model to one file with a leading time dimension.
 
     One step's field is materialised at a time and written slab by slab; the file appears atomically when
@@ -50,27 +56,29 @@ def decode_series(step_field, out: Path, shape: tuple[int, int, int], indices, t
         batch_size: points per forward pass.
         slab_voxels: voxels per slab.
         progress: show progress (see :mod:`apmgsrn.progress`).
-        attributes: global attributes of a NetCDF output.
+        box: the lattice spans this box of ``[-1, 1]^3`` (default: all of it).
+        writer_options: as for :func:`decode_volume` (``variable``, ``attributes``, ``axes``...).
     """
     indices = list(indices)
-    with VolumeWriter(out, shape, attributes=attributes, steps=len(indices),
+    with VolumeWriter(out, shape, **writer_options, steps=len(indices),
                       time_values=indices if time_values is None else time_values) as writer, \
             Progress(len(indices) * math.prod(shape), unit="voxel", description="decode", enabled=progress) as shown:
         for position, index in enumerate(indices):
-            _write_field(writer, step_field(index), shape, position, shown, batch_size, slab_voxels)
+            _write_field(writer, step_field(index), shape, position, shown, batch_size, slab_voxels, box)
 
 
 def _write_field(writer: VolumeWriter, field, shape, step: int | None, shown: Progress, batch_size: int,
-                 slab_voxels: int) -> None:
-    for z, values in field_slabs(field, shape, slab_voxels, batch_size=batch_size):
+                 slab_voxels: int, box: Box | None = None) -> None:
+    for z, values in field_slabs(field, shape, slab_voxels, batch_size=batch_size, box=box):
         writer.write(z, values.numpy(), step=step)
         shown.update(values.numel())
 
 
 def decode_array(field, shape: tuple[int, int, int], batch_size: int = QUERY_BATCH,
-                 slab_voxels: int = SLAB_VOXELS) -> np.ndarray:
-    """The field sampled on a corner-aligned ``(D, H, W)`` grid, as one float32 array in memory."""
+                 slab_voxels: int = SLAB_VOXELS, box: Box | None = None) -> np.ndarray:
+    """The field sampled on a corner-aligned ``(D, H, W)`` lattice over ``box`` (default ``[-1, 1]^3``), as one
+    float32 array in memory."""
     decoded = np.empty(shape, dtype=np.float32)
-    for z, values in field_slabs(field, shape, slab_voxels, batch_size=batch_size):
+    for z, values in field_slabs(field, shape, slab_voxels, batch_size=batch_size, box=box):
         decoded[z] = values.numpy()
     return decoded

@@ -145,7 +145,7 @@ def evaluate(
             if not np.isfinite(block).all():
                 raise ApmgsrnError(
                     f"{where}: holds NaN or Inf voxels (z {z.start}:{z.stop}); "
-                    "pass --fill-nonfinite VALUE to replace them (e.g. --fill-nonfinite 0)"
+                    "pass fill_nonfinite=VALUE to replace them (e.g. fill_nonfinite=0)", arguments=("fill_nonfinite",),
                 )
             errors.add(predicted.numpy(), block[::stride, ::stride, ::stride])
             errors.add_range(block)

@@ -5,7 +5,7 @@ Layer: above :mod:`apmgsrn.models` (it builds fields from files), below :mod:`ap
 saves through it); it imports no training, decomposition, render or CLI code.
 """
 
-from apmgsrn.io.atomic import atomic_write, atomic_write_text, check_output_path
+from apmgsrn.atomic import atomic_write, atomic_write_text, check_output_path
 from apmgsrn.io.description import BrickEntry, BrickLayout, ModelDescription, SeriesLayout, SeriesStepInfo, SourceInfo
 from apmgsrn.io.field_file import load_field, save_field
 from apmgsrn.io.registry import LoadedModel, model_kind, open_model, register_loader

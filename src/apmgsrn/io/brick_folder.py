@@ -23,7 +23,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.io.atomic import atomic_write_text
+from apmgsrn.atomic import atomic_write_text
 from apmgsrn.io.container import FORMAT, FORMAT_VERSION, parse_json, read_header
 from apmgsrn.io.description import (
     BrickEntry,
@@ -115,7 +115,7 @@ def read_manifest(directory: str | os.PathLike) -> dict:
     if not path.is_file():
         raise ApmgsrnError(
             f"{directory}: folder has no {MANIFEST_NAME}, so it is not a brick model; pass a model file or a "
-            "folder written by 'apmgsrn train --bricks'"
+            "folder written by a brick training run"
         )
     not_ours = f"{path}: not an apmgsrn brick model manifest (corrupt or another format); re-train the model"
     try:
@@ -143,7 +143,7 @@ def read_manifest(directory: str | os.PathLike) -> dict:
 
 
 def _check_manifest(manifest: dict) -> None:
-    require_ints(manifest.get("volume_shape"), "volume_shape", 3, 2, MAX_VOLUME_AXIS)
+    volume_shape = require_ints(manifest.get("volume_shape"), "volume_shape", 3, 2, MAX_VOLUME_AXIS)
     grid = require_ints(manifest.get("grid"), "grid", 3, 1, MAX_BRICKS)
     require_int(manifest.get("ghost_cells"), "ghost_cells", 0, MAX_VOLUME_AXIS)
     for flag in ("blend", "complete"):
@@ -154,7 +154,7 @@ def _check_manifest(manifest: dict) -> None:
     for key in ("settings", "training"):
         if manifest.get(key) is not None:
             require_dict(manifest[key], key)
-    SourceInfo.from_dict(manifest.get("source", {}))
+    SourceInfo.from_dict(manifest.get("source", {})).check_shape(volume_shape)
     value_range = manifest.get("value_range")
     if value_range is not None and not (
         isinstance(value_range, list) and len(value_range) == 2

@@ -22,7 +22,7 @@ from safetensors.torch import load as load_safetensors_bytes
 from safetensors.torch import save as save_safetensors_bytes
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.io.atomic import atomic_write
+from apmgsrn.atomic import atomic_write
 
 FORMAT = "apmgsrn"
 #: Version 1: the first format. Files of every version up to this one load.
@@ -155,16 +155,42 @@ def load_tensors(path: str | os.PathLike) -> dict[str, torch.Tensor]:
         raise ApmgsrnError(f"{path}: cannot read ({exc.strerror})") from None
 
 
+def check_replaceable(path: str | os.PathLike, kind: str, what: str = "model file") -> None:
+    """Refuse to write a file of ``kind`` where anything but an older file of the same kind lies.
+
+    A model replaces an older model (atomically, once the new one is complete) and a training checkpoint an
+    older checkpoint; a volume, an image, a file of another kind or one this version cannot read is never
+    overwritten by one.
+
+    Raises:
+        ApmgsrnError: ``path`` exists and is not a readable apmgsrn file of ``kind``.
+    """
+    path = Path(path)
+    if not path.exists() or path.is_dir():
+        return  # nothing to lose; a folder is refused by the writer
+    try:
+        same_kind = read_header(path).kind == kind
+    except ApmgsrnError:
+        same_kind = False
+    if not same_kind:
+        raise ApmgsrnError(
+            f"{path}: exists and is not an apmgsrn {what}; it is never overwritten by one: delete it yourself "
+            "or pass another out=", arguments=("out",),
+        )
+
+
 def save_tensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], kind: str, description: dict,
                  what: str = "model file") -> int:
     """Write tensors and a JSON description atomically as one safetensors file.
 
     The file is serialised in memory and written with plain file I/O, so a full disk is an ``OSError`` that
-    :func:`~apmgsrn.io.atomic.atomic_write` turns into one clear message.
+    :func:`~apmgsrn.atomic.atomic_write` turns into one clear message. An existing file is replaced only
+    when it is an older file of the same kind (:func:`check_replaceable`).
 
     Returns:
         The file's size in bytes.
     """
+    check_replaceable(path, kind, what)
     tensors = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
     metadata = {
         "format": FORMAT,

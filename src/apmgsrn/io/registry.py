@@ -82,7 +82,7 @@ def open_model(path: str | os.PathLike, device: torch.device | str = "cpu") -> L
     if path.is_dir() and not is_brick_folder(path) and not is_series_brick_folder(path):
         raise ApmgsrnError(
             f"{path}: folder has no {MANIFEST_NAME}, so it is not a brick model; pass a model file or a "
-            "folder written by 'apmgsrn train --bricks'"
+            "folder written by a brick training run"
         )
     if path.is_dir():
         kind = SERIES_BRICKS_KIND if is_series_brick_folder(path) else BRICKS_KIND

@@ -23,7 +23,7 @@ import re
 from pathlib import Path
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.io.atomic import atomic_write_text
+from apmgsrn.atomic import atomic_write_text
 from apmgsrn.io.container import FORMAT, FORMAT_VERSION, parse_json
 from apmgsrn.io.description import (
     DescriptionError,

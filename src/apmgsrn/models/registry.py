@@ -5,19 +5,22 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+from apmgsrn.arguments import check_choice
+from apmgsrn.choices import BACKENDS
+from apmgsrn.errors import InvalidArgument
 from apmgsrn.models.decoder import DecoderConfig
 from apmgsrn.models.encoders.adaptive_multigrid import AdaptiveMultiGridConfig, AdaptiveMultiGridEncoder
 from apmgsrn.models.encoders.dense_grid import DenseGridConfig, DenseGridEncoder
 from apmgsrn.models.encoders.hash_grid import HashGridConfig, HashGridEncoder
 
-# model name -> (encoder config class, encoder class)
+# model name (apmgsrn.choices.MODEL_KINDS, in that order) -> (encoder config class, encoder class)
 ENCODERS: dict[str, tuple[type, type]] = {
     "apmgsrn": (AdaptiveMultiGridConfig, AdaptiveMultiGridEncoder),
     "fvsrn": (DenseGridConfig, DenseGridEncoder),
     "ngp": (HashGridConfig, HashGridEncoder),
 }
 
-# model name -> preset name -> encoder config fields (SPEC section 5, paper Table 1 sizes)
+# model name -> preset name (apmgsrn.choices.SIZE_PRESETS) -> encoder config fields (SPEC section 5, paper Table 1 sizes)
 PRESETS: dict[str, dict[str, dict]] = {
     "apmgsrn": {
         "small": dict(grids=16, features=1, resolution=(16, 16, 16)),
@@ -53,6 +56,12 @@ class FieldConfig:
     model: str
     encoder: object
     decoder: DecoderConfig = DecoderConfig()
+
+    def __post_init__(self) -> None:
+        if self.model not in ENCODERS:
+            raise ValueError(f"unknown model kind {self.model!r}")
+        # Each encoder accepts its own kernels; refused here, not at the first forward pass.
+        check_choice("backend", getattr(self.encoder, "backend", "auto"), BACKENDS[self.model])
 
     def to_dict(self) -> dict:
         encoder = {k: v for k, v in dataclasses.asdict(self.encoder).items() if k not in RUN_TIME_FIELDS}
@@ -122,5 +131,10 @@ def preset_config(model: str, preset: str, **overrides) -> FieldConfig:
         width=overrides.pop("width", DecoderConfig.width),
     )
     config_class = ENCODERS[model][0]
+    known = {f.name for f in dataclasses.fields(config_class)}
+    for name in overrides:
+        if name not in known:
+            raise InvalidArgument(f"{name}={overrides[name]!r}: does not apply to {model} models",
+                                  arguments=(name,))
     fields = {**PRESETS[model][preset], **overrides}
     return FieldConfig(model, config_class(**fields), decoder)

@@ -23,6 +23,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from apmgsrn.arguments import check_choice, check_int
+from apmgsrn.errors import InvalidArgument
 from apmgsrn.models.decoder import Decoder
 from apmgsrn.models.encoders.adaptive_multigrid import MAX_RESOLUTION, AdaptiveMultiGridConfig, AdaptiveMultiGridEncoder
 from apmgsrn.models.encoders.base import Encoder
@@ -62,21 +64,19 @@ class SeriesConfig:
     mixing: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("steps", "basis", "residual", "mixing"):
-            if isinstance(getattr(self, name), bool) or not isinstance(getattr(self, name), int):
-                raise ValueError(f"series {name} must be an integer")
-        if not 1 <= self.steps <= MAX_STEPS or not 1 <= self.basis <= min(self.steps, MAX_BASIS):
-            raise ValueError(f"invalid series size: {self} (1..{MAX_STEPS} steps, 1..steps basis grids)")
+        """Refuse sizes and kinds the model cannot be built with (:class:`~apmgsrn.errors.InvalidArgument`)."""
+        check_int("steps", self.steps, 1, MAX_STEPS)
+        check_int("basis", self.basis, 1, min(self.steps, MAX_BASIS))
+        check_choice("coefficients", self.coefficients, COEFFICIENT_KINDS)
+        check_choice("storage", self.storage, STORAGE_KINDS)
         if self.basis == 1 and self.steps > 1 and self.coefficients == "keyframes":
-            raise ValueError("keyframes need at least 2 basis grids for a series of several steps")
-        if not 0 <= self.residual <= MAX_RESOLUTION or self.residual == 1:
-            raise ValueError(f"series residual resolution must be 0 (none) or 2..{MAX_RESOLUTION}, not {self.residual}")
-        if self.coefficients not in COEFFICIENT_KINDS:
-            raise ValueError(f"series coefficients must be one of {COEFFICIENT_KINDS}, not {self.coefficients!r}")
-        if not 1 <= self.mixing <= MAX_RESOLUTION or (self.mixing > 1 and self.coefficients != "learned"):
-            raise ValueError(f"series mixing must be 1, or 2..{MAX_RESOLUTION} with learned weights, not {self.mixing}")
-        if self.storage not in STORAGE_KINDS:
-            raise ValueError(f"series storage must be one of {STORAGE_KINDS}, not {self.storage!r}")
+            raise InvalidArgument("basis=1: keyframes need at least 2 basis grids for a series of several steps",
+                                  arguments=("basis",))
+        if check_int("residual", self.residual, 0, MAX_RESOLUTION) == 1:
+            raise InvalidArgument(f"residual=1: must be 0 (none) or 2..{MAX_RESOLUTION}", arguments=("residual",))
+        if check_int("mixing", self.mixing, 1, MAX_RESOLUTION) > 1 and self.coefficients != "learned":
+            raise InvalidArgument(f"mixing={self.mixing}: a lattice of weights needs coefficients=learned",
+                                  arguments=("mixing", "coefficients"))
 
     def to_dict(self) -> dict:
         return {"steps": self.steps, "basis": self.basis, "coefficients": self.coefficients, "residual": self.residual,

@@ -39,11 +39,12 @@ import json
 import math
 import os
 import re
-import tempfile
 import xml.etree.ElementTree as ElementTree
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from apmgsrn.atomic import atomic_write_text
+from apmgsrn.choices import PRESET_UNITS
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.render.color_spaces import PARAVIEW_COLOR_SPACES
 from apmgsrn.render.transfer_function import (
@@ -54,7 +55,6 @@ from apmgsrn.render.transfer_function import (
     stretch_nodes,
 )
 
-PRESET_UNITS = ("normalized", "data")
 PRESET_SUFFIXES = (".json", ".xml")
 
 # ParaView's lookup-table defaults for what a preset leaves out.
@@ -62,8 +62,11 @@ _DEFAULT_COLOR_SPACE = "Diverging"
 _DEFAULT_NAN_COLOR = (1.0, 1.0, 0.0)
 
 # A JSON string, or a comment / a comma right before a closing bracket: what ParaView's reader tolerates.
-_STRING_OR_COMMENT = re.compile(r'"(?:[^"\\]|\\.)*"|//[^\n]*|/\*[\s\S]*?\*/')
-_STRING_OR_TRAILING_COMMA = re.compile(r'"(?:[^"\\]|\\.)*"|,(?=\s*[\]}])')
+# An unterminated string or block comment runs to the end of the text: matching it there (instead of failing
+# and retrying at every later position) keeps the scan linear on hostile text; json.loads then refuses it.
+_STRING = r'"(?:[^"\\]|\\[\s\S]?)*(?:"|\Z)'
+_STRING_OR_COMMENT = re.compile(_STRING + r'|//[^\n]*|/\*[\s\S]*?(?:\*/|\Z)')
+_STRING_OR_TRAILING_COMMA = re.compile(_STRING + r'|,(?=\s*[\]}])')
 
 
 @dataclass(frozen=True)
@@ -98,7 +101,28 @@ def read_presets(path: str | os.PathLike) -> list[ParaViewPreset]:
         ApmgsrnError: unreadable file, invalid JSON/XML, a malformed preset, or no continuous preset.
     """
     path = Path(path)
-    presets = [entry for entry in _read_entries(path) if isinstance(entry, ParaViewPreset)]
+    return _continuous(path, _read_entries(path))
+
+
+def parse_presets(text: str, name: str) -> list[ParaViewPreset]:
+    """Every continuous preset of a preset file's text, as :func:`read_presets` reads a file.
+
+    Args:
+        text: the file's content (e.g. an upload: nothing is written to disk).
+        name: the file's name: ``.xml`` selects ParaView's legacy XML, anything else JSON; errors name it.
+
+    Returns:
+        The presets with colour nodes, in order.
+
+    Raises:
+        ApmgsrnError: invalid JSON/XML, a malformed preset, or no continuous preset.
+    """
+    label = Path(name)
+    return _continuous(label, _parse_entries(label, text))
+
+
+def _continuous(path: Path, entries: list[ParaViewPreset | str]) -> list[ParaViewPreset]:
+    presets = [entry for entry in entries if isinstance(entry, ParaViewPreset)]
     if not presets:
         raise ApmgsrnError(
             f"{path}: no preset with RGBPoints found; export a continuous colour map from ParaView "
@@ -206,6 +230,11 @@ def _read_entries(path: Path) -> list[ParaViewPreset | str]:
         raise ApmgsrnError(f"{path}: no such file; give an existing ParaView preset .json or .xml file") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ApmgsrnError(f"{path}: cannot read ({exc}); give a ParaView preset .json or .xml file") from None
+    return _parse_entries(path, text)
+
+
+def _parse_entries(path: Path, text: str) -> list[ParaViewPreset | str]:
+    """:func:`_read_entries` of a file's text; ``path`` picks the format and names the file in errors."""
     raw = _xml_entries(path, text) if path.suffix.lower() == ".xml" else _json_entries(path, text)
     entries: list[ParaViewPreset | str] = []
     for index, entry in enumerate(raw):
@@ -231,6 +260,8 @@ def _json_entries(path: Path, text: str) -> list:
         raise ApmgsrnError(
             f"{path}: not valid JSON (line {exc.lineno}: {exc.msg}); export the preset again from ParaView"
         ) from None
+    except RecursionError:  # a preset is a list of flat objects; thousands of nested brackets are no preset
+        raise ApmgsrnError(f"{path}: JSON nested too deeply to be a ParaView preset; export it again") from None
     return document if isinstance(document, list) else [document]
 
 
@@ -424,17 +455,5 @@ def save_transfer_function(tf: TransferFunction, path: str | os.PathLike, name: 
     Returns:
         The path written.
     """
-    path = Path(path)
     text = _format_presets([transfer_function_to_preset(tf, name)])
-    directory = path.parent if str(path.parent) else Path(".")
-    if not directory.is_dir():
-        raise ApmgsrnError(f"{path}: folder {directory} does not exist; create it or choose another path")
-    handle, temporary = tempfile.mkstemp(prefix=".tf-", suffix=".json", dir=directory)
-    try:
-        with os.fdopen(handle, "w", encoding="utf-8") as out:
-            out.write(text + "\n")
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
-    return path
+    return atomic_write_text(path, text + "\n", "transfer function")

@@ -78,7 +78,7 @@ def rescale_positions(
     if not (value_min > 0 and value_max > 0):
         raise ApmgsrnError(
             f"value range {value_min:g}..{value_max:g} is not positive, but this transfer function uses a log "
-            "scale; give a positive range (--range MIN,MAX) or a linear preset"
+            "scale; give a positive range (value_range=(MIN, MAX)) or a linear preset", arguments=("value_range",)
         )
     low, high = math.log10(value_min), math.log10(value_max)
     return np.power(10.0, t * (high - low) + low)

@@ -23,11 +23,15 @@ import numpy as np
 import torch
 
 from apmgsrn.data import Volume
+from apmgsrn.data.fingerprint import series_fingerprint, volume_fingerprint
 from apmgsrn.data.series import VolumeSeries
 from apmgsrn.device import keep_large_allocations_cached
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.inference.evaluate import Evaluation, SeriesEvaluation, evaluate, evaluate_series
 from apmgsrn.io import SeriesStepInfo, SourceInfo, save_field, save_series
+from apmgsrn.io.container import check_replaceable
+from apmgsrn.io.field_file import FIELD_KIND
+from apmgsrn.io.series_file import SERIES_KIND
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.models.series_field import SeriesField, SeriesFieldConfig
@@ -82,7 +86,7 @@ def prepare_values(
     if finite < data.size:
         raise ApmgsrnError(
             f"{where}: {data.size - finite} of {data.size} voxels are NaN or Inf; "
-            "pass --fill-nonfinite VALUE to replace them (e.g. --fill-nonfinite 0)"
+            "pass fill_nonfinite=VALUE to replace them (e.g. fill_nonfinite=0)", arguments=("fill_nonfinite",),
         )
     value_min, value_max = float(data.min()), float(data.max())
     value_transform = fit_value_transform(transform, [data], value_min, log_offset, where)
@@ -98,20 +102,24 @@ def prepare_values(
     return PreparedValues(values, value_transform, fit_min, fit_max, value_min, value_max)
 
 
-def check_output(out: Path, resume: bool) -> None:
-    """Refuse an output whose folder is missing, or a leftover checkpoint that ``resume`` does not take.
+def check_output(out: Path, resume: bool, kind: str = FIELD_KIND) -> None:
+    """Refuse, before any work, an output whose folder is missing, a file there that is not an older model
+    of ``kind`` (``field`` or ``series``), or a leftover checkpoint that ``resume`` does not take.
 
     Raises:
-        ApmgsrnError: the folder does not exist, or an interrupted run's checkpoint is there.
+        ApmgsrnError: the folder does not exist, ``out`` is a file a model may not replace, or an
+            interrupted run's checkpoint is there.
     """
     out = Path(out)
+    check_replaceable(out, kind)
     if not out.absolute().parent.is_dir():
-        raise ApmgsrnError(f"{out}: output folder {out.parent} does not exist; create it or choose another --out")
+        raise ApmgsrnError(f"{out}: output folder {out.parent} does not exist; create it or pass another out=",
+                           arguments=("out",))
     checkpoint = checkpoint_path_for(out)
     if checkpoint.exists() and not resume:
         raise ApmgsrnError(
-            f"{checkpoint}: an interrupted run left this checkpoint; pass --resume to continue it, "
-            "or delete it to start over"
+            f"{checkpoint}: an interrupted run left this checkpoint; pass resume=True to continue it, "
+            "or delete it to start over", arguments=("resume",),
         )
 
 
@@ -244,9 +252,9 @@ def fit(
         steps: a series: each step's number, name and value range, saved in the file.
     """
     out = Path(out)
-    check_output(out, resume)
-    checkpoint = checkpoint_path_for(out)
     series = isinstance(field_config, SeriesFieldConfig)
+    check_output(out, resume, SERIES_KIND if series else FIELD_KIND)
+    checkpoint = checkpoint_path_for(out)
     trained = train_prepared(prepared, field_config, train_config, tuple(truth.shape[-3:]), checkpoint, fingerprint,
                              callbacks)
     if series:
@@ -319,7 +327,9 @@ def fit_volume(
     data = volume.to_numpy()  # [D, H, W] float32, data units
     prepared = prepare_values(data, transform, log_offset, str(volume.path), device)
     source = SourceInfo.of_volume(volume)
-    fingerprint = {"source": source.to_dict(), "shape": list(volume.shape), "field": field_config.to_dict(),
+    # A resume must continue on the same data: the file's real path (any link to it will do) and a hash of a
+    # sample of its values, not its name.
+    fingerprint = {"data": volume_fingerprint(volume), "field": field_config.to_dict(),
                    "transform": asdict(prepared.transform)}
     return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
                callbacks=[TrainingProgress(enabled=progress)])
@@ -357,14 +367,15 @@ def fit_series(
     """
     if field_config.series.steps != len(series):
         raise ValueError(f"the model has {field_config.series.steps} steps, the series {len(series)}")
-    check_output(out, resume)  # before reading what may be a large series
+    check_output(out, resume, SERIES_KIND)  # before reading what may be a large series
     data = series.to_numpy()  # [T, D, H, W] float32, data units
     prepared = prepare_values(data, transform, log_offset, series.describe(), device)
     source = SourceInfo(series.step_name(0), series.variable, series.describe())
     steps = [SeriesStepInfo(label, series.step_name(t), (float(data[t].min()), float(data[t].max())))
              for t, label in enumerate(series.labels)]
-    fingerprint = {"source": source.to_dict(), "shape": list(series.shape), "steps": [s.to_dict() for s in steps],
-                   "field": field_config.to_dict(), "transform": asdict(prepared.transform)}
+    # A resume must continue on the same steps: each file's real path and a hash of a sample of its values.
+    fingerprint = {"data": series_fingerprint(series), "field": field_config.to_dict(),
+                   "transform": asdict(prepared.transform)}
     return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
                callbacks=[TrainingProgress(enabled=progress)], steps=steps)
 

@@ -10,24 +10,30 @@ import signal
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import NamedTuple
 
 import torch
 
-from apmgsrn.errors import ApmgsrnError
+from apmgsrn.arguments import MAX_BATCH_SIZE, check_choice, check_int, check_number, check_optional_int
+from apmgsrn.choices import DECODER_PRECISIONS, DENSITY_NORMALIZATIONS, LR_SCHEDULES
+from apmgsrn.errors import ApmgsrnError, InvalidArgument
 from apmgsrn.io.container import load_tensors, read_header, save_tensors
+from apmgsrn.io.description import DescriptionError
 from apmgsrn.models.field import NeuralField
 from apmgsrn.ops.trilinear import sample_volume
-from apmgsrn.training.checkpoint import CHECKPOINT_KIND
+from apmgsrn.training.checkpoint import (
+    CHECKPOINT_KIND,
+    TrainingState,
+    check_tensors,
+    optimizer_layout,
+    state_from_json,
+)
 from apmgsrn.training.losses import feature_density_loss
 
-LR_SCHEDULES = ("cosine", "constant", "plateau", "steps")
 #: Weight of the newest loss in a series step's running loss.
 STEP_LOSS_WEIGHT = 0.3
-DENSITY_NORMALIZATIONS = ("mass", "batch")
-DECODER_PRECISIONS = ("auto", "float32", "bfloat16")
 
 
 @dataclass(frozen=True)
@@ -89,19 +95,33 @@ class TrainConfig:
     steps_per_iteration: int = 4
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "betas", tuple(self.betas))
+        """Refuse every value the loop cannot run with (:class:`~apmgsrn.errors.InvalidArgument`)."""
+        check_int("iterations", self.iterations, 1)
+        check_int("batch_size", self.batch_size, 1, MAX_BATCH_SIZE)
+        check_number("lr", self.lr, 0.0)  # 0 is allowed: a frozen network (or grid maps) is a valid experiment
+        check_number("transform_lr", self.transform_lr, 0.0)
+        if not isinstance(self.betas, (tuple, list)) or len(self.betas) != 2:
+            raise InvalidArgument(f"betas={self.betas!r}: must be two numbers in [0, 1)", arguments=("betas",))
+        object.__setattr__(self, "betas", tuple(check_number("betas", b, 0.0, 1.0, high_open=True)
+                                                for b in self.betas))
         if self.history_every is None:
             object.__setattr__(self, "history_every", max(10, self.iterations // 500))
         if self.density_start is None:
             object.__setattr__(self, "density_start", max(1, round(0.05 * self.iterations)))
-        if self.iterations < 1 or self.batch_size < 1 or self.steps_per_iteration < 1:
-            raise ValueError("iterations, batch size and steps per iteration must be positive")
-        if self.lr_schedule not in LR_SCHEDULES:
-            raise ValueError(f"lr schedule must be one of {LR_SCHEDULES}")
-        if self.density_normalization not in DENSITY_NORMALIZATIONS:
-            raise ValueError(f"density normalization must be one of {DENSITY_NORMALIZATIONS}")
-        if self.decoder_precision not in DECODER_PRECISIONS:
-            raise ValueError(f"decoder precision must be one of {DECODER_PRECISIONS}")
+        check_int("steps_per_iteration", self.steps_per_iteration, 1)
+        check_int("density_start", self.density_start, 0)
+        check_int("density_window", self.density_window, 1)
+        check_number("density_tolerance", self.density_tolerance, 0.0, 1.0)
+        check_number("freeze_fraction", self.freeze_fraction, 0.0, 1.0)
+        check_int("density_power", self.density_power, 1, 64)
+        check_choice("density_normalization", self.density_normalization, DENSITY_NORMALIZATIONS)
+        check_choice("lr_schedule", self.lr_schedule, LR_SCHEDULES)
+        check_number("final_lr_fraction", self.final_lr_fraction, 0.0, 1.0)
+        check_int("seed", self.seed, 0, 2**63 - 1)
+        check_int("checkpoint_every", self.checkpoint_every, 1)
+        check_int("history_every", self.history_every, 1)
+        check_optional_int("stop_after_lr_cuts", self.stop_after_lr_cuts, 1)
+        check_choice("decoder_precision", self.decoder_precision, DECODER_PRECISIONS)
 
 
 def decoder_hidden_dtype(precision: str, device: torch.device) -> torch.dtype | None:
@@ -151,23 +171,6 @@ class TrainingInterrupted(Exception):
         super().__init__(f"interrupted at iteration {iteration}; checkpoint saved to {checkpoint}")
         self.iteration = iteration
         self.checkpoint = checkpoint
-
-
-@dataclass
-class TrainingState:
-    """Everything besides tensors that a resumed run needs (saved as JSON in the checkpoint)."""
-
-    iteration: int = 0
-    frozen_at: int | None = None
-    elapsed: float = 0.0
-    density_losses: list[float] = field(default_factory=list)  # the last two windows, for freezing
-    density_steps: int = 0
-    plateau_best: float = math.inf
-    plateau_since: int = 0
-    lr_scale: float = 1.0
-    history: dict[str, list[float]] = field(
-        default_factory=lambda: {"iteration": [], "reconstruction": [], "density": [], "lr": []}
-    )
 
 
 class StepLosses(NamedTuple):
@@ -417,7 +420,7 @@ class Trainer:
                     if not math.isfinite(loss):
                         raise ApmgsrnError(
                             f"training diverged at iteration {st.iteration} (loss {loss}); "
-                            "lower --lr or check the data"
+                            "lower lr= or check the data", arguments=("lr",),
                         )
                     self._update_plateau(loss)
                     st.history["iteration"].append(st.iteration)
@@ -464,38 +467,58 @@ class Trainer:
             "fingerprint": self.fingerprint,
             "config": asdict(self.config),
             "state": asdict(self.state),
-            "param_groups": groups,
+            "param_groups": groups,  # informative: a resume takes the groups from its own config
         }
         save_tensors(path, tensors, CHECKPOINT_KIND, description, what="training checkpoint")
 
     def load_checkpoint(self, path: Path) -> None:
-        """Restore a checkpoint written by :meth:`save_checkpoint` for the same run."""
+        """Restore a checkpoint written by :meth:`save_checkpoint` for the same run.
+
+        Everything is checked before anything is loaded: the run's fingerprint (data and model) and
+        config, the loop state field by field, and every tensor's name, shape and dtype.
+
+        Raises:
+            ApmgsrnError: not a checkpoint, another run's, or damaged (one line naming the file).
+        """
         header = read_header(path)
         if header.kind != CHECKPOINT_KIND:
-            raise ApmgsrnError(f"{path}: not a training checkpoint; remove it or pass another --out")
+            raise ApmgsrnError(f"{path}: not a training checkpoint; remove it or pass another out=", arguments=("out",))
         description = header.description
         if description.get("fingerprint") != as_json(self.fingerprint) or description.get("config") != as_json(
             asdict(self.config)
         ):
             raise ApmgsrnError(
-                f"{path}: checkpoint was made with other data or settings; rerun with the same options, "
-                "or delete it to start over"
+                f"{path}: checkpoint was made with other data or settings; rerun with the same data file and "
+                "options, or delete it to start over"
             )
-        tensors = load_tensors(path)
-        self.field.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
         optimizers = {"network": self.network_optimizer, "transform": self.transform_optimizer}
+        try:
+            state = state_from_json(description.get("state"), self.config.iterations)
+            # Adam has moments once it stepped: the network from the first iteration, the grid maps from
+            # the first density step.
+            stepped = {"network": state.iteration > 0, "transform": state.density_steps > 0}
+            expected = {f"model.{k}": (tuple(v.shape), v.dtype) for k, v in self.field.state_dict().items()}
+            expected["generator"] = (tuple(self.generator.get_state().shape), torch.uint8)
+            for name, optimizer in optimizers.items():
+                if optimizer is not None:
+                    expected |= optimizer_layout(name, optimizer, stepped[name])
+            tensors = load_tensors(path)
+            check_tensors(tensors, expected)
+        except DescriptionError as exc:
+            raise ApmgsrnError(f"{path}: training checkpoint is damaged ({exc}); delete it to start over") from None
+        self.field.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
         for name, optimizer in optimizers.items():
             if optimizer is None:
                 continue
-            state: dict = {}
+            moments: dict = {}
             prefix = f"optim.{name}."
             for key, value in tensors.items():
                 if key.startswith(prefix):
                     index, entry = key[len(prefix) :].split(".", 1)
-                    state.setdefault(int(index), {})[entry] = value.to(self.device) if entry != "step" else value
-            optimizer.load_state_dict({"state": state, "param_groups": description["param_groups"][name]})
+                    moments.setdefault(int(index), {})[entry] = value.to(self.device) if entry != "step" else value
+            optimizer.load_state_dict({"state": moments, "param_groups": optimizer.state_dict()["param_groups"]})
         self.generator.set_state(tensors["generator"])
-        self.state = TrainingState(**description["state"])
+        self.state = state
         if self.state.frozen_at is not None:
             for p in self.field.encoder.transform_parameters():
                 p.requires_grad_(False)

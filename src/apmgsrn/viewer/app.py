@@ -3,12 +3,14 @@
 Threads. trame runs an asyncio loop; the page's events (triggers and state changes) arrive on it and
 only change the session, which is cheap. Rendering, opening files and image encoding happen in the
 session's worker thread; :class:`PageState` hands each result to the loop, so the loop never waits for
-the field. The layout is :func:`build_page`'s, saved files :class:`SaveFolder`'s.
+the field. The layout is :func:`build_page`'s, saved files :class:`SaveFolder`'s, and what the server
+takes from the network :class:`ConnectionGuard`'s.
 """
 
 from __future__ import annotations
 
 import asyncio
+import os
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,13 +18,17 @@ from pathlib import Path
 import torch
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.viewer.catalog import MODEL, PRESET, VOLUME, Catalog
-from apmgsrn.viewer.files import SaveFolder, safe_stem
+from apmgsrn.viewer.catalog import MODEL, PRESET, VOLUME, Catalog, SkippedFile
+from apmgsrn.viewer.files import SaveFolder, safe_stem, uploaded_presets
+from apmgsrn.viewer.guard import ConnectionGuard, GuardConfig, is_loopback_name, new_secret
 from apmgsrn.viewer.layout import build_page
 from apmgsrn.viewer.page_state import PageState
 from apmgsrn.viewer.session import ViewerSession
 from apmgsrn.viewer.settings import ViewerConfig
 from apmgsrn.viewer.timeline import Timeline
+
+# Room for a message's framing beside an upload's text (file name, RPC name, msgpack headers).
+MESSAGE_MARGIN_BYTES = 64 * 1024
 
 
 @dataclass(frozen=True)
@@ -53,7 +59,9 @@ class ViewerApp:
         self.catalog = catalog
         self.config = config
         self.device = torch.device(device)
-        self.server = get_server(f"apmgsrn-viewer-{id(self)}", client_type="vue3")
+        message_bytes = config.max_upload_bytes + MESSAGE_MARGIN_BYTES
+        # ws_max_msg_size: aiohttp's limit on one websocket frame (the guard caps the whole message).
+        self.server = get_server(f"apmgsrn-viewer-{id(self)}", client_type="vue3", ws_max_msg_size=message_bytes)
         self.state = self.server.state
         self.controller = self.server.controller
         self.session = ViewerSession(catalog, self.device, config.viewer)
@@ -61,23 +69,38 @@ class ViewerApp:
         self.session.on_frame = self.page.on_frame
         self.session.on_message = self.page.on_message
         self.timeline = Timeline(self.session)
-        self.saves = SaveFolder(config.save_directory, config.max_upload_bytes)
+        self.guard = ConnectionGuard(
+            new_secret(),
+            GuardConfig(message_bytes=message_bytes, loopback_only=is_loopback_name(config.host)),
+            self.page.accepts,
+        )
+        self.controller.on_server_bind.add(self.guard.install)
+        self.saves = SaveFolder(config.save_directory)
+        self.skipped: list[SkippedFile] = list(catalog.skipped)
         self._first_entry = self._offer_entries()
         self._register_handlers()
         self.layout = build_page(self.server, config.title, self.session.settings)
 
     def _offer_entries(self) -> str | None:
-        """Presets of the catalog become colour maps; models and volumes the picker's entries. Returns the first."""
+        """Presets of the catalog become colour maps; models and volumes the picker's entries. Returns the first.
+
+        A preset file that cannot be read is left out and added to :attr:`skipped`.
+        """
         entries = self.catalog.entries()
         for entry in entries:
+            if entry.kind != PRESET:
+                continue
             # Presets are a few kB: a huge .json beside the data is something else and is not read.
-            if entry.kind == PRESET and entry.size_bytes <= self.config.max_upload_bytes:
-                try:
-                    self.session.add_presets(self.catalog.resolve(entry.name, (PRESET,)), entry.name)
-                except ApmgsrnError:
-                    continue  # a JSON file that is no preset is simply not offered
+            if entry.size_bytes > self.config.max_upload_bytes:
+                self.skipped.append(SkippedFile(entry.name, f"larger than {self.config.max_upload_bytes:,} bytes"))
+                continue
+            try:
+                path = self.catalog.resolve(entry.name, (PRESET,))
+                self.session.add_presets(path, entry.name)
+            except ApmgsrnError as exc:  # the message starts with the file's path: the listing names it
+                self.skipped.append(SkippedFile(entry.name, str(exc).split(": ", 1)[-1]))
         viewable = [e for e in entries if e.kind in (MODEL, VOLUME)]
-        self.page.initialize(viewable, self.config.title, self.config.max_upload_bytes)
+        self.page.initialize(viewable, self.skipped, self.config.title, self.config.max_upload_bytes)
         return viewable[0].name if viewable else None
 
     # ------------------------------------------------------------------------------------ page events
@@ -94,7 +117,7 @@ class ViewerApp:
                 clean = self.session.set_opacity(points, moving=bool(interactive))
                 if not interactive:
                     self.session.end_interaction()
-                state.opacity_points = [list(p) for p in clean]
+                state.opacity_points = clean
 
             self._guard(apply)
 
@@ -129,8 +152,7 @@ class ViewerApp:
         def colormap_changed(colormap, **_):
             if colormap and colormap != self.session.settings.colormap:
                 def apply():
-                    points = self.session.set_colormap(colormap)
-                    state.opacity_points = [list(p) for p in points]
+                    state.opacity_points = self.session.set_colormap(colormap)
 
                 self._guard(apply)
 
@@ -219,8 +241,8 @@ class ViewerApp:
         return saved
 
     def _upload_preset(self, name, text) -> None:
-        path = self.saves.store_upload(name, text)
-        keys = self.session.add_presets(path, f"uploaded {safe_stem(name)}")  # JSON parsing only
+        presets = uploaded_presets(name, text, self.config.max_upload_bytes)  # JSON/XML parsing, in memory
+        keys = self.session.colormaps.add_presets(presets, f"uploaded {safe_stem(name)}")
         self.state.colormaps = self.session.colormap_keys()
         self.state.colormap = keys[0]
         self.state.error_message = ""
@@ -245,9 +267,11 @@ class ViewerApp:
     # ------------------------------------------------------------------------------------ serving
     def serve(self) -> None:
         """Serve until interrupted (blocking)."""
-        # trame reads sys.argv for its own options: hide ours from it.
-        saved_argv = sys.argv
+        # trame reads its options from sys.argv or $TRAME_ARGS: hide both, so host, port and secret are
+        # this app's alone (a TRAME_ARGS meant for another app must not rebind the viewer to 0.0.0.0).
+        saved_argv, saved_trame_args = sys.argv, os.environ.pop("TRAME_ARGS", None)
         sys.argv = [saved_argv[0]]
+        self.server.cli.set_defaults(authKey=self.guard.secret)
         try:
             self.server.start(
                 port=self.config.port,
@@ -259,4 +283,6 @@ class ViewerApp:
             )
         finally:
             sys.argv = saved_argv
+            if saved_trame_args is not None:
+                os.environ["TRAME_ARGS"] = saved_trame_args
             self.session.stop()

@@ -1,11 +1,11 @@
-"""What the viewer writes on the server: saved frames and transfer functions, and uploaded presets."""
+"""What the viewer writes on the server (saved frames and transfer functions) and reads from the page
+(uploaded presets, parsed in memory: an upload never reaches the disk)."""
 
 from __future__ import annotations
 
 import base64
 import io
 import re
-import tempfile
 import time
 from pathlib import Path
 
@@ -14,6 +14,7 @@ from PIL import Image
 
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.render import TransferFunction, save_transfer_function
+from apmgsrn.render.paraview import PRESET_SUFFIXES, ParaViewPreset, parse_presets
 from apmgsrn.sources import RenderSource
 from apmgsrn.viewer.worker import Frame
 
@@ -42,18 +43,38 @@ def safe_stem(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("._") or "view"
 
 
-class SaveFolder:
-    """The server-side folder of saved frames and transfer functions, and a private one for uploads."""
+def uploaded_presets(name, text, max_bytes: int) -> list[ParaViewPreset]:
+    """The colour-map presets of an uploaded ParaView file, parsed from its text (JSON or XML, never run).
 
-    def __init__(self, directory: Path, max_upload_bytes: int) -> None:
+    Args:
+        name: the uploaded file's name (a label; its suffix picks the format).
+        text: its content.
+        max_bytes: larger uploads are refused.
+
+    Returns:
+        The continuous presets in the file.
+
+    Raises:
+        ApmgsrnError: not a name and text, too large, not ``.json``/``.xml``, or not a preset file.
+    """
+    if not isinstance(name, str) or not isinstance(text, str):
+        raise ApmgsrnError("upload refused: expected a file name and its text")
+    label = name[:200]
+    if len(text) > max_bytes or len(text.encode("utf-8", "surrogatepass")) > max_bytes:
+        raise ApmgsrnError(f"{label}: larger than the upload limit of {max_bytes:,} bytes; not a preset")
+    if not label.lower().endswith(PRESET_SUFFIXES):
+        raise ApmgsrnError(f"{label}: upload a ParaView colour-map preset (.json or .xml)")
+    return parse_presets(text, label)
+
+
+class SaveFolder:
+    """The server-side folder of saved frames and transfer functions."""
+
+    def __init__(self, directory: Path) -> None:
         """Args:
         directory: where saves go (created on the first save).
-        max_upload_bytes: uploads larger than this are refused.
         """
         self.directory = Path(directory)
-        self.max_upload_bytes = max_upload_bytes
-        self._uploads = Path(tempfile.mkdtemp(prefix="apmgsrn-view-uploads-"))
-        self._upload_count = 0
 
     def save_frame(self, frame: Frame, source: RenderSource | None) -> dict:
         """Write a frame (overlay included) as PNG.
@@ -80,26 +101,6 @@ class SaveFolder:
         name = f"{stem}_transfer_function_{time.strftime('%Y%m%d-%H%M%S')}.json"
         path = save_transfer_function(transfer_function, self._folder() / name, name=f"apmgsrn {stem}")
         return {"name": name, "data": base64.b64encode(path.read_bytes()).decode("ascii"), "path": str(path)}
-
-    def store_upload(self, name, text) -> Path:
-        """Keep an uploaded preset's text under a name of our own (the uploaded name is a label only).
-
-        Returns:
-            The stored file.
-
-        Raises:
-            ApmgsrnError: not a file name and text, too large, or not a ``.json`` file.
-        """
-        if not isinstance(name, str) or not isinstance(text, str):
-            raise ApmgsrnError("upload refused: expected a file name and its text")
-        if len(text.encode("utf-8")) > self.max_upload_bytes:
-            raise ApmgsrnError(f"{name}: larger than the upload limit of {self.max_upload_bytes:,} bytes; not a preset")
-        if not name.lower().endswith(".json"):
-            raise ApmgsrnError(f"{name}: upload a ParaView colour-map preset (.json)")
-        self._upload_count += 1
-        path = self._uploads / f"upload_{self._upload_count}.json"
-        path.write_text(text, encoding="utf-8")
-        return path
 
     def _folder(self) -> Path:
         try:

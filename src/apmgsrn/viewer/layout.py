@@ -78,6 +78,10 @@ def build_page(server, title: str, settings: RenderSettings):
                         id="apm-time-slider",
                     )
                 html.Div("{{ time_label }}", v_show="time_steps > 1", classes="text-caption", id="apm-time-label")
+                # Files under PATH the listing left out (unreadable, foreign, hostile), with the reason.
+                with html.Details(v_if="skipped_count", classes="text-caption mt-1", id="apm-skipped"):
+                    html.Summary("{{ skipped_count }} file(s) under the folder not listed")
+                    html.Div("{{ line }}", v_for="(line, index) in skipped_files", key="index")
                 html.Div("colour map", classes="apm-section")
                 with html.Div(classes="d-flex align-center"):
                     v.VSelect(
@@ -94,7 +98,7 @@ def build_page(server, title: str, settings: RenderSettings):
                         size="small",
                         id="apm-upload-button",
                     )
-                    html.Input(type="file", accept=".json,application/json", id="apm-upload", style="display:none")
+                    html.Input(type="file", accept=".json,.xml", id="apm-upload", style="display:none")
                 html.Div("opacity", classes="apm-section")
                 html.Div(id="apm-tf-editor")
                 html.Div(
@@ -149,25 +153,22 @@ def build_page(server, title: str, settings: RenderSettings):
                 html.Pre("{{ stats_text }}", classes="text-caption", style="white-space: pre-wrap", id="apm-stats")
         with v.VMain(), html.Div(id="apm-viewport"):
             with html.Div(id="apm-messages"):
-                v.VAlert(
-                    "{{ error_message }}",
-                    v_if="error_message",
-                    type="error",
-                    density="compact",
-                    closable=True,
-                    click_close="error_message = ''",
-                    id="apm-error",
-                    classes="mb-1",
-                )
-                v.VAlert(
-                    "{{ saved_message }}",
-                    v_if="saved_message",
-                    type="success",
-                    density="compact",
-                    closable=True,
-                    click_close="saved_message = ''",
-                    id="apm-saved",
-                )
+                # Each message is one state key the page may only clear (upload_error is the page's own).
+                for key, kind, element in (
+                    ("error_message", "error", "apm-error"),
+                    ("upload_error", "error", "apm-upload-error"),
+                    ("saved_message", "success", "apm-saved"),
+                ):
+                    v.VAlert(
+                        f"{{{{ {key} }}}}",
+                        v_if=key,
+                        type=kind,
+                        density="compact",
+                        closable=True,
+                        click_close=f"{key} = ''",
+                        id=element,
+                        classes="mb-1",
+                    )
             html.Img(
                 src=("frame_src",),
                 v_show="frame_src",

@@ -4,19 +4,26 @@ The session calls back from its worker thread; trame's state belongs to its asyn
 is therefore handed to the loop with ``call_soon_threadsafe`` (or applied at once on the loop itself).
 Frames travel as data URLs: JPEG while a view is still being refined (small and fast over an SSH tunnel),
 PNG once it is complete; the overlay travels as line segments the page draws as SVG.
+
+The state is the server's: every page of one viewer shows the same view, and a page may change only
+the controls of :meth:`PageState.accepts`, each to a value the server offers (a listed file, an offered
+colour map) or would take (a size in range); everything else it sends is dropped before another page
+or the session sees it (see :mod:`apmgsrn.viewer.guard`).
 """
 
 from __future__ import annotations
 
 import asyncio
 import base64
+import math
 
 import torch
 
 from apmgsrn.sources import RenderSource
-from apmgsrn.viewer.catalog import CatalogEntry
+from apmgsrn.viewer.catalog import CatalogEntry, SkippedFile
 from apmgsrn.viewer.files import encode_image
 from apmgsrn.viewer.session import ViewerSession
+from apmgsrn.viewer.settings import BATCH_SIZE_LIMITS, IMAGE_SIZE_LIMITS, SAMPLES_PER_RAY_LIMITS, editor_points
 from apmgsrn.viewer.worker import Frame
 
 IMAGE_SIZES = (128, 192, 256, 384, 512, 768, 1024)
@@ -37,18 +44,57 @@ class PageState:
         self.device = device
         self.loop: asyncio.AbstractEventLoop | None = None  # set once the server runs
         self._shown_generation = -1
+        self._listed: frozenset[str] = frozenset()
+        self._rules = {
+            "source_name": lambda name: name is None or (isinstance(name, str) and name in self._listed),
+            "colormap": lambda key: isinstance(key, str) and key in self.session.colormaps.keys(),
+            "value_range": _is_range,
+            "samples_per_ray": lambda value: _is_whole(value, SAMPLES_PER_RAY_LIMITS),
+            "batch_size": lambda value: _is_whole(value, BATCH_SIZE_LIMITS),
+            "image_size": lambda value: _is_whole(value, IMAGE_SIZE_LIMITS),
+            "overlay": lambda value: isinstance(value, bool),
+            "time_step": lambda value: _is_whole(value, (0, self._shown_steps() - 1)),
+            "time_playing": lambda value: isinstance(value, bool),
+            # The messages are the server's; a page may only close them.
+            "error_message": lambda text: text == "",
+            "saved_message": lambda text: text == "",
+        }
 
-    def initialize(self, viewable: list[CatalogEntry], title: str, upload_limit: int) -> None:
-        """The state the page starts with."""
+    def _shown_steps(self) -> int:
+        """Time steps of the shown source (1 for anything but a time-series model)."""
+        source = self.session.source
+        return 1 if source is None else source.steps
+
+    def accepts(self, key: str, value: object) -> bool:
+        """Whether a page may set state ``key`` to ``value`` (see the module notes)."""
+        rule = self._rules.get(key)
+        return rule is not None and bool(rule(value))
+
+    def initialize(
+        self, viewable: list[CatalogEntry], skipped: list[SkippedFile], title: str, upload_limit: int
+    ) -> None:
+        """The state the page starts with.
+
+        Args:
+            viewable: the models and volumes the picker offers (the only names a page may pick).
+            skipped: files under PATH that are not listed, and why.
+            title: the page's title.
+            upload_limit: bytes an uploaded preset may have.
+        """
         settings = self.session.settings
+        self._listed = frozenset(e.name for e in viewable)
+        self.state.client_only("upload_error")  # the page's own note on a file it did not send
         self.state.update(
             {
                 "entries": [{"title": f"{e.name}  ({e.kind})", "value": e.name} for e in viewable],
+                "skipped_files": [f"{s.name}: {s.reason}" for s in skipped[:200]],
+                "skipped_count": len(skipped),
+                "upload_error": "",
                 "source_name": None,
                 "source_description": "no model or volume opened",
                 "colormaps": self.session.colormap_keys(),
                 "colormap": settings.colormap,
-                "opacity_points": [list(p) for p in settings.opacity],
+                "opacity_points": editor_points(settings.opacity),
                 "histogram": [],
                 "data_min": 0.0,
                 "data_max": 1.0,
@@ -178,3 +224,19 @@ def _time_state(source: RenderSource) -> dict:
     label = f"step {source.step} of {source.steps} (number {source.step_labels[source.step]:g})" \
         if source.series is not None else ""
     return {"time_steps": source.steps, "time_step": source.step, "time_label": label}
+
+
+def _is_whole(value: object, limits: tuple[int, int]) -> bool:
+    """A whole number (``5`` or ``5.0``, not ``True``) within ``limits``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    return math.isfinite(value) and value == int(value) and limits[0] <= value <= limits[1]
+
+
+def _is_range(value: object) -> bool:
+    """Two finite numbers, the first below the second."""
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        return False
+    if any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) for v in value):
+        return False
+    return value[0] < value[1]

@@ -20,16 +20,21 @@ import numpy as np
 import torch
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render import Camera, TransferFunction
+from apmgsrn.render import Camera, TransferFunction, read_presets
 from apmgsrn.sources import RenderSource, open_source
 from apmgsrn.viewer.catalog import MODEL, VOLUME, Catalog
 from apmgsrn.viewer.orbit import OrbitView
 from apmgsrn.viewer.overlay import draw_boxes, overlay_lines
 from apmgsrn.viewer.settings import (
+    BATCH_SIZE_LIMITS,
+    IMAGE_SIZE_LIMITS,
+    SAMPLES_PER_RAY_LIMITS,
     ColormapLibrary,
     RenderSettings,
     ViewerConfig,
+    editor_points,
     finite_number,
+    linear_nodes,
     opacity_points,
     usable_range,
     whole_number,
@@ -200,9 +205,12 @@ class ViewerSession:
             self._transfer_function = transfer_function
             self._changed(motion=moving)
 
-    def set_colormap(self, key: str, use_preset_opacity: bool = True) -> tuple[tuple[float, float], ...]:
+    def set_colormap(self, key: str, use_preset_opacity: bool = True) -> list[list[float]]:
         """Use another colour map; a preset that carries its own opacity replaces the opacity nodes
-        (unless ``use_preset_opacity`` is False). Returns the opacity nodes now in use.
+        (unless ``use_preset_opacity`` is False), midpoints and sharpness included.
+
+        Returns:
+            The opacity nodes now in use as the editor shows them, ``[[position, opacity], ...]``.
 
         Raises:
             ApmgsrnError: unknown key.
@@ -213,19 +221,21 @@ class ViewerSession:
             if use_preset_opacity and choice.opacity:
                 changes["opacity"] = choice.opacity
             self._update_settings(**changes)
-            return self._settings.opacity
+            return editor_points(self._settings.opacity)
 
-    def set_opacity(self, points, moving: bool = False) -> tuple[tuple[float, float], ...]:
+    def set_opacity(self, points, moving: bool = False) -> list[list[float]]:
         """Use other opacity nodes ``[(position, opacity), ...]`` on [0, 1] (position: fraction of the value
-        range); ``moving``: an edit in progress (coarse images until it rests). Returns the nodes in use
-        (sorted, clamped to [0, 1]).
+        range), joined by straight lines; ``moving``: an edit in progress (coarse images until it rests).
+
+        Returns:
+            The nodes in use (sorted, clamped to [0, 1]), ``[[position, opacity], ...]``.
 
         Raises:
             ApmgsrnError: not a list of number pairs.
         """
-        clean = opacity_points(points)
-        self._update_settings(moving=moving, opacity=clean)
-        return clean
+        nodes = linear_nodes(opacity_points(points))
+        self._update_settings(moving=moving, opacity=nodes)
+        return editor_points(nodes)
 
     def set_value_range(self, low: float, high: float) -> None:
         """Stretch the transfer function over ``[low, high]`` (data units, ``low < high``)."""
@@ -236,17 +246,16 @@ class ViewerSession:
 
     def set_samples_per_ray(self, count: int) -> None:
         """Samples across the box's longest side (1..4096)."""
-        self._update_settings(samples_per_ray=whole_number(count, 1, 4096, "samples per ray"))
+        self._update_settings(samples_per_ray=whole_number(count, *SAMPLES_PER_RAY_LIMITS, "samples per ray"))
 
     def set_batch_size(self, count: int) -> None:
         """Points per forward pass (16..2^24)."""
-        self._update_settings(batch_size=whole_number(count, 16, 1 << 24, "batch size"))
+        self._update_settings(batch_size=whole_number(count, *BATCH_SIZE_LIMITS, "batch size"))
 
     def set_image_size(self, width: int, height: int) -> None:
         """Rendered image size in pixels (16..2048 each)."""
-        width, height = int(finite_number(width)), int(finite_number(height))
-        if not (16 <= width <= 2048 and 16 <= height <= 2048):
-            raise ApmgsrnError(f"image size {width}x{height} is outside 16..2048 pixels")
+        width = whole_number(width, *IMAGE_SIZE_LIMITS, "image width")
+        height = whole_number(height, *IMAGE_SIZE_LIMITS, "image height")
         self._update_settings(image_width=width, image_height=height)
 
     def set_overlay(self, enabled: bool) -> None:
@@ -256,8 +265,12 @@ class ViewerSession:
         self.worker.submit("overlay", self.worker.redraw)
 
     def add_presets(self, path: str | os.PathLike, label: str) -> list[str]:
-        """Offer every preset of a ParaView JSON file (see :meth:`ColormapLibrary.add_presets`)."""
-        return self.colormaps.add_presets(path, label)
+        """Offer every preset of a ParaView ``.json`` or ``.xml`` file (see :meth:`ColormapLibrary.add_presets`).
+
+        Raises:
+            ApmgsrnError: not a readable preset file, or too many colour maps.
+        """
+        return self.colormaps.add_presets(read_presets(path), label)
 
     # ------------------------------------------------------------------------------------ sources
     def request_open(self, name: str) -> None:

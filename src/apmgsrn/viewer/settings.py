@@ -4,21 +4,25 @@ and the colour maps on offer, turned into a transfer function."""
 from __future__ import annotations
 
 import math
-import os
 import threading
 from dataclasses import dataclass, field
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render import (
-    BUILTIN_COLORMAPS,
-    OpacityMap,
-    RendererConfig,
-    TransferFunction,
-    make_transfer_function,
-    read_presets,
-)
+from apmgsrn.render import BUILTIN_COLORMAPS, OpacityMap, RendererConfig, TransferFunction, make_transfer_function
+from apmgsrn.render.paraview import ParaViewPreset, apply_preset
 from apmgsrn.render.progressive import DEFAULT_STRIDES, check_strides
+from apmgsrn.render.transfer_function import stretch_nodes
 from apmgsrn.sources import SourceOptions
+
+# An opacity node as the viewer keeps it: (position on [0, 1] of the value range, opacity, midpoint,
+# sharpness). Midpoint and sharpness shape the curve to the next node as in ParaView (0.5, 0: a line).
+OpacityNode = tuple[float, float, float, float]
+
+# What the page may ask for (the session refuses anything else).
+SAMPLES_PER_RAY_LIMITS = (1, 4096)
+BATCH_SIZE_LIMITS = (16, 1 << 24)
+IMAGE_SIZE_LIMITS = (16, 2048)
+MAX_OPACITY_NODES = 256
 
 # Opacity the viewer starts with: the lowest fifth of the range (mostly background in scientific
 # volumes) transparent, then a ramp, so the first image shows structure rather than a fog.
@@ -58,7 +62,7 @@ class RenderSettings:
     """Everything except the camera and the source that decides the image."""
 
     colormap: str
-    opacity: tuple[tuple[float, float], ...]
+    opacity: tuple[OpacityNode, ...]
     value_range: tuple[float, float]
     samples_per_ray: int
     batch_size: int
@@ -71,7 +75,7 @@ class RenderSettings:
         """The settings a viewer starts with."""
         return cls(
             colormap=config.colormap,
-            opacity=tuple(config.opacity),
+            opacity=linear_nodes(config.opacity),
             value_range=(0.0, 1.0),
             samples_per_ray=config.samples_per_ray,
             batch_size=config.batch_size,
@@ -91,20 +95,27 @@ class RenderSettings:
 
 @dataclass(frozen=True)
 class ColormapChoice:
-    """A colour map the page offers: a built-in name, or a preset of a ParaView JSON file."""
+    """A colour map the page offers: a built-in one, or a preset of a ParaView file (parsed once)."""
 
     key: str  # what the page shows and sends back
-    spec: str  # a built-in name or a .json path
-    preset_name: str | None = None
-    opacity: tuple[tuple[float, float], ...] | None = None  # the preset's own opacity, on [0, 1]
+    builtin: str | None = None
+    preset: ParaViewPreset | None = None
+    opacity: tuple[OpacityNode, ...] | None = None  # the preset's own opacity, nodes on [0, 1]
 
 
 class ColormapLibrary:
     """The colour maps on offer (built-ins first, then presets as they are added); safe from any thread."""
 
-    def __init__(self) -> None:
+    def __init__(self, max_choices: int = 4096) -> None:
+        """Args:
+        max_choices: colour maps offered at most (a preset file may hold thousands; the list goes to
+            every page).
+        """
+        self.max_choices = max_choices
         self._lock = threading.Lock()
-        self._choices: dict[str, ColormapChoice] = {name: ColormapChoice(name, name) for name in BUILTIN_COLORMAPS}
+        self._choices: dict[str, ColormapChoice] = {
+            name: ColormapChoice(name, builtin=name) for name in BUILTIN_COLORMAPS
+        }
 
     def keys(self) -> list[str]:
         """Names of the colour maps on offer, built-ins first."""
@@ -118,66 +129,88 @@ class ColormapLibrary:
             ApmgsrnError: unknown key.
         """
         with self._lock:
-            choice = self._choices.get(key)
+            choice = self._choices.get(key) if isinstance(key, str) else None
         if choice is None:
             raise ApmgsrnError(f"unknown colour map {key!r}; pick one from the list")
         return choice
 
-    def add_presets(self, path: str | os.PathLike, label: str) -> list[str]:
-        """Offer every preset of a ParaView JSON file.
+    def add_presets(self, presets: list[ParaViewPreset], label: str) -> list[str]:
+        """Offer presets read from a ParaView file.
 
         Args:
-            path: the file (already checked to be one the viewer may read).
+            presets: from :func:`apmgsrn.render.read_presets`.
             label: shown after each preset's name (e.g. the file's catalog name).
 
         Returns:
-            The new colour-map keys.
+            The new colour-map keys (a key offered before is replaced).
 
         Raises:
-            ApmgsrnError: the file is not a readable ParaView preset file.
+            ApmgsrnError: the library would hold more than ``max_choices`` colour maps.
         """
-        keys = []
-        for preset in read_presets(path):
+        choices = []
+        for preset in presets:
             opacity = None
             if preset.opacity_map is not None:
-                lo, hi = preset.color_map.span
-                width = hi - lo if hi > lo else 1.0
+                # ParaView stretches a preset's opacity by the opacity nodes' own span (in log10 when the
+                # preset says UseLogScale), whatever the colour nodes span: normalise it the same way.
                 opacity = tuple(
-                    (min(1.0, max(0.0, (x - lo) / width)), float(a)) for x, a, *_ in preset.opacity_map.points
+                    (float(x), float(a), float(m), float(s))
+                    for x, a, m, s in stretch_nodes(preset.opacity_map.points, 0.0, 1.0, preset.stretch_in_log)
                 )
             key = f"{preset.name} ({label})"
-            with self._lock:
-                self._choices[key] = ColormapChoice(key, str(path), preset.name, opacity)
-            keys.append(key)
-        return keys
+            choices.append(ColormapChoice(key, preset=preset, opacity=opacity))
+        with self._lock:
+            added = {choice.key for choice in choices} - set(self._choices)
+            if len(self._choices) + len(added) > self.max_choices:
+                raise ApmgsrnError(
+                    f"{label}: {len(added)} more colour maps would pass the limit of {self.max_choices}; "
+                    "keep fewer presets beside the data"
+                )
+            for choice in choices:
+                self._choices[choice.key] = choice
+        return [choice.key for choice in choices]
 
     def transfer_function(self, settings: RenderSettings) -> TransferFunction:
         """The transfer function of some settings, in data units.
 
+        A preset's colours are applied as ``apmgsrn render --colormap FILE`` applies them (ParaView's
+        apply-and-rescale over the value range); the opacity is the settings' nodes over the same range.
+
         Raises:
-            ApmgsrnError: the colour map cannot be made (e.g. a preset file gone).
+            ApmgsrnError: unknown colour map.
         """
-        with self._lock:
-            choice = self._choices.get(settings.colormap) or ColormapChoice(settings.colormap, settings.colormap)
+        choice = self.choice(settings.colormap)
         low, high = settings.value_range
-        tf = make_transfer_function(choice.spec, (low, high), preset_name=choice.preset_name)
-        # The range control always wins, also over a session export kept in its own data units.
-        tf = tf.rescaled(low, high)
+        if choice.preset is not None:
+            tf = apply_preset(choice.preset, (low, high))
+        else:
+            tf = make_transfer_function(choice.builtin or choice.key, (low, high))
         return with_opacity_nodes(tf, settings.opacity)
 
 
-def with_opacity_nodes(tf: TransferFunction, opacity: tuple[tuple[float, float], ...]) -> TransferFunction:
+def linear_nodes(pairs) -> tuple[OpacityNode, ...]:
+    """Opacity nodes joined by straight lines from ``(position, opacity)`` pairs."""
+    return tuple((float(x), float(a), 0.5, 0.0) for x, a in pairs)
+
+
+def editor_points(nodes: tuple[OpacityNode, ...]) -> list[list[float]]:
+    """The ``[position, opacity]`` pairs the page's opacity editor shows for some nodes."""
+    return [[node[0], node[1]] for node in nodes]
+
+
+def with_opacity_nodes(tf: TransferFunction, opacity: tuple[OpacityNode, ...]) -> TransferFunction:
     """``tf`` with opacity nodes given on [0, 1] of its value range.
 
     Args:
         tf: a transfer function (its colour map's span is the value range).
-        opacity: ``(position, alpha)`` pairs, positions on [0, 1].
+        opacity: ``(position, alpha, midpoint, sharpness)`` nodes, positions on [0, 1].
 
     Returns:
-        The transfer function with a linear opacity map through those nodes.
+        The transfer function with an opacity map through those nodes, in data units.
     """
     low, high = tf.value_range
-    nodes = tuple((low + x * (high - low), a, 0.5, 0.0) for x, a in opacity)
+    # The arithmetic of ParaView's rescale (position * span + low), so nodes land where 'render' puts them.
+    nodes = tuple((x * (high - low) + low, a, m, s) for x, a, m, s in opacity)
     return tf.with_opacity(OpacityMap(nodes))
 
 
@@ -202,8 +235,8 @@ def whole_number(value, low: int, high: int, what: str) -> int:
 
 def opacity_points(points) -> tuple[tuple[float, float], ...]:
     """Opacity nodes from the page: 1 to 256 ``(position, opacity)`` pairs, clamped to [0, 1], sorted."""
-    if not isinstance(points, (list, tuple)) or not points or len(points) > 256:
-        raise ApmgsrnError("opacity needs 1 to 256 points (position, opacity)")
+    if not isinstance(points, (list, tuple)) or not points or len(points) > MAX_OPACITY_NODES:
+        raise ApmgsrnError(f"opacity needs 1 to {MAX_OPACITY_NODES} points (position, opacity)")
     clean = []
     for point in points:
         if not isinstance(point, (list, tuple)) or len(point) != 2:

@@ -3,7 +3,11 @@
 A writer gets a temporary path in the target's own folder (so the final rename is atomic on every POSIX
 filesystem), writes there, and the temporary file is renamed onto the target only after the write and an
 ``fsync`` succeed. Any failure, a full disk included, removes the temporary file, leaves an existing target
-untouched and becomes one :class:`~apmgsrn.errors.ApmgsrnError` naming the file.
+untouched and becomes one :class:`~apmgsrn.errors.ApmgsrnError` naming the file. The temporary name keeps
+the target's suffix, so writers that choose a format by suffix (Pillow, matplotlib, imageio) work unchanged.
+
+A leaf like :mod:`apmgsrn.errors` (no torch, no numpy): model files, volumes, images, plots and benchmark
+tables all write through it.
 """
 
 from __future__ import annotations
@@ -68,7 +72,7 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], object], what: 
     path = check_output_path(path, what)
     folder = path.parent if str(path.parent) else Path(".")
     try:
-        handle, temp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+        handle, temp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".partial{path.suffix}", dir=folder)
     except OSError as exc:
         raise ApmgsrnError(f"{path}: cannot write to {folder} ({describe_os_error(exc)})") from None
     os.close(handle)
