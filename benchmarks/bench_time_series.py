@@ -68,6 +68,8 @@ def run_baseline(args: argparse.Namespace) -> None:
     from apmgsrn.training.trainer import TrainConfig
 
     files = list(enumerate(_series_files(args.data)))
+    if args.steps:
+        files = [files[int(step)] for step in args.steps.split(",")]  # a subset, in the order given
     config = TrainConfig(iterations=args.iterations, batch_size=args.batch_size, lr=0.01, seed=0)
     with tempfile.TemporaryDirectory() as tmp:
         for step, path in reversed(files) if args.reverse else files:
@@ -256,6 +258,7 @@ def main() -> None:
     base = sub.add_parser("baseline", help="one small model per step")
     base.add_argument("--csv", type=Path, default=BASELINE_CSV)
     base.add_argument("--reverse", action="store_true", help="last step first (a second process shares the work)")
+    base.add_argument("--steps", help="only these steps, e.g. 10,15,20,25 (default: all)")
     series = sub.add_parser("series", help="one model for the whole series")
     series.add_argument("--csv", type=Path, default=SERIES_CSV)
     series.add_argument("--basis", type=int)

@@ -86,3 +86,16 @@ def test_a_model_of_one_volume_has_no_time_axis(folder, test_data):
     assert source.series is None and source.steps == 1
     with pytest.raises(ApmgsrnError, match="no time steps"):
         Timeline(session).request_step(1)
+
+
+def test_a_page_may_pick_only_a_whole_step_of_the_shown_series(folder):
+    from apmgsrn.viewer.page_state import PageState
+
+    session = ViewerSession(Catalog(folder), "cpu", SMALL)
+    page = PageState(None, session, torch.device("cpu"))
+    assert page.accepts("time_step", 0) and not page.accepts("time_step", 1)  # nothing shown: one step
+    session.open_now("run.apmgsrn")
+    assert page.accepts("time_step", 3) and page.accepts("time_step", 2.0)
+    for bad in (4, -1, 1.5, True, "2", None, float("nan"), [1]):
+        assert not page.accepts("time_step", bad), bad
+    assert page.accepts("time_playing", True) and not page.accepts("time_playing", 1)
