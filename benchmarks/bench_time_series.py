@@ -195,8 +195,16 @@ def run_speed(args: argparse.Namespace) -> None:
             print(f"{what}: series {min(series_times):.3f} s, single {min(single_times):.3f} s", flush=True)
 
 
-def write_report(out: Path) -> None:
-    """The per-step table (both methods side by side), the three criteria, and the chart."""
+def write_report(out: Path, timing_steps: list[int] | None = None) -> None:
+    """The per-step table (both methods side by side), the criteria, and the chart.
+
+    Args:
+        out: the Markdown file.
+        timing_steps: baseline steps whose training time is the one-step time of the 5x criterion (those
+            trained while the series model trained, under the same load); None: the timing table, else the
+            median baseline row.
+    """
+    from apmgsrn.atomic import atomic_write_text
     from apmgsrn.bench.charts import psnr_over_time_chart
 
     baseline = {int(r["step"]): r for r in _done_rows(BASELINE_CSV)}
@@ -217,14 +225,27 @@ def write_report(out: Path) -> None:
     series_bytes = int(series[steps[0]]["model_bytes"])
     series_seconds = float(series[steps[0]]["train_seconds"])
     timing = _done_rows(TIMING_CSV)
-    if timing:
+    if timing_steps:
+        measured_steps = [t for t in timing_steps if t in baseline]
+        step_seconds = sum(float(baseline[t]["seconds"]) for t in measured_steps) / len(measured_steps)
+        measured = ", ".join(f"step {t}: {float(baseline[t]['seconds']):.0f} s" for t in measured_steps)
+        step_source = (f"the mean of the single-step trainings that ran at the same time as the series model "
+                       f"on the same machine ({measured})")
+    elif timing:
         step_seconds = sum(float(r["seconds"]) for r in timing) / len(timing)
         measured = ", ".join(f"{float(r['seconds']):.1f} s" for r in timing)
         step_source = f"the mean of {len(timing)} single-step trainings measured right before and after it ({measured})"
     else:
         step_seconds = sorted(float(baseline[t]["seconds"]) for t in steps)[len(steps) // 2]
         step_source = "the median single-step training of the baseline table"
+    speed = _done_rows(SPEED_CSV)
+    speed_lines = "\n".join(
+        f"| {r['what']} | {float(r['series_seconds']):.3f} s | {float(r['single_seconds']):.3f} s | "
+        f"{float(r['series_seconds']) / float(r['single_seconds']):.2f} |" for r in speed)
     config = series[steps[0]]["config"]
+    baseline_note = "" if len(steps) == 30 else (
+        f" Independent models were trained for {len(steps)} of the 30 steps ({', '.join(map(str, steps))}): "
+        "each takes as long as a quarter of the series model on this shared machine.")
     loads = ", ".join(sorted({r["load_average"] for r in series.values()}))
     text = f"""# One model for a whole run: measured (issue 16)
 
@@ -232,7 +253,7 @@ Written by `python benchmarks/bench_time_series.py report` from `benchmarks/resu
 Data: the 30 consecutive steps of `viscous_fingers_run01` (64^3, float32). Protocol: 2,000 iterations x 32,768
 points per independent small model (lr 0.01, seed 0); the series model `{config}`, same batch, lr and seed.
 CPU: {series[steps[0]]['cpu']}, {series[steps[0]]['threads']} thread(s); the machine was shared with other work
-(1-minute load average during the series run: {loads}; per baseline row in its CSV).
+(1-minute load average during the series run: {loads}; per baseline row in its CSV).{baseline_note}
 
 | criterion | target | measured |
 |---|---|---|
@@ -240,11 +261,19 @@ CPU: {series[steps[0]]['cpu']}, {series[steps[0]]['threads']} thread(s); the mac
 | model file | <= 5 small models ({5 * single_bytes:,} bytes) | {series_bytes:,} bytes ({series_bytes / single_bytes:.2f} small models) |
 | training time | <= 5 x one step ({5 * step_seconds:.0f} s) | {series_seconds:.0f} s ({series_seconds / step_seconds:.2f} x {step_source}) |
 
+Decoding or rendering one step, the series file against the same step saved as a single-step model file
+(identical network shape and values; the difference is opening the larger file and materialising the step's
+features; fastest of several interleaved runs):
+
+| what | series file | single-step file | ratio |
+|---|---|---|---|
+{speed_lines}
+
 ![PSNR over time](images/{CHART.name})
 
 {chr(10).join(lines)}
 """
-    out.write_text(text)
+    atomic_write_text(out, text, "report")
     psnr_over_time_chart([t for t in steps],
                          {"one small model per step": [float(baseline[t]["psnr"]) for t in steps],
                           "one model for the series": [float(series[t]["psnr"]) for t in steps]},
@@ -287,6 +316,8 @@ def main() -> None:
         p.add_argument("--iterations", type=int, default=2000)
         p.add_argument("--batch-size", type=int, default=32768)
     report.add_argument("--threads", type=int, default=1)
+    report.add_argument("--timing-steps", help="baseline steps trained alongside the series model, e.g. 15,10,20,25: "
+                                               "their mean time is the one-step time of the 5x criterion")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     start = time.perf_counter()
@@ -299,7 +330,7 @@ def main() -> None:
     elif args.command == "speed":
         run_speed(args)
     else:
-        write_report(args.out)
+        write_report(args.out, [int(t) for t in args.timing_steps.split(",")] if args.timing_steps else None)
     print(f"done in {time.perf_counter() - start:.0f} s")
 
 

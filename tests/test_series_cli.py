@@ -163,6 +163,8 @@ def test_info_describes_the_time_axis(series_model, capsys):
     assert series["steps"] == 4 and series["basis"] == 2 and series["residual"] == 4
     assert [s["label"] for s in series["per_step"]] == [30, 31, 32, 33]
     assert all(isinstance(s["psnr"], float) for s in series["per_step"])
+    # Compression counts every step the file holds: 4 steps of 32^3 float32 values.
+    assert info["compression_ratio_float32"] == pytest.approx(4 * 32**3 * 4 / info["file_bytes"])
     assert main(["info", str(series_model)]) == 0
     text = capsys.readouterr().out
     assert "time        4 steps; 2 basis grids per grid" in text and "031_density_031_064_2.0.vti" in text

@@ -102,8 +102,11 @@ def describe_field(field, description) -> dict:
 
 
 def _compression(description) -> dict:
-    """Compression figures of the file against its training volume (stored dtype when the file records it)."""
-    return compression_figures(math.prod(description.volume_shape), description.source.dtype,
+    """Compression figures of the file against its training volume (every step of a series; stored dtype when
+    the file records it)."""
+    from apmgsrn.io.description import time_steps
+
+    return compression_figures(math.prod(description.volume_shape) * time_steps(description), description.source.dtype,
                                description.source.itemsize, description.file_bytes)
 
 
