@@ -245,7 +245,7 @@ def write_report(out: Path, timing_steps: list[int] | None = None) -> None:
     config = series[steps[0]]["config"]
     baseline_note = "" if len(steps) == 30 else (
         f" Independent models were trained for {len(steps)} of the 30 steps ({', '.join(map(str, steps))}): "
-        "each takes as long as a quarter of the series model on this shared machine.")
+        "the others were not trained for lack of machine time (each took 2 to 17 minutes on this shared machine).")
     loads = ", ".join(sorted({r["load_average"] for r in series.values()}))
     text = f"""# One model for a whole run: measured (issue 16)
 
