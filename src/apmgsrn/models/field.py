@@ -37,15 +37,17 @@ class NeuralField(nn.Module):
     ):
         super().__init__()
         self.config = config
+        self.volume_shape = tuple(int(s) for s in volume_shape)
         encoder_class = ENCODERS[config.model][1]
-        self.encoder = encoder_class(config.encoder, generator=generator)
+        # Encoders whose layout follows the volume's lattice take its shape (saved in every model file).
+        extra = {"volume_shape": self.volume_shape} if getattr(encoder_class, "follows_volume_shape", False) else {}
+        self.encoder = encoder_class(config.encoder, generator=generator, **extra)
         self.decoder = Decoder(self.encoder.out_features, config.decoder, generator=generator)
         self.fit_min = float(fit_min)
         self.fit_max = float(fit_max)
         self.value_min = float(fit_min if value_min is None else value_min)
         self.value_max = float(fit_max if value_max is None else value_max)
         self.transform = transform
-        self.volume_shape = tuple(int(s) for s in volume_shape)
 
     def normalized(
         self, points: torch.Tensor, detach_transforms: bool = False, hidden_dtype: torch.dtype | None = None

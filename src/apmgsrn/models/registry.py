@@ -9,12 +9,14 @@ from apmgsrn.models.decoder import DecoderConfig
 from apmgsrn.models.encoders.adaptive_multigrid import AdaptiveMultiGridConfig, AdaptiveMultiGridEncoder
 from apmgsrn.models.encoders.dense_grid import DenseGridConfig, DenseGridEncoder
 from apmgsrn.models.encoders.hash_grid import HashGridConfig, HashGridEncoder
+from apmgsrn.models.encoders.hybrid_grid import HybridGridConfig, HybridGridEncoder
 
 # model name -> (encoder config class, encoder class)
 ENCODERS: dict[str, tuple[type, type]] = {
     "apmgsrn": (AdaptiveMultiGridConfig, AdaptiveMultiGridEncoder),
     "fvsrn": (DenseGridConfig, DenseGridEncoder),
     "ngp": (HashGridConfig, HashGridEncoder),
+    "hybrid": (HybridGridConfig, HybridGridEncoder),
 }
 
 # model name -> preset name -> encoder config fields (SPEC section 5, paper Table 1 sizes)
@@ -34,11 +36,21 @@ PRESETS: dict[str, dict[str, dict]] = {
         "medium": dict(levels=18, features=2, log2_table_size=15, base_resolution=16, finest_resolution=512),
         "large": dict(levels=17, features=2, log2_table_size=20, base_resolution=16, finest_resolution=256),
     },
+    # Half the features in the domain levels' tables, half in the adaptive grids; each preset holds at most
+    # as many parameters as the smallest baseline of its size on any volume (tests/test_hybrid_grid.py).
+    "hybrid": {
+        "small": dict(levels=15, features=2, log2_table_size=10, coarsest=8, grids=8, grid_features=1,
+                      grid_resolution=16),
+        "medium": dict(levels=15, features=2, log2_table_size=14, coarsest=16, grids=8, grid_features=2,
+                       grid_resolution=32),
+        "large": dict(levels=15, features=2, log2_table_size=18, coarsest=16, grids=8, grid_features=4,
+                      grid_resolution=64),
+    },
 }
 
 # model name -> default learning-rate schedule of the trainer (see TrainConfig.lr_schedule). Measured under
 # the CPU protocol (docs/baselines.md): the budget-following cosine also suits the baselines.
-DEFAULT_LR_SCHEDULES: dict[str, str] = {"apmgsrn": "cosine", "fvsrn": "cosine", "ngp": "cosine"}
+DEFAULT_LR_SCHEDULES: dict[str, str] = {"apmgsrn": "cosine", "fvsrn": "cosine", "ngp": "cosine", "hybrid": "cosine"}
 
 
 @dataclass(frozen=True)

@@ -433,13 +433,13 @@ def cache_dir() -> Path:
     return Path(root) / "kernels"
 
 
-def _compile(folder: Path, name: str, compiler: str) -> Path:
-    """Compile the source into ``folder / name``, trying :data:`FLAG_SETS` in order."""
+def _compile(folder: Path, name: str, compiler: str, source: str) -> Path:
+    """Compile C ``source`` into ``folder / name``, trying :data:`FLAG_SETS` in order."""
     folder.mkdir(parents=True, exist_ok=True)
     errors = []
     with tempfile.TemporaryDirectory(dir=folder) as tmp:
-        src = Path(tmp) / "multigrid_cpu.c"
-        src.write_text(C_SOURCE)
+        src = Path(tmp) / "kernel.c"
+        src.write_text(source)
         out = Path(tmp) / name
         for extra in FLAG_SETS:
             proc = subprocess.run(
@@ -457,17 +457,40 @@ def _compile(folder: Path, name: str, compiler: str) -> Path:
     raise RuntimeError(f"{compiler} could not build the kernel:\n" + "\n".join(errors))
 
 
-def _build(name: str, compiler: str) -> Path:
+def _build(name: str, compiler: str, source: str) -> Path:
     """The cached library, compiled on first use; a temporary folder if the cache is not writable."""
     target = cache_dir() / name
     if target.exists():
         return target
     try:
-        return _compile(cache_dir(), name, compiler)
+        return _compile(cache_dir(), name, compiler, source)
     except OSError:
         fallback = Path(tempfile.gettempdir()) / f"apmgsrn-kernels-{os.getuid() if hasattr(os, 'getuid') else 0}"
         target = fallback / name
-        return target if target.exists() else _compile(fallback, name, compiler)
+        return target if target.exists() else _compile(fallback, name, compiler, source)
+
+
+def build_library(stem: str, source: str) -> ctypes.CDLL:
+    """Compile (once per machine, cached) and load a C kernel library.
+
+    Args:
+        stem: file-name stem of the cached shared object (a hash of source, flags, compiler and CPU is
+            appended).
+        source: the C source.
+
+    Returns:
+        The loaded library (its functions still need their ``argtypes``).
+
+    Raises:
+        RuntimeError: no C compiler, or it could not build the source.
+    """
+    wanted = os.environ.get("CC")
+    compiler = shutil.which(wanted) if wanted else shutil.which("gcc") or shutil.which("cc")
+    if compiler is None:
+        raise RuntimeError(f"C compiler {wanted!r} not found" if wanted else "no C compiler (gcc or cc) on PATH")
+    flags = repr((COMMON_FLAGS, FLAG_SETS))
+    key = hashlib.sha256("\0".join([source, flags, compiler, _cpu_signature()]).encode()).hexdigest()[:16]
+    return ctypes.CDLL(str(_build(f"{stem}_{key}.so", compiler, source)))
 
 
 def _declare(lib: ctypes.CDLL) -> None:
@@ -493,13 +516,7 @@ def load_library() -> ctypes.CDLL | None:
             return _library
         _tried = True
         try:
-            wanted = os.environ.get("CC")
-            compiler = shutil.which(wanted) if wanted else shutil.which("gcc") or shutil.which("cc")
-            if compiler is None:
-                raise RuntimeError(f"C compiler {wanted!r} not found" if wanted else "no C compiler (gcc or cc) on PATH")
-            flags = repr((COMMON_FLAGS, FLAG_SETS))
-            key = hashlib.sha256("\0".join([C_SOURCE, flags, compiler, _cpu_signature()]).encode()).hexdigest()[:16]
-            lib = ctypes.CDLL(str(_build(f"multigrid_cpu_{key}.so", compiler)))
+            lib = build_library("multigrid_cpu", C_SOURCE)
             _declare(lib)
             _library = lib
         except Exception as err:  # noqa: BLE001 - any build problem means "use the reference"

@@ -179,7 +179,9 @@ class Trainer:
         transform_params = list(encoder.transform_parameters()) if hasattr(encoder, "transform_parameters") else []
         transform_ids = {id(p) for p in transform_params}
         network_params = [p for p in field.parameters() if id(p) not in transform_ids]
-        self.network_optimizer = torch.optim.Adam(network_params, lr=config.lr, betas=config.betas)
+        self.network_optimizer = torch.optim.Adam(
+            _learning_rate_groups(encoder, network_params), lr=config.lr, betas=config.betas
+        )
         self.transform_optimizer = (
             torch.optim.Adam(transform_params, lr=config.transform_lr, betas=config.betas)
             if transform_params
@@ -192,6 +194,11 @@ class Trainer:
         self._pending_density: list[torch.Tensor] = []
         if self.transform_optimizer is None:
             self.state.frozen_at = 0
+        # Encoders that start from the data (hybrid: adaptive grids on the volume's detail) do it here, the
+        # one place every training path (single file, bricks) goes through; a resumed run then loads its
+        # checkpoint over it.
+        if hasattr(encoder, "initialize_from_volume"):
+            encoder.initialize_from_volume(volume)
 
     # ----------------------------------------------------------------------------- schedule
     def learning_rate(self, iteration: int) -> float:
@@ -229,7 +236,7 @@ class Trainer:
         """
         cfg, st = self.config, self.state
         for group in self.network_optimizer.param_groups:
-            group["lr"] = self.learning_rate(st.iteration)
+            group["lr"] = self.learning_rate(st.iteration) * group.get("lr_scale", 1.0)
         points = torch.rand(cfg.batch_size, 3, generator=self.generator, device=self.device) * 2 - 1
         target = sample_volume(self.volume, points)  # [B]
 
@@ -348,7 +355,7 @@ class Trainer:
                     st.history["iteration"].append(st.iteration)
                     st.history["reconstruction"].append(loss)
                     st.history["density"].append(float(density) if density is not None else float("nan"))
-                    st.history["lr"].append(self.network_optimizer.param_groups[0]["lr"])
+                    st.history["lr"].append(self.learning_rate(st.iteration))
                 st.iteration += 1
                 st.elapsed = time.perf_counter() - start
                 if bar is not None:
@@ -435,6 +442,19 @@ class Trainer:
         if self.state.frozen_at is not None:
             for p in self.field.encoder.transform_parameters():
                 p.requires_grad_(False)
+
+
+def _learning_rate_groups(encoder, parameters: list) -> list:
+    """Optimiser parameter groups: one per learning-rate multiplier the encoder asks for
+    (``learning_rate_scales()``, per-component learning rates; the group's ``lr_scale``), or the plain
+    parameter list when it asks for none."""
+    scales_of = encoder.learning_rate_scales() if hasattr(encoder, "learning_rate_scales") else {}
+    if not scales_of:
+        return parameters
+    groups: dict[float, list] = {}
+    for p in parameters:
+        groups.setdefault(float(scales_of.get(p, 1.0)), []).append(p)
+    return [{"params": params, "lr_scale": scale} for scale, params in groups.items()]
 
 
 class _StopRequest:
