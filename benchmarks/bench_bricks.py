@@ -45,6 +45,7 @@ from apmgsrn.decomposition.coordinator import BrickProgress, train_bricks
 from apmgsrn.decomposition.executor import ExecutorConfig, open_job_queue
 from apmgsrn.decomposition.planner import DecompositionConfig
 from apmgsrn.inference.evaluate import evaluate, psnr_from_mse
+from apmgsrn.inference.slabs import SLAB_VOXELS
 from apmgsrn.inference.query import query
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config
@@ -92,7 +93,7 @@ def seam_errors(model, volume, counts_xyz) -> dict:
     shape = volume.shape
     sums = {(blend, part): [0.0, 0] for blend in (False, True) for part in ("border", "interior")}
     data_min, data_max = math.inf, -math.inf
-    for z, block in volume.iter_slabs(2**22):
+    for z, block in volume.iter_slabs(SLAB_VOXELS):
         points = voxel_coordinates(shape, z)
         mask = border_mask(shape, counts_xyz, z).reshape(-1)
         truth = block.reshape(-1).astype(np.float64)
@@ -166,12 +167,12 @@ def quality_section(args, device: torch.device, work: Path) -> list[str]:
         print(f"== {volume.describe()}", flush=True)
         walls = {}
         for schedule in args.schedules:
-            train = replace(base, lr_schedule=schedule, stop_after_lr_cuts=3 if schedule == "plateau" else None)
+            train = replace(base, lr_schedule=schedule)  # plateau: brick_policy ends a brick after its 3rd cut
             for workers in (args.workers if schedule == args.schedules[0] else [max(args.workers)]):
                 out = work / f"{name}_bricks_{schedule}_{workers}"
                 summary = run_bricks(volume, brick_field, train, out, workers, args.device_name)
                 model = load_model(out, device=device)
-                result = evaluate(model, volume, model.file_bytes)
+                result = evaluate(model, volume)
                 stops = sum(r.stopped_early for r in summary.trained)
                 label = f"{schedule}" + (" (stop after 3rd cut)" if schedule == "plateau" else "")
                 if workers == max(args.workers):

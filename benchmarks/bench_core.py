@@ -42,7 +42,7 @@ def measure(preset: str, device_name: str, batch: int, steps: int, decode_batch:
     field = NeuralField(preset_config("apmgsrn", preset), 0.0, 1.0).to(device)
     # Grids moving (density step on) for the whole measurement: the costlier half of training.
     trainer = Trainer(field, values, TrainConfig(iterations=10**6, batch_size=batch, density_start=0,
-                                                 freeze_fraction=1.0), progress=False)
+                                                 freeze_fraction=1.0))
 
     def sync():
         if device.type == "cuda":

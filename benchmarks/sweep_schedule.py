@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from apmgsrn.device import keep_large_allocations_cached
-from apmgsrn.inference.evaluate import evaluate_tensor
+from apmgsrn.inference.evaluate import evaluate
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config
 from apmgsrn.training.trainer import Trainer, TrainConfig
@@ -41,9 +41,9 @@ def run(data: np.ndarray, preset: str, variant: dict, device: torch.device, iter
     field = NeuralField(preset_config("apmgsrn", preset, **model_kw), mn, mx, volume_shape=data.shape,
                         generator=torch.Generator().manual_seed(0)).to(device)
     start = time.perf_counter()
-    Trainer(field, volume, config, progress=False).run()
+    Trainer(field, volume, config).run()
     seconds = time.perf_counter() - start
-    return evaluate_tensor(field, torch.from_numpy(data).to(device)), seconds
+    return evaluate(field, data).psnr, seconds
 
 
 def main() -> None:

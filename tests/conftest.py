@@ -1,23 +1,26 @@
-"""Shared fixtures: the real sample volumes in ../shared/data and a bundled copy in the repo."""
+"""Shared fixtures: the small real volumes the repo carries (tests/data, and the demo's examples/data)."""
 
 from __future__ import annotations
 
-import os
+import shutil
 from pathlib import Path
 
 import pytest
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = Path(os.environ.get("APMGSRN_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 
 @pytest.fixture(scope="session")
-def shared_data() -> Path:
-    """Folder of the real sample volumes (``../shared/data``); skip if this checkout has none."""
-    if not SHARED_DATA.is_dir():
-        pytest.skip(f"no shared data folder at {SHARED_DATA}")
-    return SHARED_DATA
+def test_data() -> Path:
+    """Folder of the small real volumes bundled with the tests (provenance and cuts: tests/data/README.md)."""
+    return REPO / "tests" / "data"
+
+
+@pytest.fixture(scope="session")
+def hcci_oh() -> Path:
+    """The 187^3 HCCI OH field (NetCDF4, variable ``oh``) that the repo ships for its demo, used as is."""
+    return REPO / "examples" / "data" / "hcci_oh_187.nc"
 
 
 @pytest.fixture(scope="module")
@@ -38,8 +41,11 @@ def _deterministic_threads():
 def pytest_collection_modifyitems(config, items):
     has_cuda = torch.cuda.is_available()
     chromium = Path("/usr/bin/chromium").exists()
+    pvpython = shutil.which("pvpython") is not None
     for item in items:
         if "gpu" in item.keywords and not has_cuda:
             item.add_marker(pytest.mark.skip(reason="needs a CUDA device"))
         if "browser" in item.keywords and not chromium:
             item.add_marker(pytest.mark.skip(reason="needs /usr/bin/chromium"))
+        if "paraview" in item.keywords and not pvpython:
+            item.add_marker(pytest.mark.skip(reason="needs ParaView's pvpython on PATH (Debian: apt-get install paraview)"))

@@ -126,9 +126,9 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
-def neghip_crop(shared_data, tmp_path_factory):
+def neghip_crop(test_data, tmp_path_factory):
     """A real 24^3 crop of the neghip protein field, as .npy (small enough for quick CPU runs)."""
-    volume = open_volume(shared_data / "neghip_64x64x64_uint8.raw")
+    volume = open_volume(test_data / "neghip_64x64x64_uint8.raw")
     data = volume.read(slice(20, 44), slice(20, 44), slice(20, 44))
     path = tmp_path_factory.mktemp("baselines") / "neghip_crop.npy"
     np.save(path, data)
@@ -153,7 +153,7 @@ def test_baseline_trains_saves_and_reports_its_real_size(model, neghip_crop, tmp
     assert main(["info", str(out), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["model"] == model
-    assert info["parameters"] == field.parameter_count() == summary["parameters"]
+    assert info["parameters"] == field.description.parameters == summary["parameters"]
     assert info["parameter_bytes"] == 4 * info["parameters"]
     assert info["file_bytes"] == out.stat().st_size > info["parameter_bytes"]
 

@@ -15,13 +15,13 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
-def trained(shared_data, tmp_path_factory):
+def trained(hcci_oh, tmp_path_factory):
     """A real 24x28x32 (z, y, x) crop of the hcci OH field and an APMGSRN model of it after 12 iterations.
 
     The density step starts at iteration 1 (5 % of 12), so the grids have moved.
     """
     folder = tmp_path_factory.mktemp("grids")
-    data = open_volume(shared_data / "hcci_oh_187.nc", variable="oh").read(
+    data = open_volume(hcci_oh, variable="oh").read(
         slice(70, 94), slice(70, 98), slice(70, 102)
     )
     path = folder / "hcci_crop.npy"
@@ -54,7 +54,7 @@ def test_grids_command_writes_picture_and_vtk_boxes_in_voxel_coordinates(trained
     grid = reader.GetOutput()
     assert grid.GetNumberOfCells() == 16
     assert {grid.GetCellType(i) for i in range(16)} == {vtk.VTK_HEXAHEDRON}
-    boxes = apmgsrn.load(model).encoder.grid_boxes().double().numpy()  # [16, 8, 3] in [-1, 1]
+    boxes = apmgsrn.load(model).field.encoder.grid_boxes().double().numpy()  # [16, 8, 3] in [-1, 1]
     d, h, w = data.shape
     expected = (boxes + 1) / 2 * np.array([w - 1, h - 1, d - 1])  # voxel index units (x, y, z)
     points = np.array([grid.GetPoint(i) for i in range(grid.GetNumberOfPoints())]).reshape(16, 8, 3)
@@ -80,7 +80,7 @@ def test_animation_replays_training_and_ends_at_the_saved_grids(trained, tmp_pat
     history = record_grid_history(field, ArrayVolume(data), 6, torch.device("cpu"))
     assert history.iterations == [0, 6, 12]
     # Same seed, same settings: the replay ends where the saved model's grids are; they moved on the way.
-    np.testing.assert_allclose(history.boxes[-1], field.encoder.grid_boxes().numpy(), atol=1e-5)
+    np.testing.assert_allclose(history.boxes[-1], field.field.encoder.grid_boxes().numpy(), atol=1e-5)
     assert np.abs(history.boxes[-1] - history.boxes[0]).max() > 1e-4
 
 

@@ -20,9 +20,9 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
-def crop(shared_data, tmp_path_factory):
+def crop(hcci_oh, tmp_path_factory):
     """A real 20^3 crop of the hcci OH field (NetCDF), saved as .npy, and its label."""
-    volume = open_volume(shared_data / "hcci_oh_187.nc", variable="oh")
+    volume = open_volume(hcci_oh, variable="oh")
     data = volume.read(slice(80, 100), slice(80, 100), slice(80, 100))
     path = tmp_path_factory.mktemp("quality") / "hcci_crop.npy"
     np.save(path, data)
@@ -45,7 +45,10 @@ def test_quality_benchmark_writes_csv_table_and_chart_and_resumes(crop, tmp_path
     ]
     for record in records:
         assert int(record["parameters"]) * 4 == int(record["parameter_bytes"]) < int(record["file_bytes"])
+        # The crop is stored as float32: both ratios count 4 bytes a voxel.
+        assert record["data_dtype"] == "float32" and int(record["data_bytes"]) == 20**3 * 4
         assert float(record["compression_ratio"]) == pytest.approx(20**3 * 4 / int(record["file_bytes"]))
+        assert float(record["compression_ratio_float32"]) == float(record["compression_ratio"])
         assert (out / "models").joinpath(record["model_file"].split("/")[-1]).is_file()
 
     table = (out / "quality.md").read_text()
@@ -65,8 +68,8 @@ def test_quality_benchmark_writes_csv_table_and_chart_and_resumes(crop, tmp_path
 
 
 def _row(dataset, model, size, seed, psnr):
-    return QualityRow(dataset, "8x8x8", model, size, seed, 10, 64, "cosine", 100, 400, 500, 2048, 4.1, psnr,
-                      1.0, 100.0, "cpu", "m.apmgsrn")
+    return QualityRow(dataset, "8x8x8", model, size, seed, 10, 64, "cosine", 100, 400, 500, "uint8", 512, 1.024,
+                      4.096, psnr, 1.0, 100.0, "cpu", "m.apmgsrn")
 
 
 def test_table_marks_the_best_per_size_and_leaves_missing_cells_empty():
@@ -81,11 +84,11 @@ def test_table_marks_the_best_per_size_and_leaves_missing_cells_empty():
     assert cells[1:] == ["31.00 ± 1.41 / 40.00", "– / **41.25**", "**33.50** / –"]
 
 
-def test_data_spec_takes_a_variable_after_the_last_colon(shared_data):
-    spec = parse_data_spec(f"{shared_data / 'hcci_oh_187.nc'}:oh")
+def test_data_spec_takes_a_variable_after_the_last_colon(hcci_oh):
+    spec = parse_data_spec(f"{hcci_oh}:oh")
     assert spec.variable == "oh" and spec.label == "hcci_oh_187.nc:oh"
     with pytest.raises(ApmgsrnError, match="no such volume file"):
-        parse_data_spec(str(shared_data / "missing.nc") + ":oh")
+        parse_data_spec(str(hcci_oh.parent / "missing.nc") + ":oh")
 
 
 def test_quality_benchmark_refuses_a_file_as_results_folder(crop, tmp_path, capsys):

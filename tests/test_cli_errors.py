@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from apmgsrn.cli.main import main
-from apmgsrn.training.checkpoint import save_field
+from apmgsrn.io import SourceInfo, save_field
 
 FAST = ["--iterations", "30", "--batch-size", "1024", "--device", "cpu"]
 
@@ -42,22 +42,22 @@ def test_garbage_netcdf(capsys, tmp_path):
     fails_cleanly(capsys, ["train", str(path), "--out", str(tmp_path / "m")], "broken.nc")
 
 
-def test_truncated_raw_and_wrong_shape(capsys, tmp_path, shared_data):
-    data = (shared_data / "neghip_64x64x64_uint8.raw").read_bytes()
+def test_truncated_raw_and_wrong_shape(capsys, tmp_path, test_data):
+    data = (test_data / "neghip_64x64x64_uint8.raw").read_bytes()
     truncated = tmp_path / "cut_64x64x64_uint8.raw"
     truncated.write_bytes(data[: len(data) - 1000])
     fails_cleanly(capsys, ["train", str(truncated), "--out", str(tmp_path / "m")], "cut_64x64x64_uint8.raw")
-    fails_cleanly(capsys, ["train", str(shared_data / "neghip_64x64x64_uint8.raw"), "--shape", "64,64,65",
+    fails_cleanly(capsys, ["train", str(test_data / "neghip_64x64x64_uint8.raw"), "--shape", "64,64,65",
                            "--out", str(tmp_path / "m")], "neghip")
 
 
-def test_missing_variable_lists_the_available_ones(capsys, tmp_path, shared_data):
-    fails_cleanly(capsys, ["train", str(shared_data / "miranda_density_256.nc"), "--variable", "pressure",
+def test_missing_variable_lists_the_available_ones(capsys, tmp_path, test_data):
+    fails_cleanly(capsys, ["train", str(test_data / "miranda_density_80x64x48.nc"), "--variable", "pressure",
                            "--out", str(tmp_path / "m")], "pressure", "density")
 
 
-def test_nan_volume_is_refused_with_a_count_then_trains_with_fill(capsys, tmp_path, shared_data):
-    volume = np.fromfile(shared_data / "neghip_64x64x64_uint8.raw", dtype=np.uint8).reshape(64, 64, 64)
+def test_nan_volume_is_refused_with_a_count_then_trains_with_fill(capsys, tmp_path, test_data):
+    volume = np.fromfile(test_data / "neghip_64x64x64_uint8.raw", dtype=np.uint8).reshape(64, 64, 64)
     volume = volume[:32, :32, :32].astype(np.float32)
     volume[0, 0, :5] = np.nan
     volume[1, 1, 1] = np.inf
@@ -78,22 +78,22 @@ def test_constant_volume_trains_without_dividing_by_zero(capsys, tmp_path):
     assert '"mse": 0.0' in out and '"max_abs_error": 0.0' in out
 
 
-def test_log10_of_non_positive_data_is_refused(capsys, tmp_path, shared_data):
-    fails_cleanly(capsys, ["train", str(shared_data / "neghip_64x64x64_uint8.raw"), "--transform", "log10",
+def test_log10_of_non_positive_data_is_refused(capsys, tmp_path, test_data):
+    fails_cleanly(capsys, ["train", str(test_data / "neghip_64x64x64_uint8.raw"), "--transform", "log10",
                            "--out", str(tmp_path / "m")], "--log-offset")
 
 
-def test_unwritable_output(capsys, tmp_path, shared_data):
-    fails_cleanly(capsys, ["train", str(shared_data / "neghip_64x64x64_uint8.raw"),
+def test_unwritable_output(capsys, tmp_path, test_data):
+    fails_cleanly(capsys, ["train", str(test_data / "neghip_64x64x64_uint8.raw"),
                            "--out", str(tmp_path / "no" / "such" / "dir" / "m.apmgsrn"), *FAST], "does not exist")
 
 
-def test_cuda_asked_for_without_a_gpu(capsys, tmp_path, shared_data):
+def test_cuda_asked_for_without_a_gpu(capsys, tmp_path, test_data):
     import torch
 
     if torch.cuda.is_available():
         pytest.skip("a GPU is present")
-    fails_cleanly(capsys, ["train", str(shared_data / "neghip_64x64x64_uint8.raw"), "--device", "cuda",
+    fails_cleanly(capsys, ["train", str(test_data / "neghip_64x64x64_uint8.raw"), "--device", "cuda",
                            "--out", str(tmp_path / "m")], "--device cpu")
 
 
@@ -103,7 +103,7 @@ def model_file(tmp_path):
     from apmgsrn.models.registry import preset_config
 
     path = tmp_path / "ok.apmgsrn"
-    save_field(path, NeuralField(preset_config("apmgsrn", "small"), volume_shape=(64, 64, 64)))
+    save_field(path, NeuralField(preset_config("apmgsrn", "small"), volume_shape=(64, 64, 64)), SourceInfo(), {})
     return path
 
 
@@ -116,7 +116,7 @@ class _Exploit:
 
 
 @pytest.mark.parametrize("command", ["info", "eval", "decode"])
-def test_bad_model_files(capsys, tmp_path, model_file, shared_data, command):
+def test_bad_model_files(capsys, tmp_path, model_file, test_data, command):
     marker = tmp_path / "executed"
     bad = {
         "missing.apmgsrn": None,
@@ -129,7 +129,7 @@ def test_bad_model_files(capsys, tmp_path, model_file, shared_data, command):
             path.write_bytes(content)
         argv = {
             "info": ["info", str(path)],
-            "eval": ["eval", str(path), str(shared_data / "neghip_64x64x64_uint8.raw")],
+            "eval": ["eval", str(path), str(test_data / "neghip_64x64x64_uint8.raw")],
             "decode": ["decode", str(path), "--out", str(tmp_path / "d.npy")],
         }[command]
         fails_cleanly(capsys, argv, name)
@@ -137,8 +137,8 @@ def test_bad_model_files(capsys, tmp_path, model_file, shared_data, command):
     assert not (tmp_path / "d.npy").exists()
 
 
-def test_eval_against_the_wrong_volume(capsys, model_file, shared_data):
-    fails_cleanly(capsys, ["eval", str(model_file), str(shared_data / "c60_128x128x128_uint8.raw")],
+def test_eval_against_the_wrong_volume(capsys, model_file, test_data):
+    fails_cleanly(capsys, ["eval", str(model_file), str(test_data / "c60_80x64x48_uint8.raw")],
                   "trained on 64x64x64")
 
 

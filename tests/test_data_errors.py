@@ -15,6 +15,8 @@ import pytest
 from apmgsrn.data import check_finite, open_volume, parse_shape
 from apmgsrn.errors import ApmgsrnError
 
+VTI = "viscous_fingers_run01/030_density_030_064_2.0.vti"  # in tests/data
+
 
 def _raises(path: Path, *fragments: str, **kwargs) -> str:
     """Open `path`, expect ApmgsrnError whose one-line message names the file and the fragments."""
@@ -29,10 +31,13 @@ def _raises(path: Path, *fragments: str, **kwargs) -> str:
 
 
 @pytest.fixture(scope="module")
-def block(shared_data: Path) -> np.ndarray:
-    """A real 24x20x16 (z, y, x) block of the Richtmyer-Meshkov volume as float32."""
-    volume = open_volume(shared_data / "richtmyer_meshkov_t20_256x256x256_uint8.raw")
-    return volume.read(slice(100, 124), slice(80, 100), slice(30, 46))
+def block(test_data: Path) -> np.ndarray:
+    """A real 24x20x16 (z, y, x) block of the Richtmyer-Meshkov volume as float32.
+
+    The voxels [100:124, 80:100, 30:46] of the 256^3 source; the crop starts at (88, 64, 0).
+    """
+    volume = open_volume(test_data / "richtmyer_meshkov_t20_96x64x48_uint8.raw")
+    return volume.read(slice(12, 36), slice(16, 36), slice(30, 46))
 
 
 def _netcdf(path: Path, variables: dict[str, tuple[tuple[str, ...], np.ndarray]]) -> Path:
@@ -51,9 +56,9 @@ def test_missing_file(tmp_path: Path) -> None:
     _raises(tmp_path / "nowhere.nc", "no such file")
 
 
-def test_unknown_suffix_lists_the_supported_ones(shared_data: Path, tmp_path: Path) -> None:
+def test_unknown_suffix_lists_the_supported_ones(test_data: Path, tmp_path: Path) -> None:
     path = tmp_path / "volume.xyz"
-    shutil.copy(shared_data / "neghip_64x64x64_uint8.raw", path)
+    shutil.copy(test_data / "neghip_64x64x64_uint8.raw", path)
     _raises(path, "'.xyz'", ".nc", ".h5", ".raw", ".npy", ".vti", "Zarr")
 
 
@@ -71,10 +76,10 @@ def test_garbage_bytes_under_a_known_suffix(tmp_path: Path, suffix: str) -> None
     _raises(path, "not a readable")
 
 
-@pytest.mark.parametrize("name", ["miranda_density_256.nc", "darkmatter_density_64.h5", "viscous_fingers_t010.vti"])
-def test_truncated_real_file(shared_data: Path, tmp_path: Path, name: str) -> None:
-    path = tmp_path / name
-    path.write_bytes((shared_data / name).read_bytes()[:20_000])
+@pytest.mark.parametrize("name", ["miranda_density_80x64x48.nc", "darkmatter_density_64.h5", VTI])
+def test_truncated_real_file(test_data: Path, tmp_path: Path, name: str) -> None:
+    path = tmp_path / Path(name).name
+    path.write_bytes((test_data / name).read_bytes()[:20_000])
     with pytest.raises(ApmgsrnError) as caught:
         # Some libraries only notice a missing tail when the data is read.
         open_volume(path).to_numpy()
@@ -88,9 +93,9 @@ def test_truncated_npy(tmp_path: Path, block: np.ndarray) -> None:
     _raises(path, "not a readable .npy")
 
 
-def test_vtk_missing_says_how_to_install(shared_data: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_vtk_missing_says_how_to_install(test_data: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, "vtkmodules", None)
-    _raises(shared_data / "viscous_fingers_t010.vti", "pip install apmgsrn[vtk]")
+    _raises(test_data / VTI, "pip install apmgsrn[vtk]")
 
 
 def test_importing_the_package_loads_no_optional_extra() -> None:
@@ -101,32 +106,32 @@ def test_importing_the_package_loads_no_optional_extra() -> None:
 
 
 # ----------------------------------------------------------------------------- raw files
-def test_truncated_raw_names_both_sizes(shared_data: Path, tmp_path: Path) -> None:
+def test_truncated_raw_names_both_sizes(test_data: Path, tmp_path: Path) -> None:
     path = tmp_path / "neghip_64x64x64_uint8.raw"
-    path.write_bytes((shared_data / "neghip_64x64x64_uint8.raw").read_bytes()[:200_000])
+    path.write_bytes((test_data / "neghip_64x64x64_uint8.raw").read_bytes()[:200_000])
     _raises(path, "200000 bytes", "262144 bytes", "truncated")
 
 
-def test_wrong_shape_for_a_raw_file(shared_data: Path) -> None:
-    path = shared_data / "c60_128x128x128_uint8.raw"
-    _raises(path, "2097152 bytes", "128x128x64", "--shape", shape=(128, 128, 64))
+def test_wrong_shape_for_a_raw_file(test_data: Path) -> None:
+    path = test_data / "c60_80x64x48_uint8.raw"
+    _raises(path, "245760 bytes", "80x64x24", "shape=", shape=(80, 64, 24))
     # Right voxel count, wrong type: the size fits 1-byte voxels, not 2.
-    _raises(path, "4194304 bytes", "1-byte voxels", dtype="uint16")
+    _raises(path, "491520 bytes", "1-byte voxels", dtype="uint16")
 
 
-def test_raw_without_dims_or_dtype(shared_data: Path, tmp_path: Path) -> None:
+def test_raw_without_dims_or_dtype(test_data: Path, tmp_path: Path) -> None:
     path = tmp_path / "volume.raw"
-    shutil.copy(shared_data / "neghip_64x64x64_uint8.raw", path)
-    _raises(path, "--shape X,Y,Z and --dtype TYPE", "NAME_XxYxZ_dtype.raw")
-    _raises(path, "--dtype TYPE", shape=(64, 64, 64))
+    shutil.copy(test_data / "neghip_64x64x64_uint8.raw", path)
+    _raises(path, "shape=X,Y,Z and dtype=TYPE", "NAME_XxYxZ_dtype.raw")
+    _raises(path, "dtype=TYPE", shape=(64, 64, 64))
     _raises(path, "unknown voxel type 'complex64'", shape=(64, 64, 64), dtype="complex64")
     assert open_volume(path, shape=(64, 64, 64), dtype="uint8").shape == (64, 64, 64)
 
 
-def test_flags_that_do_not_apply(shared_data: Path) -> None:
-    _raises(shared_data / "hcci_oh_187.nc", "--shape", shape=(187, 187, 187))
-    _raises(shared_data / "c60_128x128x128_uint8.raw", "--variable", variable="density")
-    _raises(shared_data / "c60_128x128x128_uint8.raw", "--time", time=0)
+def test_flags_that_do_not_apply(test_data: Path, hcci_oh: Path) -> None:
+    _raises(hcci_oh, "shape=", shape=(187, 187, 187))
+    _raises(test_data / "c60_80x64x48_uint8.raw", "variable=", variable="density")
+    _raises(test_data / "c60_80x64x48_uint8.raw", "time=", time=0)
 
 
 def test_parse_shape_rejects_junk() -> None:
@@ -136,19 +141,19 @@ def test_parse_shape_rejects_junk() -> None:
 
 
 # ----------------------------------------------------------------------------- variables and dims
-def test_missing_variable_lists_those_available(shared_data: Path) -> None:
-    _raises(shared_data / "miranda_density_256.nc", "'pressure'", "density (3-D z=256 y=256 x=256, float32)",
+def test_missing_variable_lists_those_available(test_data: Path) -> None:
+    _raises(test_data / "miranda_density_80x64x48.nc", "'pressure'", "density (3-D z=48 y=64 x=80, float32)",
             variable="pressure")
-    _raises(shared_data / "darkmatter_density_64.h5", "'rho'", "densityfield", variable="rho")
-    _raises(shared_data / "viscous_fingers_t010.vti", "'Pressure'", "ImageFile", variable="Pressure")
+    _raises(test_data / "darkmatter_density_64.h5", "'rho'", "densityfield", variable="rho")
+    _raises(test_data / VTI, "'Pressure'", "ImageFile", variable="Pressure")
 
 
-def test_several_3d_variables_need_a_choice(shared_data: Path, tmp_path: Path, block: np.ndarray) -> None:
+def test_several_3d_variables_need_a_choice(test_data: Path, tmp_path: Path, block: np.ndarray) -> None:
     dims = ("z", "y", "x")
     path = _netcdf(tmp_path / "two.nc", {"a": (dims, block), "b": (dims, block * 2)})
-    _raises(path, "several 3-D variables", "'a'", "'b'", "--variable")
+    _raises(path, "several 3-D variables", "'a'", "'b'", "variable=")
     np.testing.assert_array_equal(open_volume(path, variable="b").to_numpy(), block * 2)
-    _raises(shared_data / "cth_armor_penetration.vtr", "several 3-D arrays", "'Pressure'", "'X Velocity'")
+    _raises(test_data / "cth_armor_penetration_88x32x32.vtr", "several 3-D arrays", "'Pressure'", "'X Velocity'")
     h5 = tmp_path / "two.h5"
     with h5py.File(h5, "w") as handle:
         handle["u"] = block
@@ -175,8 +180,8 @@ def test_two_dimensional_data_states_its_dims(tmp_path: Path, block: np.ndarray)
 def test_time_dimension_without_time_flag(tmp_path: Path, block: np.ndarray) -> None:
     series = np.stack([block, block + 1, block + 2, block + 3])
     path = _netcdf(tmp_path / "series.nc", {"rho": (("time", "z", "y", "x"), series)})
-    _raises(path, "time dimension of length 4", "--time INDEX (0..3)")
-    _raises(path, "--time 4 is out of range", time=4)
+    _raises(path, "time dimension of length 4", "time=INDEX (0..3)")
+    _raises(path, "time=4 is out of range", time=4)
     _raises(path, "out of range", time=-1)
     _raises(_netcdf(tmp_path / "still.nc", {"rho": (("z", "y", "x"), block)}), "no time dimension", time=0)
 
@@ -205,7 +210,7 @@ def test_nonfinite_voxels_are_counted_and_filled(tmp_path: Path, block: np.ndarr
     with pytest.raises(ApmgsrnError) as caught:
         check_finite(volume)
     message = str(caught.value)
-    assert str(path) in message and "5 of 7680 voxels are NaN or Inf" in message and "--fill-nonfinite" in message
+    assert str(path) in message and "5 of 7680 voxels are NaN or Inf" in message and "fill_nonfinite=" in message
 
     filled = open_volume(path, fill_nonfinite=-1.0)
     check_finite(filled)  # the user chose a fill value
@@ -220,8 +225,8 @@ def test_nonfinite_voxels_are_counted_and_filled(tmp_path: Path, block: np.ndarr
         open_volume(path, fill_nonfinite=float("nan"))
 
 
-def test_corrupt_compressed_chunk_is_reported_when_read(shared_data: Path, tmp_path: Path) -> None:
-    data = bytearray((shared_data / "hcci_oh_187.nc").read_bytes())
+def test_corrupt_compressed_chunk_is_reported_when_read(hcci_oh: Path, tmp_path: Path) -> None:
+    data = bytearray(hcci_oh.read_bytes())
     middle = len(data) // 2
     data[middle:middle + 50_000] = np.random.default_rng(1).integers(0, 256, 50_000, dtype=np.uint8).tobytes()
     path = tmp_path / "damaged.nc"

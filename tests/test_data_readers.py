@@ -1,8 +1,10 @@
-"""Readers of apmgsrn.data on the real sample volumes (and small copies of them in other formats)."""
+"""Readers of apmgsrn.data on the small real volumes in tests/data (and copies of them in other formats)."""
 
 from __future__ import annotations
 
+import importlib.util
 import pickle
+import re
 import sys
 from pathlib import Path
 
@@ -14,50 +16,91 @@ import zarr
 
 from apmgsrn.data import ArrayVolume, Volume, VolumeStats, check_finite, open_volume, parse_shape
 
-# file -> (variable to pass, (X, Y, Z) from the README, stored dtype, variable reported, plausible value range)
-SHARED_FILES = {
+VF = "viscous_fingers_run01/{:03d}_density_{:03d}_064_2.0.vti".format
+# file in tests/data (or the demo's HCCI field in examples/data)
+#   -> (variable to pass, (X, Y, Z) from tests/data/README.md, stored dtype, variable reported, plausible value range)
+DATA_FILES = {
     "darkmatter_density_64.h5": (None, (64, 64, 64), "float32", "densityfield", (0.2, 3.0e5)),
-    "cth_armor_penetration.vtr": ("Pressure", (128, 64, 64), "float32", "Pressure", (-1e11, 1e12)),
-    "viscous_fingers_t010.vti": (None, (64, 64, 64), "float32", "ImageFile", (0.0, 200.0)),
-    "viscous_fingers_t050.vti": (None, (64, 64, 64), "float32", "ImageFile", (0.0, 200.0)),
-    "viscous_fingers_t090.vti": (None, (64, 64, 64), "float32", "ImageFile", (0.0, 200.0)),
-    "richtmyer_meshkov_t20_256x256x256_uint8.raw": (None, (256, 256, 256), "uint8", None, (0.0, 255.0)),
-    "c60_128x128x128_uint8.raw": (None, (128, 128, 128), "uint8", None, (0.0, 255.0)),
+    "cth_armor_penetration_88x32x32.vtr": ("Pressure", (88, 32, 32), "float32", "Pressure", (-1e11, 1e12)),
+    **{VF(step, step): (None, (32, 32, 32), "float32", "ImageFile", (0.0, 200.0)) for step in (30, 31, 32, 33)},
+    "richtmyer_meshkov_t20_96x64x48_uint8.raw": (None, (96, 64, 48), "uint8", None, (0.0, 255.0)),
+    "c60_80x64x48_uint8.raw": (None, (80, 64, 48), "uint8", None, (0.0, 255.0)),
     "neghip_64x64x64_uint8.raw": (None, (64, 64, 64), "uint8", None, (0.0, 255.0)),
-    "miranda_density_256.nc": (None, (256, 256, 256), "float32", "density", (0.4, 3.7)),
+    "miranda_density_80x64x48.nc": (None, (80, 64, 48), "float32", "density", (0.4, 3.7)),
     "hcci_oh_187.nc": (None, (187, 187, 187), "float32", "oh", (-1.5, 13.0)),
-    "channel_pressure_640x240x48.nc": (None, (640, 240, 48), "float32", "pressure", (-0.5, 1.5)),
+    "channel_pressure_96x64x48.nc": (None, (96, 64, 48), "float32", "pressure", (-0.5, 1.5)),
 }
 
 
 @pytest.fixture(scope="module")
-def miranda(shared_data: Path) -> np.ndarray:
-    """The whole 256^3 Miranda density, read once for the module."""
-    return open_volume(shared_data / "miranda_density_256.nc").to_numpy()
+def path_of(test_data: Path, hcci_oh: Path):
+    """The path of a DATA_FILES entry: a file in tests/data, or the demo's HCCI field."""
+    return lambda name: hcci_oh if name == hcci_oh.name else test_data / name
+
+
+@pytest.fixture(scope="module")
+def miranda(test_data: Path) -> np.ndarray:
+    """The whole 80x64x48 Miranda density crop, read once for the module."""
+    return open_volume(test_data / "miranda_density_80x64x48.nc").to_numpy()
 
 
 @pytest.fixture(scope="module")
 def miranda_block(miranda: np.ndarray) -> np.ndarray:
-    """A non-cubic block of real data (D, H, W all different, to catch axis mix-ups)."""
-    return np.ascontiguousarray(miranda[100:130, 60:100, 20:70])  # [30, 40, 50]
+    """A non-cubic block of real data (D, H, W all different, to catch axis mix-ups).
+
+    The voxels [100:130, 60:100, 20:70] of the 256^3 source; the crop starts at (96, 48, 16).
+    """
+    return np.ascontiguousarray(miranda[4:34, 12:52, 4:54])  # [30, 40, 50]
 
 
-def test_shared_folder_has_no_unknown_volume(shared_data: Path) -> None:
-    present = {p.name for p in shared_data.iterdir() if p.name != "README.md"}
-    assert present == set(SHARED_FILES)
+def _readme_rows(readme: Path) -> dict[str, list[str]]:
+    """File name -> the cells of its row in the markdown table of tests/data/README.md."""
+    rows = {}
+    for line in readme.read_text(encoding="utf-8").splitlines():
+        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        if line.startswith("|") and cells[0] != "file" and not set(cells[0]) <= set("-: "):
+            rows[cells[0].strip("`")] = cells
+    return rows
 
 
-@pytest.mark.parametrize("name", sorted(SHARED_FILES))
-def test_every_shared_file_opens_with_its_shape_dtype_and_range(shared_data: Path, name: str) -> None:
-    variable, xyz, dtype, reported, (low, high) = SHARED_FILES[name]
-    volume = open_volume(shared_data / name, variable=variable)
+def test_every_bundled_file_is_listed_with_provenance_and_its_cut(test_data: Path) -> None:
+    spec = importlib.util.spec_from_file_location("make_test_data", test_data / "make_test_data.py")
+    maker = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(maker)
+    tooling = {"README.md", "make_test_data.py", ".gitattributes"}
+    notes = {path.name: path.read_text(encoding="utf-8") for path in test_data.glob("*.md") if path.name != "README.md"}
+    present = {path.relative_to(test_data).as_posix() for path in test_data.rglob("*")
+               if path.is_file() and "__pycache__" not in path.parts} - tooling - set(notes)
+    rows = _readme_rows(test_data / "README.md")
+    # Files made by the tests' own code (reference models and images) are described in their own notes.
+    made_here = {name for name in present - set(rows) if any(Path(name).parts[0] in text for text in notes.values())}
+    # Every volume is listed, written by the script, and opened by the tests below; nothing else is listed.
+    assert present - made_here == set(rows) == set(maker.CUTS) == set(DATA_FILES) - {"hcci_oh_187.nc"}
+    for name, cells in rows.items():
+        assert len(cells) == 8 and all(cells), f"{name}: a README row needs all 8 cells filled"
+        _, _, dims, dtype, _, origin, _, cut = cells
+        assert dims.split()[0] == "x".join(map(str, DATA_FILES[name][1])), name
+        assert dtype.split()[0].rstrip(",") == DATA_FILES[name][2], name
+        source, box = maker.CUTS[name]
+        assert f"`{source}`" in cut, name
+        if box is None:
+            assert "byte copy" in cut, name
+        else:  # the exact slicing, as the script applies it
+            assert "[{}:{}, {}:{}, {}:{}]".format(*(i for pair in box for i in pair)) in cut, name
+        assert re.search(r"\S+/\S+", origin), f"{name}: origin names no repository"
+
+
+@pytest.mark.parametrize("name", sorted(DATA_FILES))
+def test_every_bundled_file_opens_with_its_shape_dtype_and_range(path_of, name: str) -> None:
+    variable, xyz, dtype, reported, (low, high) = DATA_FILES[name]
+    volume = open_volume(path_of(name), variable=variable)
     assert isinstance(volume, Volume)
     assert volume.shape == (xyz[2], xyz[1], xyz[0])
     assert volume.dtype == np.dtype(dtype)
     assert volume.variable == reported
     assert volume.raw_bytes == xyz[0] * xyz[1] * xyz[2] * 4
     assert f"{xyz[0]}x{xyz[1]}x{xyz[2]} (x*y*z) {dtype}" in volume.describe()
-    assert volume.describe().startswith(name)
+    assert volume.describe().startswith(Path(name).name)
     # A central block: values finite, inside the physical range and not constant.
     d, h, w = volume.shape
     block = volume.read(slice(d // 4, 3 * d // 4), slice(h // 4, 3 * h // 4), slice(w // 4, 3 * w // 4))
@@ -70,11 +113,11 @@ def test_every_shared_file_opens_with_its_shape_dtype_and_range(shared_data: Pat
 
 @pytest.mark.parametrize(
     "name",
-    ["miranda_density_256.nc", "channel_pressure_640x240x48.nc", "darkmatter_density_64.h5",
-     "richtmyer_meshkov_t20_256x256x256_uint8.raw", "viscous_fingers_t050.vti"],
+    ["miranda_density_80x64x48.nc", "channel_pressure_96x64x48.nc", "darkmatter_density_64.h5",
+     "richtmyer_meshkov_t20_96x64x48_uint8.raw", VF(31, 31)],
 )
-def test_stats_match_numpy_on_the_full_array(shared_data: Path, name: str) -> None:
-    volume = open_volume(shared_data / name, variable=SHARED_FILES[name][0])
+def test_stats_match_numpy_on_the_full_array(test_data: Path, name: str) -> None:
+    volume = open_volume(test_data / name, variable=DATA_FILES[name][0])
     stats = volume.stats()
     full = volume.to_numpy()
     assert full.shape == volume.shape and full.dtype == np.float32
@@ -84,44 +127,44 @@ def test_stats_match_numpy_on_the_full_array(shared_data: Path, name: str) -> No
     check_finite(volume)  # real data is finite: no error
 
 
-def test_uint8_raw_converts_exactly_to_float32(shared_data: Path) -> None:
-    path = shared_data / "neghip_64x64x64_uint8.raw"
+def test_uint8_raw_converts_exactly_to_float32(test_data: Path) -> None:
+    path = test_data / "neghip_64x64x64_uint8.raw"
     expected = np.fromfile(path, dtype=np.uint8).reshape(64, 64, 64).astype(np.float32)
     volume = open_volume(path)
     np.testing.assert_array_equal(volume.to_numpy(), expected)
     np.testing.assert_array_equal(volume.read(slice(5, 9), slice(60, None), slice(0, 3)), expected[5:9, 60:, 0:3])
 
 
-def test_explicit_shape_and_dtype_override_the_file_name(shared_data: Path, tmp_path: Path) -> None:
-    data = np.fromfile(shared_data / "c60_128x128x128_uint8.raw", dtype=np.uint8)
+def test_explicit_shape_and_dtype_override_the_file_name(test_data: Path, tmp_path: Path) -> None:
+    data = np.fromfile(test_data / "c60_80x64x48_uint8.raw", dtype=np.uint8)
     plain = tmp_path / "c60.bin"
     data.tofile(plain)
-    # Same bytes seen as x=256, y=128, z=64: x stays the fastest axis.
-    volume = open_volume(plain, shape="256,128,64", dtype="uint8")
-    assert volume.shape == (64, 128, 256)
-    np.testing.assert_array_equal(volume.to_numpy(), data.reshape(64, 128, 256).astype(np.float32))
-    assert open_volume(plain, shape=(128, 128, 128), dtype="uchar").shape == (128, 128, 128)
+    # Same bytes seen as x=160, y=64, z=24: x stays the fastest axis.
+    volume = open_volume(plain, shape="160,64,24", dtype="uint8")
+    assert volume.shape == (24, 64, 160)
+    np.testing.assert_array_equal(volume.to_numpy(), data.reshape(24, 64, 160).astype(np.float32))
+    assert open_volume(plain, shape=(80, 64, 48), dtype="uchar").shape == (48, 64, 80)
 
 
-def test_vti_arrays_are_x_fastest(shared_data: Path) -> None:
+def test_vti_arrays_are_x_fastest(test_data: Path) -> None:
     from vtkmodules.vtkIOXML import vtkXMLImageDataReader
 
-    path = shared_data / "viscous_fingers_t090.vti"
+    path = test_data / VF(33, 33)
     reader = vtkXMLImageDataReader()
     reader.SetFileName(str(path))
     reader.Update()
     image = reader.GetOutput()
     data = open_volume(path).to_numpy()
-    for i, j, k in [(3, 10, 50), (60, 2, 7), (20, 40, 33), (63, 0, 31)]:
+    for i, j, k in [(3, 10, 20), (30, 2, 7), (20, 31, 13), (31, 0, 31)]:
         assert data[k, j, i] == pytest.approx(image.GetScalarComponentAsDouble(i, j, k, 0), rel=1e-6)
 
 
-def test_vtr_cell_arrays_by_name(shared_data: Path) -> None:
-    path = shared_data / "cth_armor_penetration.vtr"
+def test_vtr_cell_arrays_by_name(test_data: Path) -> None:
+    path = test_data / "cth_armor_penetration_88x32x32.vtr"
     fraction = open_volume(path, variable="Volume Fraction for Armor Plate")
-    assert fraction.shape == (64, 64, 128)  # 128x64x64 cells (x*y*z)
+    assert fraction.shape == (32, 32, 88)  # 88x32x32 cells (x*y*z)
     values = fraction.to_numpy()
-    # A volume fraction lies in [0, 1]; the README says 1-5 % of cells are non-zero.
+    # A volume fraction lies in [0, 1]; the plate fills about 10 % of the crop's cells (5 % of the source's).
     assert 0.0 <= values.min() and values.max() <= 1.0 + 1e-6
     assert 0.001 < np.count_nonzero(values) / values.size < 0.2
 
@@ -206,9 +249,9 @@ def test_copies_in_every_format_read_regions_lazily(copies, miranda_block: np.nd
     np.testing.assert_array_equal(volume.read(slice(0, 2)), expected[0:2])
 
 
-@pytest.mark.parametrize("name", ["hcci_oh_187.nc", "c60_128x128x128_uint8.raw", "cth_armor_penetration.vtr"])
-def test_region_reads_equal_slices_of_the_whole_shared_volume(shared_data: Path, name: str) -> None:
-    volume = open_volume(shared_data / name, variable=SHARED_FILES[name][0])
+@pytest.mark.parametrize("name", ["hcci_oh_187.nc", "c60_80x64x48_uint8.raw", "cth_armor_penetration_88x32x32.vtr"])
+def test_region_reads_equal_slices_of_the_whole_volume(path_of, name: str) -> None:
+    volume = open_volume(path_of(name), variable=DATA_FILES[name][0])
     full = volume.to_numpy()
     d, h, w = volume.shape
     for region in [(slice(1, d // 3), slice(h // 2, h - 1), slice(5, 9)),
@@ -280,8 +323,8 @@ def test_netcdf_missing_values_count_as_nonfinite(miranda_block: np.ndarray, tmp
     assert filled.read(slice(4, 5), slice(5, 6), slice(6, 9)).tolist() == [[[0.0, 0.0, 0.0]]]
 
 
-def test_netcdf_without_netcdf4_falls_back_to_h5py(shared_data: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    path = shared_data / "hcci_oh_187.nc"
+def test_netcdf_without_netcdf4_falls_back_to_h5py(hcci_oh: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = hcci_oh
     region = (slice(50, 60), slice(0, 187, 10), slice(90, 100))
     expected = open_volume(path).read(*region)
     monkeypatch.setitem(sys.modules, "netCDF4", None)  # makes `import netCDF4` fail
@@ -291,10 +334,10 @@ def test_netcdf_without_netcdf4_falls_back_to_h5py(shared_data: Path, monkeypatc
     np.testing.assert_array_equal(volume.read(*region), expected)
 
 
-def test_volumes_pickle_as_recipes_and_reopen(shared_data: Path, copies) -> None:
-    for path, kwargs in [(shared_data / "richtmyer_meshkov_t20_256x256x256_uint8.raw", {}),
-                         (shared_data / "miranda_density_256.nc", {}),
-                         (shared_data / "darkmatter_density_64.h5", {}),
+def test_volumes_pickle_as_recipes_and_reopen(test_data: Path, copies) -> None:
+    for path, kwargs in [(test_data / "richtmyer_meshkov_t20_96x64x48_uint8.raw", {}),
+                         (test_data / "miranda_density_80x64x48.nc", {}),
+                         (test_data / "darkmatter_density_64.h5", {}),
                          copies["zarr group"], copies["npy"]]:
         volume = open_volume(path, **kwargs)
         region = (slice(3, 6), slice(10, 20), slice(0, 8))

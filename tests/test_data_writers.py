@@ -13,10 +13,13 @@ from apmgsrn.errors import ApmgsrnError
 
 
 @pytest.fixture(scope="module")
-def block(shared_data: Path) -> np.ndarray:
-    """A real non-cubic float32 block (z, y, x) = (21, 33, 45) of the channel-flow pressure."""
-    return open_volume(shared_data / "channel_pressure_640x240x48.nc").read(
-        slice(10, 31), slice(100, 133), slice(300, 345)
+def block(test_data: Path) -> np.ndarray:
+    """A real non-cubic float32 block (z, y, x) = (21, 33, 45) of the channel-flow pressure.
+
+    The voxels [10:31, 100:133, 300:345] of the 640x240x48 source; the bundled crop starts at (0, 96, 288).
+    """
+    return open_volume(test_data / "channel_pressure_96x64x48.nc").read(
+        slice(10, 31), slice(4, 37), slice(12, 57)
     )
 
 

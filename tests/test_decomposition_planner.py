@@ -44,7 +44,7 @@ def test_neighbours_share_border_voxels_even_without_ghost_cells():
 
 
 def test_more_bricks_than_voxels_is_refused():
-    with pytest.raises(ApmgsrnError, match="pass fewer --bricks along y"):
+    with pytest.raises(ApmgsrnError, match="choose at most 3 bricks along y in bricks="):
         plan_bricks((8, 3, 8), DecompositionConfig((2, 4, 2), 1), "data.raw")
 
 

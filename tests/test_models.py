@@ -11,7 +11,7 @@ from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config
 from apmgsrn.models.value_transform import ValueTransform
 from apmgsrn.ops.trilinear import sample_volume, voxel_coordinates
-from apmgsrn.training.checkpoint import is_model_file, save_field
+from apmgsrn.io import SourceInfo, model_kind, save_field
 from apmgsrn.training.losses import feature_density_loss
 
 
@@ -107,7 +107,7 @@ def test_decoder_precision_is_chosen_by_option_and_device():
     assert decoder_hidden_dtype("float32", cpu) is None
     assert decoder_hidden_dtype("bfloat16", cpu) is torch.bfloat16
     assert decoder_hidden_dtype("auto", torch.device("meta")) is None  # auto: bfloat16 only on such CPUs
-    with pytest.raises(ValueError, match="decoder precision"):
+    with pytest.raises(ValueError, match="decoder_precision="):
         TrainConfig(decoder_precision="half")
 
 
@@ -126,20 +126,21 @@ def test_save_load_round_trip_gives_identical_outputs(tmp_path):
     with torch.no_grad():
         field.encoder.grids.normal_()  # make the output non-trivial
     path = tmp_path / "m.apmgsrn"
-    save_field(path, field, training={"iterations": 5}, source={"path": "x.nc"})
+    save_field(path, field, SourceInfo(path="x.nc"), {"iterations": 5})
     loaded = apmgsrn.load(path)
     points = torch.rand(1000, 3) * 2 - 1
     assert torch.equal(field(points), loaded(points))
-    assert loaded.volume_shape == (8, 9, 10) and loaded.training_summary["iterations"] == 5
-    assert loaded.file_bytes == path.stat().st_size
-    assert is_model_file(path)
+    assert loaded.description.volume_shape == (8, 9, 10) and loaded.description.training["iterations"] == 5
+    assert loaded.description.source.path == "x.nc"
+    assert loaded.description.file_bytes == path.stat().st_size
+    assert model_kind(path) == "field"
     assert not list(tmp_path.glob(".*tmp"))  # atomic write left no temp file
 
 
 def test_corrupt_truncated_and_foreign_model_files_are_refused(tmp_path):
     field = small_field()
     good = tmp_path / "good.apmgsrn"
-    save_field(good, field)
+    save_field(good, field, SourceInfo(), {})
     data = good.read_bytes()
     cases = {
         "truncated": data[: len(data) // 2],
@@ -152,19 +153,19 @@ def test_corrupt_truncated_and_foreign_model_files_are_refused(tmp_path):
         path.write_bytes(content)
         with pytest.raises(ApmgsrnError, match="not an apmgsrn model file"):
             apmgsrn.load(path)
-        assert not is_model_file(path)
+        assert model_kind(path) is None
 
 
 def test_model_from_a_newer_format_version_is_refused(tmp_path):
-    from apmgsrn.training import checkpoint
+    from apmgsrn.io import container
 
     path = tmp_path / "future.apmgsrn"
-    original = checkpoint.FORMAT_VERSION
-    checkpoint.FORMAT_VERSION = original + 1
+    original = container.FORMAT_VERSION
+    container.FORMAT_VERSION = original + 1
     try:
-        save_field(path, small_field())
+        save_field(path, small_field(), SourceInfo(), {})
     finally:
-        checkpoint.FORMAT_VERSION = original
+        container.FORMAT_VERSION = original
     with pytest.raises(ApmgsrnError, match="newer apmgsrn"):
         apmgsrn.load(path)
 
@@ -220,7 +221,7 @@ def test_value_transforms_round_trip_and_fit_statistics():
     for transform in (zscore, fit_value_transform("log10", [], float(data.min()))):
         back = transform.inverse(torch.from_numpy(transform.apply(data)))
         torch.testing.assert_close(back, torch.from_numpy(data), rtol=1e-5, atol=1e-5)
-    with pytest.raises(ApmgsrnError, match="log-offset"):
+    with pytest.raises(ApmgsrnError, match="log_offset="):
         fit_value_transform("log10", [], 0.0, source="x.nc")
     shifted = fit_value_transform("log10", [], 0.0, offset=1.0)
     assert shifted.apply_scalar(0.0) == 0.0

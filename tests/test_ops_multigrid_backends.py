@@ -12,6 +12,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import textwrap
 from pathlib import Path
 
@@ -404,3 +405,70 @@ def test_auto_picks_triton_on_cuda():
     case = _cuda_case(4, 2, (8, 8, 8), n=1000)
     out, _ = forward_backward(multigrid_features, *case, fused=True)
     torch.testing.assert_close(out, multigrid_features_reference(*case), atol=2e-5, rtol=1e-5)
+
+
+PLANTED_SOURCE = r"""
+#include <stdio.h>
+__attribute__((constructor)) static void planted(void) {
+    FILE *f = fopen(MARKER, "w");
+    if (f) { fputs("ran", f); fclose(f); }
+}
+void mg_forward(void) {}
+void mg_backward(void) {}
+void mg_density(void) {}
+void mg_density_backward(void) {}
+"""
+
+
+def _plant(path: Path, marker: Path) -> None:
+    """A shared library named like the kernel whose constructor writes ``marker`` when it is loaded."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    source = path.parent / "planted.c"
+    source.write_text(PLANTED_SOURCE)
+    subprocess.run(["gcc", "-shared", "-fPIC", f'-DMARKER="{marker}"', str(source), "-o", str(path)], check=True)
+    source.unlink()
+
+
+def _kernel_name(module) -> str:
+    from apmgsrn.ops.kernel_cache import cpu_signature, kernel_key
+
+    compiler = shutil.which("gcc") or shutil.which("cc")
+    return f"multigrid_cpu_{kernel_key(module.C_SOURCE, repr((module.COMMON_FLAGS, module.FLAG_SETS)), compiler, cpu_signature())}.so"
+
+
+@pytest.mark.skipif(not HAS_COMPILER, reason="no C compiler")
+def test_an_unusable_cache_never_loads_a_kernel_planted_at_a_predictable_path(fresh_kernel_state, monkeypatch,
+                                                                               tmp_path):
+    module = fresh_kernel_state
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("")
+    monkeypatch.setenv("APMGSRN_CACHE", str(blocker / "cache"))  # cannot be created, even by root
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    marker = tmp_path / "planted-ran"
+    uid = os.getuid() if hasattr(os, "getuid") else 0
+    # Where the old code looked when the cache was unusable: a name any local user could predict.
+    _plant(tmp_path / f"apmgsrn-kernels-{uid}" / _kernel_name(module), marker)
+    assert module.load_library() is not None, module.load_error()
+    assert not marker.exists()
+    points = torch.rand(100, 3) * 2 - 1
+    maps = torch.eye(3)[None], torch.zeros(1, 3)
+    grids = torch.randn(1, 2, 4, 4, 4)
+    torch.testing.assert_close(multigrid_features(points, *maps, grids, backend="cpu"),
+                               multigrid_features_reference(points, *maps, grids))
+
+
+@pytest.mark.skipif(not HAS_COMPILER, reason="no C compiler")
+def test_a_cache_others_can_write_or_a_file_they_own_is_not_trusted(fresh_kernel_state, tmp_path):
+    module = fresh_kernel_state
+    cache = tmp_path / "cache" / "kernels"
+    marker = tmp_path / "planted-ran"
+    _plant(cache / _kernel_name(module), marker)
+    os.chmod(cache, 0o777)  # a folder anyone may write: whatever lies in it may have been swapped
+    assert module.load_library() is not None, module.load_error()
+    assert not marker.exists()
+    if hasattr(os, "geteuid") and os.geteuid() == 0:
+        os.chmod(cache, 0o700)
+        os.chown(cache / _kernel_name(module), 65534, 65534)  # the file belongs to someone else
+        module._tried = False
+        assert module.load_library() is not None, module.load_error()
+        assert not marker.exists()

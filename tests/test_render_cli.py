@@ -24,10 +24,10 @@ def _pixels(path) -> np.ndarray:
     return np.asarray(Image.open(path).convert("RGB"), dtype=np.int16)
 
 
-def test_render_a_volume_to_png_and_json(shared_data, tmp_path, capsys):
+def test_render_a_volume_to_png_and_json(test_data, tmp_path, capsys):
     out = tmp_path / "neghip.png"
     code, text, _ = _run(
-        capsys, "render", str(shared_data / NEGHIP), "--out", str(out), *SMALL,
+        capsys, "render", str(test_data / NEGHIP), "--out", str(out), *SMALL,
         "--colormap", "viridis", "--opacity", "0,0,0.3,0,1,0.8", "--background", "black", "--json",
     )
     assert code == 0
@@ -39,9 +39,9 @@ def test_render_a_volume_to_png_and_json(shared_data, tmp_path, capsys):
     assert pixels.max() > 100  # the protein is drawn
 
 
-def test_compare_writes_side_by_side_error_image_and_prints_metrics(shared_data, tmp_path, capsys):
+def test_compare_writes_side_by_side_error_image_and_prints_metrics(test_data, tmp_path, capsys):
     out = tmp_path / "pair.png"
-    data = str(shared_data / NEGHIP)
+    data = str(test_data / NEGHIP)
     code, text, _ = _run(capsys, "render", data, "--out", str(out), "--compare", data, *SMALL, "--json")
     assert code == 0
     report = json.loads(text)
@@ -51,9 +51,9 @@ def test_compare_writes_side_by_side_error_image_and_prints_metrics(shared_data,
     assert report["error_image"] == str(error) and _pixels(error).shape == (32, 40, 3)
 
 
-def test_turntable_gif_has_the_requested_frames(shared_data, tmp_path, capsys):
+def test_turntable_gif_has_the_requested_frames(test_data, tmp_path, capsys):
     out = tmp_path / "turn.gif"
-    code, _, _ = _run(capsys, "render", str(shared_data / NEGHIP), "--out", str(out), *SMALL, "--frames", "3")
+    code, _, _ = _run(capsys, "render", str(test_data / NEGHIP), "--out", str(out), *SMALL, "--frames", "3")
     assert code == 0
     with Image.open(out) as gif:
         assert gif.n_frames == 3 and gif.size == (40, 32)
@@ -64,25 +64,32 @@ def test_turntable_gif_has_the_requested_frames(shared_data, tmp_path, capsys):
     assert np.abs(first - second).max() > 20  # the camera moved
 
 
-def test_turntable_mp4(shared_data, tmp_path, capsys):
+def test_turntable_mp4(test_data, tmp_path, capsys):
     pytest.importorskip("imageio_ffmpeg")
     imageio = pytest.importorskip("imageio.v2")
     out = tmp_path / "turn.mp4"
-    code, _, _ = _run(capsys, "render", str(shared_data / NEGHIP), "--out", str(out), *SMALL, "--frames", "2")
+    code, _, _ = _run(capsys, "render", str(test_data / NEGHIP), "--out", str(out), *SMALL, "--frames", "2")
     assert code == 0
     frames = imageio.mimread(out)
     assert len(frames) == 2 and frames[0].shape == (32, 40, 3)
 
 
-def test_saved_transfer_function_reproduces_the_image(shared_data, tmp_path, capsys):
-    data = str(shared_data / NEGHIP)
+def test_saved_transfer_function_reproduces_the_image(test_data, tmp_path, capsys):
+    data = str(test_data / NEGHIP)
     preset = tmp_path / "tf.json"
     first, second = tmp_path / "a.png", tmp_path / "b.png"
     opts = [*SMALL, "--colormap", "plasma", "--opacity", "0,0,0.25,0,1,0.9", "--range", "10,240"]
     assert _run(capsys, "render", data, "--out", str(first), *opts, "--save-tf", str(preset))[0] == 0
     assert json.loads(preset.read_text())[0]["ColorSpace"] == "RGB"
-    assert _run(capsys, "render", data, "--out", str(second), *SMALL, "--colormap", str(preset))[0] == 0
+    # Kept in its data units (ParaView's "use preset range") it needs no range ...
+    kept = [*SMALL, "--colormap", str(preset), "--preset-units", "data"]
+    assert _run(capsys, "render", data, "--out", str(second), *kept)[0] == 0
     assert np.abs(_pixels(first) - _pixels(second)).max() <= 1
+    # ... stretched (the default, as ParaView applies presets) over the range it was saved on, the same.
+    third = tmp_path / "c.png"
+    stretched = [*SMALL, "--colormap", str(preset), "--range", "10,240"]
+    assert _run(capsys, "render", data, "--out", str(third), *stretched)[0] == 0
+    assert np.abs(_pixels(first) - _pixels(third)).max() <= 1
 
 
 @pytest.mark.parametrize(
@@ -97,8 +104,8 @@ def test_saved_transfer_function_reproduces_the_image(shared_data, tmp_path, cap
         (["--frames", "2"], ".gif or .mp4"),
     ],
 )
-def test_user_errors_exit_2_with_one_line(shared_data, tmp_path, capsys, extra, message):
-    code, _, err = _run(capsys, "render", str(shared_data / NEGHIP), "--out", str(tmp_path / "x.png"), *SMALL, *extra)
+def test_user_errors_exit_2_with_one_line(test_data, tmp_path, capsys, extra, message):
+    code, _, err = _run(capsys, "render", str(test_data / NEGHIP), "--out", str(tmp_path / "x.png"), *SMALL, *extra)
     assert code == 2
     assert err.startswith("error: ") and message in err and err.count("\n") == 1
 
@@ -110,10 +117,10 @@ def test_missing_input_and_bad_output_suffix(tmp_path, capsys):
     assert code == 2 and ".png" in err
 
 
-def test_render_a_trained_model_against_its_volume(shared_data, tmp_path, capsys):
+def test_render_a_trained_model_against_its_volume(test_data, tmp_path, capsys):
     pytest.importorskip("apmgsrn.training.checkpoint")
     model = tmp_path / "neghip.apm"
-    data = str(shared_data / NEGHIP)
+    data = str(test_data / NEGHIP)
     code, _, err = _run(
         capsys, "train", data, "--out", str(model), "--preset", "small", "--iterations", "100", "--batch-size", "4096",
         "--device", "cpu",

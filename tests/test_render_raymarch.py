@@ -10,8 +10,8 @@ import torch
 
 from apmgsrn.render.camera import Camera, extent_from_shape
 from apmgsrn.render.colormaps import make_transfer_function
-from apmgsrn.render.empty_space import ValueBounds
-from apmgsrn.render.progressive import pass_pixels, render_progressive
+from apmgsrn.render.bounds import ValueBounds
+from apmgsrn.render.progressive import ProgressiveRender, pass_pixels, render_progressive, upsample
 from apmgsrn.render.raymarch import RendererConfig, VolumeRenderer
 from apmgsrn.render.transfer_function import ColorMap, OpacityMap, TransferFunction
 
@@ -119,8 +119,8 @@ def test_image_does_not_change_when_samples_per_ray_double():
     assert (uncorrected - images[128]).abs().max() > 0.05
 
 
-def test_skipping_leaves_the_raw_volume_image_unchanged(shared_data):
-    volume = np.fromfile(shared_data / "neghip_64x64x64_uint8.raw", dtype=np.uint8).reshape(64, 64, 64)
+def test_skipping_leaves_the_raw_volume_image_unchanged(test_data):
+    volume = np.fromfile(test_data / "neghip_64x64x64_uint8.raw", dtype=np.uint8).reshape(64, 64, 64)
     volume = volume.astype(np.float32)
     tf = make_transfer_function("plasma", (0.0, 255.0), opacity=((0.0, 0.0), (0.35, 0.0), (0.6, 0.6), (1.0, 0.9)))
     camera = Camera.orbit(azimuth=50, elevation=35, width=48, height=48)
@@ -209,9 +209,40 @@ def test_progressive_passes_partition_the_image_and_end_with_the_full_render():
     assert frames[0].statistics.rays == 9
     for frame in frames:
         assert frame.image.shape == (20, 24, 3)
-    # The coarse image is the lattice pixels blown up to 8 x 8 blocks.
-    assert torch.equal(frames[0].image[0:8, 0:8], frames[0].image[0, 0].expand(8, 8, 3))
-    torch.testing.assert_close(frames[-1].image, renderer.render(camera).image, atol=0, rtol=0)
+    full = renderer.render(camera).image
+    # The coarse image holds the rendered lattice pixels and interpolates between them.
+    assert torch.equal(frames[0].image[::8, ::8], full[::8, ::8])
+    torch.testing.assert_close(frames[0].image[4, 4], full[[0, 0, 8, 8], [0, 8, 0, 8]].mean(0), atol=1e-6, rtol=0)
+    torch.testing.assert_close(frames[-1].image, full, atol=0, rtol=0)
+
+
+def test_a_pass_rendered_in_chunks_equals_the_pass_rendered_at_once():
+    tf = make_transfer_function("viridis", (0.0, 0.8), opacity=((0.0, 0.0), (1.0, 0.5)))
+    renderer = VolumeRenderer(_blobs, tf, RendererConfig(samples_per_ray=32))
+    camera = Camera.orbit(width=21, height=17)
+    chunked = ProgressiveRender(renderer, camera)
+    images = []
+    while not chunked.done:
+        pixels = chunked.next_pixels
+        work = sum(chunked.render_pixels(pixels[start : start + 7]).rays for start in range(0, pixels.numel(), 7))
+        assert work == pixels.numel()
+        images.append(chunked.finish_pass())
+    at_once = list(ProgressiveRender(renderer, camera))
+    for a, b in zip(images, at_once, strict=True):
+        # Up to float rounding: vectorised exp rounds the tail of an array its own way.
+        torch.testing.assert_close(a.image, b.image, atol=1e-6, rtol=0)
+        assert a.statistics.rays == b.statistics.rays and a.stride == b.stride
+
+
+def test_bilinear_upsampling_keeps_the_lattice_and_reproduces_a_linear_image():
+    rows = torch.arange(10, dtype=torch.float32)[:, None, None]
+    cols = torch.arange(13, dtype=torch.float32)[None, :, None]
+    image = (0.02 * rows + 0.03 * cols).expand(10, 13, 3).contiguous()
+    up = upsample(image, 4)
+    assert torch.equal(up[::4, ::4], image[::4, ::4])
+    assert torch.allclose(up[:9, :13 - 1], image[:9, :13 - 1], atol=1e-6)  # rows 0..8 and cols 0..11: inside
+    assert torch.equal(up[9], up[8])  # past the last lattice row: held
+    assert torch.equal(upsample(image, 1), image)
 
 
 def test_orbit_camera_conventions():

@@ -20,7 +20,9 @@ from apmgsrn.render.transfer_function import (
 def test_lab_and_hsv_round_trip_and_reference_values():
     rng = np.random.default_rng(0)
     rgb = rng.random((200, 3))
-    np.testing.assert_allclose(lab_to_rgb(rgb_to_lab(rgb)), rgb, atol=1e-6)
+    # VTK's (and so ParaView's) sRGB <-> XYZ matrices are rounded to four digits and not exact inverses:
+    # a round trip moves a colour by up to a few 1e-4, well inside one 8-bit step (1/255 = 0.0039).
+    np.testing.assert_allclose(lab_to_rgb(rgb_to_lab(rgb)), rgb, atol=5e-4)
     np.testing.assert_allclose(hsv_to_rgb(rgb_to_hsv(rgb)), rgb, atol=1e-9)
     # Published CIE Lab (D65) values of sRGB white, red and a mid grey.
     np.testing.assert_allclose(rgb_to_lab(np.array([1.0, 1.0, 1.0])), [100.0, 0.0, 0.0], atol=0.01)
@@ -54,11 +56,43 @@ def test_cool_to_warm_matches_paraview():
     assert quarter[2] > quarter[0] + 0.15
 
 
-def test_hsv_interpolation_takes_the_short_way_round():
-    cmap = ColorMap(points=((0.0, 1.0, 0.0, 0.2), (1.0, 1.0, 0.0, 0.0)), color_space="HSV")
-    # Hues 0.967 -> 0.0: the short path stays red-magenta and never passes through green.
-    out = cmap.evaluate(np.linspace(0.0, 1.0, 11))
-    assert (out[:, 1] < 0.01).all()
+def test_hsv_interpolation_goes_round_the_short_way_only_with_hsv_wrap():
+    # Hue 1 - 0.2/6 (red-magenta) down to 0 (red). ParaView applies presets with HSVWrap off: the hue
+    # runs down through blue and green, reaching 1/3 (pure green here) at t = 1 - (1/3) / hue0.
+    hue0 = 1.0 - 0.2 / 6.0
+    straight = ColorMap(points=((0.0, 1.0, 0.0, 0.2), (1.0, 1.0, 0.0, 0.0)), color_space="HSV")
+    out = straight.evaluate(np.array([0.0, 1.0 - (1.0 / 3.0) / hue0, 1.0]))
+    np.testing.assert_allclose(out, [[1.0, 0.0, 0.2], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]], atol=1e-12)
+    # With HSVWrap the short path stays red-magenta and never passes through green.
+    wrapped = ColorMap(points=straight.points, color_space="HSV", hsv_wrap=True)
+    assert (wrapped.evaluate(np.linspace(0.0, 1.0, 11))[:, 1] < 0.01).all()
+
+
+def test_blue_to_red_hsv_passes_green_at_the_middle():
+    # ParaView's "Blue to Red Rainbow": blue (hue 2/3) to red (hue 0) in HSV, no wrap: green half way.
+    rainbow = ColorMap(points=((0.0, 0.0, 0.0, 1.0), (1.0, 1.0, 0.0, 0.0)), color_space="HSV")
+    np.testing.assert_allclose(rainbow.evaluate(np.array([0.5]))[0], [0.0, 1.0, 0.0], atol=1e-12)
+
+
+def test_step_takes_the_upper_node_and_shared_positions_keep_their_order():
+    step = ColorMap(points=((0.0, 1.0, 0.0, 0.0), (1.0, 0.0, 1.0, 0.0), (2.0, 0.0, 0.0, 1.0)), color_space="Step")
+    out = step.evaluate(np.array([-1.0, 0.0, 1e-9, 1.0, 1.5, 2.0, 3.0]))
+    # VTK: at or below the first node its colour; in (x_k-1, x_k] the colour of node k; beyond, the last.
+    np.testing.assert_array_equal(out, [[1, 0, 0], [1, 0, 0], [0, 1, 0], [0, 1, 0], [0, 0, 1], [0, 0, 1], [0, 0, 1]])
+    # Two nodes at 1.0 (a sharp change): the first colours 1.0 itself and below, the second above.
+    ties = ColorMap(points=((0.0, 0.0, 0.0, 0.0), (1.0, 1.0, 0.0, 0.0), (1.0, 0.0, 0.0, 1.0), (2.0, 0.0, 0.0, 0.0)))
+    np.testing.assert_allclose(ties.evaluate(np.array([0.5, 1.0, 1.5])), [[0.5, 0, 0], [1, 0, 0], [0, 0, 0.5]])
+
+
+def test_log_scale_interpolates_in_log10_and_rescales_by_decades():
+    grey = ColorMap(points=((1.0, 0.0, 0.0, 0.0), (100.0, 1.0, 1.0, 1.0)), log_scale=True)
+    np.testing.assert_allclose(grey.evaluate(np.array([10.0, 10**1.5]))[:, 0], [0.5, 0.75], atol=1e-12)
+    # Rescaled to 0.1..1000, 10 (one decade of two) lands on the middle of four decades: 10.
+    moved = grey.rescaled(0.1, 1000.0)
+    assert moved.span == pytest.approx((0.1, 1000.0))
+    np.testing.assert_allclose(moved.evaluate(np.array([10.0]))[0], [0.5] * 3, atol=1e-12)
+    with pytest.raises(ApmgsrnError, match="log scale"):
+        grey.rescaled(-1.0, 10.0)
 
 
 def test_builtin_colormaps_exist_and_span_unit_interval():

@@ -5,17 +5,12 @@ model, loading nothing from outside 127.0.0.1."""
 from __future__ import annotations
 
 import json
-import os
-import signal
-import socket
-import subprocess
-import sys
 import time
-import urllib.request
 from pathlib import Path
 
 import pytest
 from viewer_data import make_viewer_folder
+from viewer_server import running_viewer
 
 pytestmark = pytest.mark.browser
 pytest.importorskip("trame", reason="needs the [viewer] extra")
@@ -34,45 +29,13 @@ CHROMIUM_ARGS = [
 FRAME = "#apm-frame"
 
 
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 @pytest.fixture()
 def server(tmp_path):
     """``apmgsrn view`` on a free loopback port, in its own process; stopped with Ctrl-C afterwards."""
     folder = make_viewer_folder(tmp_path)
     saves = tmp_path / "saves"
-    port = _free_port()
-    log = open(tmp_path / "server.log", "w+")
-    process = subprocess.Popen(
-        [sys.executable, "-m", "apmgsrn", "view", str(folder), "--port", str(port), "--save-dir", str(saves),
-         "--image-size", "64", "--spp", "32", "--device", "cpu"],
-        stdout=log,
-        stderr=subprocess.STDOUT,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
-    url = f"http://127.0.0.1:{port}/"
-    deadline = time.monotonic() + 60
-    while True:
-        try:
-            urllib.request.urlopen(url, timeout=2).read()
-            break
-        except OSError:
-            if process.poll() is not None or time.monotonic() > deadline:
-                log.seek(0)
-                pytest.fail(f"viewer did not start:\n{log.read()}")
-            time.sleep(0.2)
-    yield {"url": url, "saves": saves, "process": process, "log": log, "folder": folder}
-    process.send_signal(signal.SIGINT)
-    try:
-        process.wait(timeout=15)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
-    log.close()
+    with running_viewer(folder, tmp_path, "--save-dir", str(saves)) as viewer:
+        yield {"url": viewer.url, "saves": saves, "process": viewer.process, "folder": folder}
 
 
 def _wait_for_complete_frame(page, other_than: str | None = None, timeout_ms: int = 60000) -> str:
@@ -110,6 +73,9 @@ def test_viewer_page_end_to_end(server, tmp_path):
             first = page.get_attribute(FRAME, "src")
             assert "a_blob.npy" in page.inner_text("#apm-source")
             assert "passes 4/4" in page.inner_text("#apm-stats")
+            # The link out of the folder is not listed, and the page says so.
+            page.click("#apm-skipped summary")
+            assert "link_out.npy: symbolic link to a place outside" in page.inner_text("#apm-skipped")
 
             # A drag changes the image.
             box = page.locator("#apm-viewport").bounding_box()
@@ -160,6 +126,12 @@ def test_viewer_page_end_to_end(server, tmp_path):
             page.set_input_files("#apm-upload", str(preset))
             page.wait_for_function("window.trame.state.get('colormap') === 'Greens (uploaded upload_me.json)'")
             generation = _wait_for_complete_frame(page, other_than=generation)
+            # An upload over the limit is refused in the page, before it is sent.
+            too_large = tmp_path / "too_large.json"
+            too_large.write_text(" " * (2 << 20), encoding="utf-8")
+            page.set_input_files("#apm-upload", str(too_large))
+            page.wait_for_selector("#apm-upload-error", timeout=10000)
+            assert "over the upload limit" in page.inner_text("#apm-upload-error")
             with page.expect_download() as download_info:
                 page.click("#apm-save-tf")
             saved_tf = json.loads(Path(download_info.value.path()).read_text(encoding="utf-8"))

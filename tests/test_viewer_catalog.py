@@ -63,7 +63,7 @@ def test_names_outside_or_unlisted_are_refused(folder, name):
 def test_resolve_returns_the_file_inside_and_checks_the_kind(folder):
     catalog = Catalog(folder)
     assert catalog.resolve("nested/small.npy") == (folder / "nested" / "small.npy").resolve()
-    assert catalog.kind_of("tiny.apmgsrn") == MODEL
+    assert catalog.resolve("tiny.apmgsrn", kinds=(MODEL,)).name == "tiny.apmgsrn"
     with pytest.raises(ApmgsrnError, match="not a model or volume"):
         catalog.resolve("reds.json", kinds=(MODEL, VOLUME))
 

@@ -7,7 +7,7 @@ import torch
 
 from apmgsrn.render import Camera
 from apmgsrn.viewer.overlay import BOX_EDGES, box_segments, clip_segment, draw_boxes, project
-from apmgsrn.viewer.sources import routing_boxes
+from apmgsrn.sources import routing_boxes
 
 
 def _cube(half: float = 1.0) -> torch.Tensor:

@@ -11,15 +11,11 @@ import torch
 from viewer_data import make_viewer_folder
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render import Camera, RendererConfig, VolumeRenderer
+from apmgsrn.render import Camera, RendererConfig
 from apmgsrn.viewer.catalog import Catalog
-from apmgsrn.viewer.session import (
-    OrbitView,
-    ViewerConfig,
-    ViewerSession,
-    lattice_passes,
-    upsample_lattice,
-)
+from apmgsrn.viewer.orbit import OrbitView
+from apmgsrn.viewer.session import ViewerSession
+from apmgsrn.viewer.settings import ViewerConfig
 
 SMALL = ViewerConfig(image_width=40, image_height=32, samples_per_ray=32, batch_size=4096, chunk_pixels=256)
 
@@ -75,21 +71,6 @@ def test_orbit_view_turns_pans_and_zooms():
     assert np.allclose(np.subtract(moved.position, moved.target), np.subtract(start.position, start.target))
 
 
-def test_lattice_passes_cover_every_pixel_once_and_upsampling_keeps_the_lattice():
-    passes = lattice_passes(13, 10, (8, 4, 2, 1))
-    every = torch.cat(passes)
-    assert sorted(every.tolist()) == list(range(130))
-    assert passes[0].tolist() == [0, 8, 104, 112]  # rows 0 and 8, columns 0 and 8
-    # A linear image is reproduced exactly inside the lattice by bilinear interpolation.
-    rows = torch.arange(10, dtype=torch.float32)[:, None, None]
-    cols = torch.arange(13, dtype=torch.float32)[None, :, None]
-    image = (0.02 * rows + 0.03 * cols).expand(10, 13, 3).contiguous()
-    up = upsample_lattice(image, 4)
-    assert torch.equal(up[::4, ::4], image[::4, ::4])
-    assert torch.allclose(up[:9, :13 - 1], image[:9, :13 - 1], atol=1e-6)  # rows 0..8 and cols 0..11: inside
-    assert torch.equal(upsample_lattice(image, 1), image)
-
-
 # ------------------------------------------------------------------------------------------ rendering
 def test_progressive_passes_end_in_the_exact_render(folder):
     session, recorder = _session(folder)
@@ -99,12 +80,8 @@ def test_progressive_passes_end_in_the_exact_render(folder):
     assert strides == [8, 4, 2, 1]
     final = recorder.frames[-1]
     assert final.done and final.generation == session.generation
-    reference = VolumeRenderer(
-        source.field,
-        session.transfer_function(),
-        RendererConfig(samples_per_ray=32, batch_size=4096, macro_cells=16),
-        extent=session.extent(),
-        bounds=source.bounds,
+    reference = source.renderer(
+        session.transfer_function(), RendererConfig(samples_per_ray=32, batch_size=4096, macro_cells=16)
     ).render(session.camera())
     expected = (reference.image.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
     assert np.abs(final.image.astype(int) - expected.astype(int)).max() <= 1
@@ -144,7 +121,7 @@ def test_a_camera_change_during_a_pass_abandons_it(folder):
             session.end_interaction()
         return inner(points)
 
-    session._renderer.field = field_that_sees_the_user_move  # the renderer's public attribute
+    session.worker.renderer.field = field_that_sees_the_user_move  # the renderer's public attribute
     recorder.frames.clear()
     session.orbit(0.1, 0.0)
     session.end_interaction()
@@ -214,11 +191,53 @@ def test_presets_in_the_folder_bring_their_colours_and_opacity(folder):
     assert keys == ["Two Reds (reds.json)"]
     session.open_now("a_blob.npy")
     opacity = session.set_colormap(keys[0])
-    assert opacity == ((0.0, 0.0), (0.5, 0.1), (1.0, 0.9))
+    assert opacity == [[0.0, 0.0], [0.5, 0.1], [1.0, 0.9]]
     session.run_until_idle()
     image = recorder.frames[-1].image.astype(int)
     tinted = (image[..., 0] - image[..., 2]) > 20
     assert tinted.any()  # red where the blobs are
+
+
+# Opacity nodes on another span than the colours, with ParaView's midpoint and sharpness; and a preset
+# spaced in log10. ParaView stretches each map by its own span (the log one in log10).
+UNEVEN_PRESETS = [
+    {
+        "Name": "Uneven",
+        "ColorSpace": "Lab",
+        "RGBPoints": [-1.0, 0.1, 0.2, 0.7, 1.0, 0.9, 0.9, 0.9, 3.0, 0.8, 0.1, 0.1],
+        "Points": [0.0, 0.0, 0.3, 0.6, 0.5, 0.4, 0.5, 0.0, 2.0, 0.9, 0.7, 0.2],
+    },
+    {
+        "Name": "Decades",
+        "ColorSpace": "RGB",
+        "UseLogScale": 1,
+        "RGBPoints": [1.0, 0.0, 0.0, 0.0, 10.0, 0.2, 0.6, 0.2, 100.0, 1.0, 1.0, 1.0],
+        "Points": [10.0, 0.0, 0.5, 0.0, 100.0, 0.3, 0.4, 0.1, 1000.0, 1.0, 0.5, 0.0],
+    },
+]
+
+
+def test_presets_apply_exactly_as_the_render_command_applies_them(folder):
+    import json
+
+    from apmgsrn.render import make_transfer_function
+
+    path = folder / "uneven.json"
+    path.write_text(json.dumps(UNEVEN_PRESETS), encoding="utf-8")
+    session, _ = _session(folder)
+    keys = session.add_presets(path, "uneven.json")
+    session.open_now("a_blob.npy")
+    for key, preset in zip(keys, UNEVEN_PRESETS):
+        session.set_colormap(key)
+        low, high = session.settings.value_range
+        viewer = session.transfer_function()
+        # What 'apmgsrn render --colormap uneven.json --preset-name NAME' draws over the same range.
+        render = make_transfer_function(str(path), (low, high), preset_name=preset["Name"])
+        assert viewer.color_map.points == render.color_map.points
+        assert viewer.color_map.color_space == render.color_map.color_space
+        assert viewer.opacity_map.points == render.opacity_map.points  # positions, midpoints and sharpness
+        np.testing.assert_array_equal(viewer.table(256).opacity.numpy(), render.table(256).opacity.numpy())
+        np.testing.assert_array_equal(viewer.table(256).colors.numpy(), render.table(256).colors.numpy())
 
 
 def test_overlay_draws_grid_boxes_of_a_model_and_can_be_removed(folder):
@@ -268,7 +287,7 @@ def test_worker_thread_renders_and_stops(folder):
         assert recorder.frames and recorder.frames[-1].done
     finally:
         session.stop()
-    assert session._thread is None
+    assert session.worker._thread is None
 
 
 def test_cameras_match_the_render_module_convention():

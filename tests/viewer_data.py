@@ -23,7 +23,7 @@ def write_tiny_model(path: Path) -> Path:
 
     from apmgsrn.models.field import NeuralField
     from apmgsrn.models.registry import preset_config
-    from apmgsrn.training.checkpoint import save_field
+    from apmgsrn.io import SourceInfo, save_field
 
     torch.manual_seed(0)
     field = NeuralField(
@@ -32,7 +32,7 @@ def write_tiny_model(path: Path) -> Path:
         value_max=1.0,
         volume_shape=(24, 24, 24),
     )
-    save_field(path, field)
+    save_field(path, field, SourceInfo(), {})
     return path
 
 

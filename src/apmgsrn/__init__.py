@@ -1,17 +1,28 @@
 """apmgsrn: adaptively placed multi-grid scene representation networks for scientific volumes.
 
-Importing this package never initialises CUDA, compiles kernels or imports optional extras.
+Importing this package imports nothing heavy (the command line starts fast): it never initialises CUDA,
+compiles kernels or imports torch or optional extras until a name below is used.
 """
 
 from apmgsrn.errors import ApmgsrnError
 
 __version__ = "0.1.0"
-__all__ = ["ApmgsrnError", "load", "__version__"]
+__all__ = ["ApmgsrnError", "Model", "Region", "fit", "load", "render", "__version__"]
+
+#: Names resolved on first use: torch comes with them, not with `import apmgsrn` (the CLI's start-up path).
+_LAZY = {"Model": "apmgsrn.api", "fit": "apmgsrn.api", "load": "apmgsrn.api", "Region": "apmgsrn.data.grid"}
 
 
-def load(path, device="cpu"):
-    """Load a model file (single or brick model) as a torch module mapping ``[N, 3]`` points in
-    ``[-1, 1]^3`` to ``[N, 1]`` values in data units. Never executes code from the file."""
-    from apmgsrn.training.checkpoint import load_model
+def __getattr__(name: str):
+    import importlib
 
-    return load_model(path, device=device)
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    if name == "render":
+        # The subpackage apmgsrn.render, which is callable: apmgsrn.render(model, ...) renders (api.render).
+        return importlib.import_module("apmgsrn.render")
+    raise AttributeError(f"module 'apmgsrn' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

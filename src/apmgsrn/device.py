@@ -21,7 +21,8 @@ def resolve_device(name: str = "auto") -> torch.device:
         raise ApmgsrnError(f"unknown device {name!r}; use auto, cpu, cuda or cuda:I") from None
     if device.type == "cuda":
         if not torch.cuda.is_available():
-            raise ApmgsrnError(f"device {name!r} asked for, but no CUDA GPU is available; use --device cpu")
+            raise ApmgsrnError(f"device {name!r} asked for, but no CUDA GPU is available; pass device=cpu",
+                               arguments=("device",))
         if device.index is not None and device.index >= torch.cuda.device_count():
             raise ApmgsrnError(
                 f"device {name!r} asked for, but only {torch.cuda.device_count()} CUDA GPU(s) exist"

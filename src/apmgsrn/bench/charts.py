@@ -5,7 +5,9 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from apmgsrn.atomic import atomic_write
 from apmgsrn.bench.results import MODEL_TITLES, SIZE_ORDER, CompressRow, QualityRow, Summary, group_quality, ordered
+from apmgsrn.choices import MODEL_KINDS
 
 # One colour per method, the same in every chart.
 COLOURS = {"apmgsrn": "#d62728", "fvsrn": "#1f77b4", "ngp": "#2ca02c", "sz3": "#9467bd", "zfp": "#ff7f0e"}
@@ -28,11 +30,9 @@ def quality_chart(rows: list[QualityRow], path: Path) -> None:
         rows: results of ``bench quality``.
         path: PNG file to write.
     """
-    from apmgsrn.models.registry import ENCODERS
-
     groups = group_quality(rows)
     datasets = list(dict.fromkeys(r.dataset for r in rows))
-    models = ordered((r.model for r in rows), list(ENCODERS))
+    models = ordered((r.model for r in rows), MODEL_KINDS)
     sizes = ordered((r.size for r in rows), SIZE_ORDER)
     figure = _figure(max(6.0, 1.4 * len(datasets) * len(sizes)), 3.6)
     axes = figure.subplots(1, len(sizes), squeeze=False)[0]
@@ -61,7 +61,7 @@ def quality_chart(rows: list[QualityRow], path: Path) -> None:
         axis.grid(axis="y", alpha=0.3)
     handles, labels = axes[0].get_legend_handles_labels()
     figure.legend(handles, labels, loc="outside upper center", ncols=len(models), fontsize=8)
-    figure.savefig(path)
+    atomic_write(path, figure.savefig, "chart")
 
 
 def rate_distortion_chart(rows: list[CompressRow], path: Path, title: str = "") -> None:
@@ -95,9 +95,9 @@ def rate_distortion_chart(rows: list[CompressRow], path: Path, title: str = "") 
             axis.plot([r.compression_ratio for r in points], [r.psnr for r in points], "-o", markersize=3,
                       color=COLOURS.get(method), label=label)
     axis.set_xscale("log")
-    axis.set_xlabel("compression ratio (float32 bytes / compressed bytes)")
+    axis.set_xlabel("compression ratio (stored bytes / compressed bytes)")
     axis.set_ylabel("PSNR (dB)")
     axis.set_title(title)
     axis.grid(alpha=0.3, which="both")
     axis.legend(fontsize=8)
-    figure.savefig(path)
+    atomic_write(path, figure.savefig, "chart")

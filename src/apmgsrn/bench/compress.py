@@ -11,6 +11,7 @@ second run reuses them), or given as existing model files.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -20,9 +21,21 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from apmgsrn.api import load
+from apmgsrn.arguments import MAX_BATCH_SIZE, check_choice, check_int, check_number
+from apmgsrn.atomic import atomic_write_text
+from apmgsrn.bench.charts import rate_distortion_chart
+from apmgsrn.bench.compressors import get_compressor
 from apmgsrn.bench.datasets import DataSpec, open_spec
+from apmgsrn.bench.quality import QualityPlan, prepare_folder, run_quality
 from apmgsrn.bench.results import CompressRow, write_rows
-from apmgsrn.errors import ApmgsrnError
+from apmgsrn.bench.tables import compress_table
+from apmgsrn.choices import COMPRESSORS, MODEL_KINDS, SIZE_PRESETS
+from apmgsrn.inference.decode import decode_array
+from apmgsrn.inference.evaluate import check_volume_shape, compare_arrays
+from apmgsrn.inference.query import query
+from apmgsrn.models.registry import PRESETS
+from apmgsrn.ops.trilinear import sample_volume
 
 DEFAULT_BOUNDS = (1e-1, 3e-2, 1e-2, 3e-3, 1e-3, 3e-4, 1e-4)
 
@@ -42,10 +55,10 @@ class CompressPlan:
     """
 
     dataset: DataSpec
-    models: tuple[str, ...] = ("apmgsrn", "fvsrn", "ngp")
+    models: tuple[str, ...] = MODEL_KINDS
     sizes: tuple[str, ...] = ("small",)
     model_files: tuple[Path, ...] = ()
-    compressors: tuple[str, ...] = ("sz3", "zfp")
+    compressors: tuple[str, ...] = COMPRESSORS
     bounds: tuple[float, ...] = DEFAULT_BOUNDS
     iterations: int = 2000
     batch_size: int = 32768
@@ -53,10 +66,18 @@ class CompressPlan:
     query_points: int = 2**20
 
     def __post_init__(self) -> None:
-        if any(not 0 < b < 1 for b in self.bounds):
-            raise ApmgsrnError("--bounds must lie between 0 and 1 (fractions of the value range)")
-        if self.query_points < 1:
-            raise ApmgsrnError("--query-points must be positive")
+        for model in self.models:
+            check_choice("models", model, MODEL_KINDS)
+        for size in self.sizes:
+            check_choice("sizes", size, SIZE_PRESETS)
+        for name in self.compressors:
+            check_choice("compressors", name, COMPRESSORS)
+        for bound in self.bounds:
+            check_number("bounds", bound, 0.0, 1.0, low_open=True, high_open=True)
+        check_int("iterations", self.iterations, 1)
+        check_int("batch_size", self.batch_size, 1, MAX_BATCH_SIZE)
+        check_int("seed", self.seed, 0, 2**63 - 1)
+        check_int("query_points", self.query_points, 1, MAX_BATCH_SIZE)
 
 
 @dataclass(frozen=True)
@@ -93,11 +114,6 @@ def run_compress(
     Returns:
         The rows (compressors first, then networks) and the skipped compressors' reasons.
     """
-    from apmgsrn.bench.charts import rate_distortion_chart
-    from apmgsrn.bench.compressors import get_compressor
-    from apmgsrn.bench.quality import QualityPlan, prepare_folder, run_quality
-    from apmgsrn.bench.tables import compress_table
-
     prepare_folder(out)
     paths = compress_paths(Path(out), plan.dataset)
     volume = open_spec(plan.dataset)
@@ -115,7 +131,7 @@ def run_compress(
             log(f"skipped {compressor.unavailable_reason()}")
             continue
         for bound in plan.bounds:
-            row = measure_compressor(compressor, data, bound, points, label)
+            row = measure_compressor(compressor, data, bound, points, label, volume.stored_bytes)
             rows.append(row)
             log(f"{label} {name} bound {bound:g}: ratio {row.compression_ratio:.1f}, {row.psnr:.2f} dB")
 
@@ -134,12 +150,12 @@ def run_compress(
                 settings[str(row.model_file)] = (row.size, row.train_seconds)
     for path in model_files:
         size, seconds = settings.get(str(path), (None, None))
-        row = measure_model(path, data, points, label, device, size, seconds)
+        row = measure_model(path, data, points, label, device, volume.stored_bytes, size, seconds)
         rows.append(row)
         log(f"{label} {row.method} {row.setting}: ratio {row.compression_ratio:.1f}, {row.psnr:.2f} dB")
 
     write_rows(paths["csv"], rows, CompressRow)
-    paths["markdown"].write_text(compress_table(rows))
+    atomic_write_text(paths["markdown"], compress_table(rows), "results table")
     if rows:
         rate_distortion_chart(rows, paths["chart"], title=f"{label} {volume_shape_text(volume)}")
     return CompressReport(rows, skipped, paths["csv"], paths["markdown"], paths["chart"])
@@ -149,7 +165,8 @@ def volume_shape_text(volume) -> str:
     return "x".join(str(n) for n in reversed(volume.shape))
 
 
-def measure_compressor(compressor, data: np.ndarray, bound: float, points: torch.Tensor, label: str) -> CompressRow:
+def measure_compressor(compressor, data: np.ndarray, bound: float, points: torch.Tensor, label: str,
+                       data_bytes: int) -> CompressRow:
     """Compress, decompress and query one volume with one compressor at one relative error bound.
 
     Args:
@@ -158,30 +175,29 @@ def measure_compressor(compressor, data: np.ndarray, bound: float, points: torch
         bound: error bound relative to the value range.
         points: ``[Q, 3]`` query points in ``[-1, 1]^3``.
         label: volume name for the row.
+        data_bytes: the volume's size as stored (its own dtype), for the compression ratio.
     """
-    from apmgsrn.ops.trilinear import sample_volume
-
     start = time.perf_counter()
     compressed = compressor.compress(data, bound)
     compress_seconds = time.perf_counter() - start
     start = time.perf_counter()
     restored = compressor.decompress(compressed)
     decompress_seconds = time.perf_counter() - start
-    psnr, max_error = _errors(restored, data)
+    errors = compare_arrays(restored, data)
     # Point queries from the compressed form: decompress everything, then interpolate.
     start = time.perf_counter()
     values = sample_volume(torch.from_numpy(compressor.decompress(compressed)), points)
     query_seconds = time.perf_counter() - start
     del values
-    raw_bytes = data.size * 4
     return CompressRow(
         dataset=label,
         method=compressor.name,
         setting=f"{bound:g}",
         compressed_bytes=len(compressed.data),
-        compression_ratio=raw_bytes / len(compressed.data),
-        psnr=psnr,
-        max_abs_error=max_error,
+        compression_ratio=data_bytes / len(compressed.data),
+        compression_ratio_float32=data.size * 4 / len(compressed.data),
+        psnr=errors.psnr,
+        max_abs_error=errors.max_abs_error,
         compress_seconds=compress_seconds,
         decompress_seconds=decompress_seconds,
         decompress_voxels_per_second=data.size / decompress_seconds,
@@ -197,6 +213,7 @@ def measure_model(
     points: torch.Tensor,
     label: str,
     device: torch.device,
+    data_bytes: int,
     size: str | None = None,
     train_seconds: float | None = None,
 ) -> CompressRow:
@@ -208,34 +225,25 @@ def measure_model(
         points: ``[Q, 3]`` query points.
         label: volume name for the row.
         device: where to evaluate.
+        data_bytes: the volume's size as stored (its own dtype), for the compression ratio.
         size: preset name for the row (else read from the file's training record, else ``custom``).
         train_seconds: training time (else read from the file).
 
     Raises:
         ApmgsrnError: the model was trained on a volume of another shape.
     """
-    import apmgsrn
-    from apmgsrn.inference.query import query
-    from apmgsrn.ops.trilinear import voxel_coordinates
-
-    field = apmgsrn.load(path, device=device)
-    if tuple(getattr(field, "volume_shape", data.shape)) != tuple(data.shape):
-        raise ApmgsrnError(f"{path}: model was trained on a volume of another shape; pass models of this volume")
-    summary = getattr(field, "training_summary", {}) or {}
+    model = load(path, device=device)
+    field, description = model.field, model.description
+    check_volume_shape(data.shape, description.volume_shape, label)
     if train_seconds is None:
-        train_seconds = float(summary.get("seconds", math.nan))
-    method = field.config.model if hasattr(field, "config") else "model"
+        train_seconds = float(description.training.get("seconds", math.nan))
+    method = description.model
     query(field, points[:4096].to(device))  # warm-up: allocator, kernels, thread pool
     _synchronize(device)
     start = time.perf_counter()
-    d, h, w = data.shape
-    decoded = np.empty_like(data)
-    step = max(1, 2**22 // (h * w))
-    for z0 in range(0, d, step):
-        z = slice(z0, min(d, z0 + step))
-        decoded[z] = query(field, voxel_coordinates(data.shape, z)).numpy().reshape(-1, h, w)
+    decoded = decode_array(field, data.shape)
     decompress_seconds = time.perf_counter() - start
-    psnr, max_error = _errors(decoded, data)
+    errors = compare_arrays(decoded, data)
     _synchronize(device)
     start = time.perf_counter()
     query(field, points)
@@ -245,11 +253,12 @@ def measure_model(
     return CompressRow(
         dataset=label,
         method=method,
-        setting=size or _preset_of(field) or "custom",
+        setting=size or _preset_of(description.config) or "custom",
         compressed_bytes=file_bytes,
-        compression_ratio=data.size * 4 / file_bytes,
-        psnr=psnr,
-        max_abs_error=max_error,
+        compression_ratio=data_bytes / file_bytes,
+        compression_ratio_float32=data.size * 4 / file_bytes,
+        psnr=errors.psnr,
+        max_abs_error=errors.max_abs_error,
         compress_seconds=train_seconds,
         decompress_seconds=decompress_seconds,
         decompress_voxels_per_second=data.size / decompress_seconds,
@@ -259,26 +268,13 @@ def measure_model(
     )
 
 
-def _preset_of(field) -> str | None:
-    """The size preset whose encoder config the field has, if any."""
-    import dataclasses
-
-    from apmgsrn.models.registry import PRESETS
-
-    config = dataclasses.asdict(field.config.encoder)
-    for preset, fields in PRESETS.get(field.config.model, {}).items():
+def _preset_of(field_config) -> str | None:
+    """The size preset whose encoder config a field config has, if any."""
+    config = dataclasses.asdict(field_config.encoder)
+    for preset, fields in PRESETS.get(field_config.model, {}).items():
         if all(config.get(k) == (tuple(v) if isinstance(v, list) else v) for k, v in fields.items()):
             return preset
     return None
-
-
-def _errors(restored: np.ndarray, data: np.ndarray) -> tuple[float, float]:
-    """(PSNR over every voxel with the ground truth's range, largest absolute error)."""
-    from apmgsrn.inference.evaluate import psnr_from_mse
-
-    diff = restored.astype(np.float64).reshape(-1) - data.astype(np.float64).reshape(-1)
-    mse = float(np.dot(diff, diff)) / diff.size
-    return psnr_from_mse(mse, float(data.max()) - float(data.min())), float(np.abs(diff).max())
 
 
 def _synchronize(device: torch.device) -> None:

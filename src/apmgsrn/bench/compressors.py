@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from apmgsrn.choices import COMPRESSORS as COMPRESSOR_NAMES
 from apmgsrn.errors import ApmgsrnError
 
 INSTALL_HINT = "pip install 'apmgsrn[baselines]'"
@@ -105,7 +106,7 @@ class ZFPCompressor(Compressor):
         return zfpy.decompress_numpy(compressed.data)
 
 
-COMPRESSORS: dict[str, type[Compressor]] = {"sz3": SZ3Compressor, "zfp": ZFPCompressor}
+COMPRESSORS: dict[str, type[Compressor]] = dict(zip(COMPRESSOR_NAMES, (SZ3Compressor, ZFPCompressor)))
 
 
 def get_compressor(name: str) -> Compressor:

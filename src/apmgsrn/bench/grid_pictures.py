@@ -5,7 +5,8 @@
 - :func:`write_grid_vtk`: the boxes as hexahedra in a legacy VTK file that ParaView opens beside the volume
   (in voxel-index coordinates by default, where ParaView shows a volume that has no spacing of its own).
 - :func:`record_grid_history` and :func:`write_grid_animation`: train the model again with its recorded
-  settings (same seed, so the same run), keeping the grid maps every K iterations, and draw them as a GIF.
+  settings (same seed, so the same run) through the fitting pipeline, a :class:`GridRecorder` callback
+  keeping the grid maps every K iterations, and draw them as a GIF.
 """
 
 from __future__ import annotations
@@ -17,7 +18,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from apmgsrn.arguments import check_int, check_optional_int
+from apmgsrn.atomic import atomic_write, atomic_write_text
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.inference.evaluate import check_volume_shape
+from apmgsrn.inference.slabs import SLAB_VOXELS
+from apmgsrn.models.field import NeuralField
+from apmgsrn.training.callbacks import TrainingProgress
+from apmgsrn.training.fit import prepare_values, train_prepared
+from apmgsrn.training.trainer import StepLosses, TrainConfig, Trainer, TrainingCallback
 
 # VTK_HEXAHEDRON lists the bottom face counter-clockwise, then the top face.
 _VTK_HEXAHEDRON_ORDER = (0, 1, 3, 2, 4, 5, 7, 6)
@@ -44,14 +53,14 @@ def require_grids(field, path: Path | str = "model") -> torch.Tensor:
     Raises:
         ApmgsrnError: the model has no adaptive grids (fvsrn, ngp or a brick model).
     """
-    encoder = getattr(field, "encoder", None)
-    if encoder is None or not hasattr(encoder, "grid_boxes"):
-        kind = getattr(getattr(field, "config", None), "model", "this kind of")
+    boxes = field.encoder.grid_boxes() if isinstance(field, NeuralField) else None
+    if boxes is None:
+        kind = field.config.model if isinstance(field, NeuralField) else "brick"
         raise ApmgsrnError(f"{path}: is a {kind} model without adaptive grids; pass an apmgsrn model")
-    return encoder.grid_boxes()
+    return boxes
 
 
-def projections(volume, transform=None, slab_voxels: int = 2**22) -> Projections:
+def projections(volume, transform=None, slab_voxels: int = SLAB_VOXELS) -> Projections:
     """MIPs along the three axes, streamed over z-slabs (one slab in memory at a time).
 
     Args:
@@ -123,7 +132,7 @@ def grid_picture(
     if title:
         figure.suptitle(title)
     if path is not None:
-        figure.savefig(path)
+        atomic_write(path, figure.savefig, "picture")
     return figure
 
 
@@ -177,7 +186,7 @@ def write_grid_vtk(
     lines += ["12"] * m  # VTK_HEXAHEDRON
     lines += [f"CELL_DATA {m}", "SCALARS grid int 1", "LOOKUP_TABLE default"]
     lines += [str(i) for i in range(m)]
-    Path(path).write_text("\n".join(lines) + "\n")
+    atomic_write_text(path, "\n".join(lines) + "\n", "VTK file")
 
 
 @dataclass(frozen=True)
@@ -189,7 +198,7 @@ class GridHistory:
 
 
 def record_grid_history(
-    field,
+    model,
     volume,
     every: int,
     device: torch.device,
@@ -202,7 +211,7 @@ def record_grid_history(
     repeats the run that made the model (up to floating-point non-determinism of parallel reductions).
 
     Args:
-        field: a loaded apmgsrn model (its ``training_summary`` must hold the training config).
+        model: a loaded apmgsrn model (:func:`apmgsrn.load`; its training summary must hold the config).
         volume: the volume it was trained on.
         every: record the grids every this many iterations (and at 0 and the end).
         device: training device.
@@ -210,21 +219,17 @@ def record_grid_history(
         log: receives a line when training starts.
 
     Raises:
-        ApmgsrnError: the file holds no training record, or the volume has another shape.
+        ApmgsrnError: the file holds no training record, the volume has another shape, or ``every`` or
+            ``iterations`` is not a positive integer.
     """
-    from apmgsrn.models.field import NeuralField
-    from apmgsrn.training.fit import prepare_volume
-    from apmgsrn.training.trainer import Trainer, TrainConfig
-
+    check_int("every", every, 1)
+    check_optional_int("iterations", iterations, 1)
+    field = model.field
     require_grids(field)
-    recorded = (getattr(field, "training_summary", {}) or {}).get("config")
+    recorded = model.description.training.get("config")
     if not recorded:
         raise ApmgsrnError("model file holds no training settings; animate a model written by 'apmgsrn train'")
-    if tuple(volume.shape) != tuple(field.volume_shape):
-        raise ApmgsrnError(
-            f"{volume.path}: volume is {'x'.join(map(str, reversed(volume.shape)))}, the model was trained on "
-            f"{'x'.join(map(str, reversed(field.volume_shape)))}; pass the volume the model was trained on"
-        )
+    check_volume_shape(volume.shape, model.description.volume_shape, str(volume.path))
     settings = dict(recorded)
     settings["betas"] = tuple(settings.get("betas", (0.9, 0.99)))
     if iterations is not None:
@@ -232,27 +237,37 @@ def record_grid_history(
         settings.update(iterations=int(iterations), density_start=None, history_every=None)
     config = TrainConfig(**{k: v for k, v in settings.items() if k in TrainConfig.__dataclass_fields__})
     transform = field.transform
-    prepared = prepare_volume(volume, transform.kind, transform.offset, device)
-    replay = NeuralField(
-        field.config, fit_min=prepared.fit_min, fit_max=prepared.fit_max, value_min=prepared.value_min,
-        value_max=prepared.value_max, transform=prepared.transform, volume_shape=volume.shape,
-        generator=torch.Generator().manual_seed(config.seed),
-    ).to(device)
-    history = GridHistory([0], [replay.encoder.grid_boxes().cpu().numpy()])
-
-    class RecordingTrainer(Trainer):
-        def step(self):
-            losses = super().step()
-            done = self.state.iteration + 1  # step() runs before the loop counts the iteration
-            if done % every == 0 or done == self.config.iterations:
-                history.iterations.append(done)
-                history.boxes.append(self.field.encoder.grid_boxes().cpu().numpy())
-            return losses
-
+    prepared = prepare_values(volume.to_numpy(), transform.kind, transform.offset, str(volume.path), device)
+    if prepared.constant:
+        raise ApmgsrnError(f"{volume.path}: every voxel has the same value, so the grids never move; nothing to show")
+    recorder = GridRecorder(every)
     if log is not None:
         log(f"retraining {config.iterations} iterations to record the grids every {every}")
-    RecordingTrainer(replay, prepared.values, config, progress=True).run()
-    return history
+    train_prepared(prepared, field.config, config, volume.shape, callbacks=[recorder, TrainingProgress("replay")])
+    return recorder.history
+
+
+class GridRecorder(TrainingCallback):
+    """Keeps the grid boxes at the start, every ``every`` iterations and at the end of the budget.
+
+    Args:
+        every: iterations between recorded states.
+    """
+
+    def __init__(self, every: int):
+        self.every = check_int("every", every, 1)
+        self.history = GridHistory([], [])
+
+    def _record(self, trainer: Trainer, iteration: int) -> None:
+        self.history.iterations.append(iteration)
+        self.history.boxes.append(trainer.field.encoder.grid_boxes().detach().cpu().numpy())  # [M, 8, 3]
+
+    def on_start(self, trainer: Trainer) -> None:
+        self._record(trainer, trainer.state.iteration)
+
+    def after_step(self, trainer: Trainer, iteration: int, losses: StepLosses) -> None:
+        if iteration % self.every == 0 or iteration == trainer.config.iterations:
+            self._record(trainer, iteration)
 
 
 def write_grid_animation(
@@ -285,5 +300,6 @@ def write_grid_animation(
         frames.append(Image.fromarray(rgba[..., :3].copy()).quantize(colors=128))
     durations = [frame_ms] * len(frames)
     durations[-1] = 3 * frame_ms
-    frames[0].save(path, save_all=True, append_images=frames[1:], duration=durations, loop=0)
+    atomic_write(path, lambda temp: frames[0].save(temp, save_all=True, append_images=frames[1:],
+                                                   duration=durations, loop=0), "animation")
     return len(frames)

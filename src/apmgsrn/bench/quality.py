@@ -13,8 +13,11 @@ from pathlib import Path
 
 import torch
 
+from apmgsrn.arguments import MAX_BATCH_SIZE, check_choice, check_int, check_number
+from apmgsrn.atomic import atomic_write_text
 from apmgsrn.bench.datasets import DataSpec, open_spec
 from apmgsrn.bench.results import QualityRow, append_row, read_rows
+from apmgsrn.choices import LR_SCHEDULES, MODEL_KINDS, SIZE_PRESETS, VALUE_TRANSFORMS
 from apmgsrn.errors import ApmgsrnError
 
 
@@ -33,7 +36,7 @@ class QualityPlan:
     """
 
     datasets: tuple[DataSpec, ...]
-    models: tuple[str, ...] = ("apmgsrn", "fvsrn", "ngp")
+    models: tuple[str, ...] = MODEL_KINDS
     sizes: tuple[str, ...] = ("small", "medium")
     seeds: int = 1
     iterations: int = 2000
@@ -43,16 +46,17 @@ class QualityPlan:
     log_offset: float = 0.0
 
     def __post_init__(self) -> None:
-        from apmgsrn.models.registry import ENCODERS, PRESETS
-
         for model in self.models:
-            if model not in ENCODERS:
-                raise ApmgsrnError(f"unknown model {model!r}; choose from {', '.join(ENCODERS)}")
-            for size in self.sizes:
-                if size not in PRESETS[model]:
-                    raise ApmgsrnError(f"unknown size {size!r}; choose from {', '.join(PRESETS[model])}")
-        if self.seeds < 1 or self.iterations < 1 or self.batch_size < 1:
-            raise ApmgsrnError("--seeds, --iterations and --batch-size must be positive")
+            check_choice("models", model, MODEL_KINDS)
+        for size in self.sizes:
+            check_choice("sizes", size, SIZE_PRESETS)
+        check_int("seeds", self.seeds, 1)
+        check_int("iterations", self.iterations, 1)
+        check_int("batch_size", self.batch_size, 1, MAX_BATCH_SIZE)
+        if self.lr_schedule is not None:
+            check_choice("lr_schedule", self.lr_schedule, LR_SCHEDULES)
+        check_choice("transform", self.transform, VALUE_TRANSFORMS)
+        check_number("log_offset", self.log_offset)
 
 
 def quality_paths(out: Path) -> dict[str, Path]:
@@ -124,8 +128,10 @@ def run_quality(
             parameters=parameters,
             parameter_bytes=parameters * 4,
             file_bytes=result.model_bytes,
-            raw_bytes=volume.raw_bytes,
-            compression_ratio=volume.raw_bytes / result.model_bytes,
+            data_dtype=str(volume.dtype),
+            data_bytes=volume.stored_bytes,
+            compression_ratio=volume.stored_bytes / result.model_bytes,
+            compression_ratio_float32=volume.raw_bytes / result.model_bytes,
             psnr=result.psnr,
             train_seconds=result.seconds,
             ms_per_iteration=1000 * result.seconds / max(result.iterations, 1),
@@ -151,9 +157,10 @@ def prepare_folder(out: Path) -> dict[str, Path]:
     """
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise ApmgsrnError(f"{out}: is a file; --out needs a folder for the results")
+        raise ApmgsrnError(f"{out}: is a file; out= needs a folder for the results", arguments=("out",))
     if not out.absolute().parent.is_dir():
-        raise ApmgsrnError(f"{out}: parent folder {out.parent} does not exist; create it or choose another --out")
+        raise ApmgsrnError(f"{out}: parent folder {out.parent} does not exist; create it or pass another out=",
+                           arguments=("out",))
     paths = quality_paths(out)
     paths["models"].mkdir(parents=True, exist_ok=True)
     return paths
@@ -167,5 +174,5 @@ def write_quality_report(rows: list[QualityRow], out: Path) -> None:
     if not rows:
         return
     paths = quality_paths(Path(out))
-    paths["markdown"].write_text(quality_tables(rows))
+    atomic_write_text(paths["markdown"], quality_tables(rows), "results table")
     quality_chart(rows, paths["chart"])

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import math
 import statistics
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
 
+from apmgsrn.atomic import atomic_write
 from apmgsrn.errors import ApmgsrnError
 
 #: Model names as the paper prints them.
@@ -29,8 +31,10 @@ class QualityRow:
         parameters: real parameter count.
         parameter_bytes: ``parameters * 4`` (float32).
         file_bytes: size of the saved model file (weights + metadata).
-        raw_bytes: the volume as float32.
-        compression_ratio: ``raw_bytes / file_bytes``.
+        data_dtype: the volume's stored data type.
+        data_bytes: the volume as stored, in its own dtype (a uint8 volume is 1 byte a voxel).
+        compression_ratio: ``data_bytes / file_bytes`` (SPEC section 8).
+        compression_ratio_float32: the volume as float32 (4 bytes a voxel) / ``file_bytes``.
         psnr: over every voxel (dB).
         train_seconds: training loop wall time.
         ms_per_iteration: ``train_seconds`` per iteration.
@@ -49,8 +53,10 @@ class QualityRow:
     parameters: int
     parameter_bytes: int
     file_bytes: int
-    raw_bytes: int
+    data_dtype: str
+    data_bytes: int
     compression_ratio: float
+    compression_ratio_float32: float
     psnr: float
     train_seconds: float
     ms_per_iteration: float
@@ -71,7 +77,9 @@ class CompressRow:
         method: ``sz3``, ``zfp`` or a model name.
         setting: the error bound relative to the value range (compressors) or the size preset (models).
         compressed_bytes: compressed stream or model file size.
-        compression_ratio: float32 volume bytes / ``compressed_bytes``.
+        compression_ratio: the volume's stored bytes (its own dtype) / ``compressed_bytes`` (SPEC section 8).
+        compression_ratio_float32: the volume as float32 / ``compressed_bytes`` (what the compressors were
+            given: every method compresses the float32 values).
         psnr: over every voxel (dB).
         max_abs_error: largest voxel error (data units).
         compress_seconds: compression time (training time for a network).
@@ -87,6 +95,7 @@ class CompressRow:
     setting: str
     compressed_bytes: int
     compression_ratio: float
+    compression_ratio_float32: float
     psnr: float
     max_abs_error: float
     compress_seconds: float
@@ -101,13 +110,14 @@ Row = TypeVar("Row", QualityRow, CompressRow)
 
 
 def write_rows(path: Path, rows: list, row_type: type) -> None:
-    """Write ``rows`` (of ``row_type``) as a CSV with a header, replacing ``path``."""
+    """Write ``rows`` (of ``row_type``) as a CSV with a header, replacing ``path`` atomically."""
     names = [f.name for f in dataclasses.fields(row_type)]
-    with open(path, "w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(names)
-        for row in rows:
-            writer.writerow([_format(getattr(row, name)) for name in names])
+    text = io.StringIO(newline="")
+    writer = csv.writer(text)
+    writer.writerow(names)
+    for row in rows:
+        writer.writerow([_format(getattr(row, name)) for name in names])
+    atomic_write(path, lambda temp: Path(temp).write_text(text.getvalue(), newline=""), "results file")
 
 
 def append_row(path: Path, row) -> None:
@@ -136,7 +146,8 @@ def read_rows(path: Path, row_type: type[Row]) -> list[Row]:
             return []
         if set(reader.fieldnames) != set(fields):
             raise ApmgsrnError(
-                f"{path}: not a {row_type.__name__} results file (other columns); choose another --out folder"
+                f"{path}: not a {row_type.__name__} results file of this version (other columns); move it away or "
+                "pass another out= folder", arguments=("out",)
             )
         rows = []
         for record in reader:

@@ -13,6 +13,7 @@ from apmgsrn.bench.results import (
     group_quality,
     ordered,
 )
+from apmgsrn.choices import MODEL_KINDS
 
 
 def quality_tables(rows: list[QualityRow]) -> str:
@@ -25,13 +26,11 @@ def quality_tables(rows: list[QualityRow]) -> str:
         rows: results of ``bench quality`` (any subset of combinations).
 
     Returns:
-        Markdown text: PSNR table, size table, training-time table and the protocol.
+        Markdown text: PSNR table, size table, compression table, training-time table and the protocol.
     """
-    from apmgsrn.models.registry import ENCODERS
-
     groups = group_quality(rows)
     datasets = list(dict.fromkeys(row.dataset for row in rows))
-    models = ordered((row.model for row in rows), list(ENCODERS))
+    models = ordered((row.model for row in rows), MODEL_KINDS)
     sizes = ordered((row.size for row in rows), SIZE_ORDER)
     shapes = {row.dataset: row.shape for row in rows}
     psnr = {key: Summary.of([r.psnr for r in group]) for key, group in groups.items()}
@@ -73,6 +72,22 @@ def quality_tables(rows: list[QualityRow]) -> str:
                 f"{_kilobytes(sample.parameter_bytes)} | {_kilobytes(sample.file_bytes)} |"
             )
 
+    lines += ["", f"Compression ratio, {letters}: the volume's stored bytes (its own dtype) / model file bytes; "
+              "in parentheses against float32 where the two differ.", ""]
+    lines.append("| volume | " + " | ".join(f"{MODEL_TITLES.get(m, m)} {letters}" for m in models) + " |")
+    lines.append("|---|" + "---|" * len(models))
+    dtypes = {row.dataset: row.data_dtype for row in rows}
+    for dataset in datasets:
+        cells = []
+        for model in models:
+            parts = []
+            for size in sizes:
+                group = groups.get((dataset, model, size))
+                parts.append("–" if group is None else _ratio_text(group[0].compression_ratio,
+                                                                   group[0].compression_ratio_float32))
+            cells.append(" / ".join(parts))
+        lines.append(f"| {dataset} ({dtypes[dataset]}) | " + " | ".join(cells) + " |")
+
     lines += ["", f"Training time (s), {letters}.", ""]
     lines.append("| volume | " + " | ".join(f"{MODEL_TITLES.get(m, m)} {letters}" for m in models) + " |")
     lines.append("|---|" + "---|" * len(models))
@@ -107,13 +122,16 @@ def compress_table(rows: list[CompressRow]) -> str:
     for r in rows:
         lines.append(
             f"| {r.dataset} | {MODEL_TITLES.get(r.method, r.method.upper())} | {r.setting} | "
-            f"{r.compression_ratio:.1f} | {r.psnr:.2f} | {r.max_abs_error:.3g} | {r.compress_seconds:.2f} | "
+            f"{_ratio_text(r.compression_ratio, r.compression_ratio_float32)} | {r.psnr:.2f} | "
+            f"{r.max_abs_error:.3g} | {r.compress_seconds:.2f} | "
             f"{r.decompress_seconds:.2f} | {r.decompress_voxels_per_second / 1e6:.1f} | {r.query_seconds:.3f} | "
             f"{r.query_points_per_second / 1e6:.2f} |"
         )
     if rows:
         lines += [
             "",
+            "Ratio: the volume's stored bytes (its own dtype) / compressed bytes; in parentheses against float32 "
+            "(the values every method compressed) where the two differ.",
             f"Query: {rows[0].query_points:,} uniformly random points; a compressor must decompress the "
             "whole volume first and then interpolate, a network evaluates the points directly.",
         ]
@@ -126,6 +144,11 @@ def _with_spread(summary: Summary, digits: int) -> str:
     if summary.count > 1:
         return f"{summary.mean:.{digits}f} ± {summary.std:.{digits}f}"
     return f"{summary.mean:.{digits}f}"
+
+
+def _ratio_text(stored: float, float32: float) -> str:
+    """``"9.9"``, or ``"9.9 (39.6)"`` with the float32 ratio where the volume is stored in another dtype."""
+    return f"{stored:.1f}" if math.isclose(stored, float32) else f"{stored:.1f} ({float32:.1f})"
 
 
 def _kilobytes(count: int) -> str:

@@ -5,16 +5,16 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from apmgsrn.bench.datasets import parse_data_spec
+from apmgsrn.choices import COMPRESSORS, LR_SCHEDULES, MODEL_KINDS, SIZE_PRESETS, VALUE_TRANSFORMS
 from apmgsrn.cli.common import add_device_argument
+from apmgsrn.cli.paths import CommandPaths, Output
+
+OUT_HELP = ("results folder (default bench-results); its CSV is extended, its tables and chart rewritten, "
+            "and its models reused")
 
 
 def register(subparsers) -> None:
-    from apmgsrn.bench.compress import DEFAULT_BOUNDS
-    from apmgsrn.bench.compressors import COMPRESSORS
-    from apmgsrn.models.registry import ENCODERS
-    from apmgsrn.models.value_transform import TRANSFORMS
-    from apmgsrn.training.trainer import LR_SCHEDULES
-
     parser = subparsers.add_parser(
         "bench",
         help="compare models and compressors on your volumes",
@@ -31,13 +31,13 @@ def register(subparsers) -> None:
         "CSV are skipped, so the same command extends or resumes a benchmark.",
     )
     quality.add_argument("data", nargs="+", metavar="DATA", help="volume files, as PATH or PATH:VARIABLE")
-    quality.add_argument("--models", nargs="+", choices=list(ENCODERS), default=list(ENCODERS))
-    quality.add_argument("--sizes", nargs="+", choices=["small", "medium", "large"], default=["small", "medium"])
+    quality.add_argument("--models", nargs="+", choices=MODEL_KINDS, default=list(MODEL_KINDS))
+    quality.add_argument("--sizes", nargs="+", choices=SIZE_PRESETS, default=["small", "medium"])
     quality.add_argument("--seeds", type=int, default=1, help="seeds 0..K-1 per combination (mean and spread)")
-    _add_budget(quality, LR_SCHEDULES, TRANSFORMS)
-    quality.add_argument("--out", default="bench-results", help="results folder (default bench-results)")
+    _add_budget(quality, LR_SCHEDULES, VALUE_TRANSFORMS)
+    quality.add_argument("--out", default="bench-results", help=OUT_HELP)
     add_device_argument(quality)
-    quality.set_defaults(func=run_quality_command)
+    quality.set_defaults(func=run_quality_command, paths=quality_paths)
 
     compress = commands.add_parser(
         "compress",
@@ -48,18 +48,18 @@ def register(subparsers) -> None:
         "answer random points; a network evaluates them directly.",
     )
     compress.add_argument("data", metavar="DATA", help="volume file, as PATH or PATH:VARIABLE")
-    compress.add_argument("--models", nargs="+", choices=list(ENCODERS), default=list(ENCODERS))
-    compress.add_argument("--sizes", nargs="+", choices=["small", "medium", "large"], default=["small"])
+    compress.add_argument("--models", nargs="+", choices=MODEL_KINDS, default=list(MODEL_KINDS))
+    compress.add_argument("--sizes", nargs="+", choices=SIZE_PRESETS, default=["small"])
     compress.add_argument("--model-files", nargs="+", default=[], metavar="MODEL",
                           help="use these trained models of DATA instead of training --models")
-    compress.add_argument("--compressors", nargs="+", choices=list(COMPRESSORS), default=list(COMPRESSORS))
-    compress.add_argument("--bounds", nargs="+", type=float, default=list(DEFAULT_BOUNDS),
+    compress.add_argument("--compressors", nargs="+", choices=COMPRESSORS, default=list(COMPRESSORS))
+    compress.add_argument("--bounds", nargs="+", type=float,
                           help="error bounds relative to the value range (default: 1e-1 ... 1e-4)")
     compress.add_argument("--query-points", type=int, default=2**20, help="random points of the query test")
     _add_budget(compress, None, None)
-    compress.add_argument("--out", default="bench-results", help="results folder (default bench-results)")
+    compress.add_argument("--out", default="bench-results", help=OUT_HELP)
     add_device_argument(compress)
-    compress.set_defaults(func=run_compress_command)
+    compress.set_defaults(func=run_compress_command, paths=compress_paths)
 
 
 def _add_budget(parser: argparse.ArgumentParser, schedules, transforms) -> None:
@@ -74,8 +74,19 @@ def _add_budget(parser: argparse.ArgumentParser, schedules, transforms) -> None:
         parser.add_argument("--log-offset", type=float, default=0.0, help="offset added before log10")
 
 
+def quality_paths(args: argparse.Namespace) -> CommandPaths:
+    """The volumes are read; the results folder written."""
+    reads = [parse_data_spec(text).path for text in args.data]
+    return CommandPaths(reads=reads, writes=[Output(args.out, "--out", "results folder")])
+
+
+def compress_paths(args: argparse.Namespace) -> CommandPaths:
+    """The volume and the given models are read; the results folder written."""
+    reads = [parse_data_spec(args.data).path, *args.model_files]
+    return CommandPaths(reads=reads, writes=[Output(args.out, "--out", "results folder")])
+
+
 def run_quality_command(args: argparse.Namespace) -> int:
-    from apmgsrn.bench.datasets import parse_data_spec
     from apmgsrn.bench.quality import QualityPlan, quality_paths, run_quality
     from apmgsrn.device import resolve_device
 
@@ -100,7 +111,6 @@ def run_quality_command(args: argparse.Namespace) -> int:
 
 def run_compress_command(args: argparse.Namespace) -> int:
     from apmgsrn.bench.compress import CompressPlan, run_compress
-    from apmgsrn.bench.datasets import parse_data_spec
     from apmgsrn.device import resolve_device
 
     plan = CompressPlan(
@@ -109,10 +119,10 @@ def run_compress_command(args: argparse.Namespace) -> int:
         sizes=tuple(dict.fromkeys(args.sizes)),
         model_files=tuple(Path(p) for p in args.model_files),
         compressors=tuple(dict.fromkeys(args.compressors)),
-        bounds=tuple(args.bounds),
         iterations=args.iterations,
         batch_size=args.batch_size,
         query_points=args.query_points,
+        **({"bounds": tuple(args.bounds)} if args.bounds else {}),
     )
     report = run_compress(plan, Path(args.out), resolve_device(args.device),
                           log=lambda line: print(line, flush=True))

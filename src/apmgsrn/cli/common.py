@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from apmgsrn.errors import ApmgsrnError
 
@@ -19,22 +18,28 @@ def add_data_arguments(parser: argparse.ArgumentParser) -> None:
                        help="replace NaN/Inf voxels by VALUE instead of refusing the volume")
 
 
+def volume_options(args: argparse.Namespace) -> dict:
+    """Keyword arguments of :func:`apmgsrn.data.open_volume` from the data options of ``args``."""
+    from apmgsrn.data import parse_shape
+
+    return {
+        "variable": getattr(args, "variable", None),
+        "time": getattr(args, "time", None),
+        "shape": parse_shape(args.shape) if getattr(args, "shape", None) else None,
+        "dtype": getattr(args, "dtype", None),
+        "fill_nonfinite": getattr(args, "fill_nonfinite", None),
+    }
+
+
 def open_data(args: argparse.Namespace, path: str):
     """Open the volume at ``path`` with the data options of ``args``."""
-    from apmgsrn.data import open_volume, parse_shape
+    from apmgsrn.data import open_volume
 
-    shape = parse_shape(args.shape) if getattr(args, "shape", None) else None
-    return open_volume(
-        path,
-        variable=getattr(args, "variable", None),
-        time=getattr(args, "time", None),
-        shape=shape,
-        dtype=getattr(args, "dtype", None),
-        fill_nonfinite=getattr(args, "fill_nonfinite", None),
-    )
+    return open_volume(path, **volume_options(args))
 
 
 def add_device_argument(parser: argparse.ArgumentParser) -> None:
+    """``--device``."""
     parser.add_argument("--device", default="auto", help="auto (default), cpu, cuda or cuda:I")
 
 
@@ -52,6 +57,7 @@ def parse_triple(text: str, option: str) -> tuple[int, int, int]:
 
 
 def format_bytes(count: float) -> str:
+    """``1536`` -> ``"1.5 KB"``."""
     for unit in ("B", "KB", "MB", "GB", "TB"):
         if abs(count) < 1024 or unit == "TB":
             return f"{count:.1f} {unit}" if unit != "B" else f"{int(count)} B"
@@ -59,8 +65,40 @@ def format_bytes(count: float) -> str:
     return f"{count} B"
 
 
-def require_model(path: str) -> Path:
-    path_obj = Path(path)
-    if not path_obj.exists():
-        raise ApmgsrnError(f"{path}: no such model file")
-    return path_obj
+def percent_of_range(error: float, low: float, high: float) -> str:
+    """An error as a share of a value range, e.g. ``"0.41 % of the value range"``."""
+    span = high - low
+    return f"{100 * error / span:.2g} % of the value range" if span > 0 else "constant data"
+
+
+def compression_figures(voxels: int, dtype: str | None, itemsize: int | None, model_bytes: int) -> dict:
+    """Compression ratios of SPEC section 8: against the data as stored (its own dtype: a uint8 volume is 1
+    byte a voxel) and against float32.
+
+    Args:
+        voxels: voxels of the volume.
+        dtype: its stored dtype (None: unknown, e.g. a model file written before the dtype was recorded).
+        itemsize: bytes a stored voxel takes (None with an unknown dtype).
+        model_bytes: size of the model file or folder.
+
+    Returns:
+        ``data_dtype``, ``data_bytes``, ``float32_bytes``, ``compression_ratio`` (stored bytes / model bytes;
+        None when the dtype is unknown) and ``compression_ratio_float32``.
+    """
+    data_bytes = voxels * itemsize if itemsize else None
+    return {
+        "data_dtype": dtype,
+        "data_bytes": data_bytes,
+        "float32_bytes": voxels * 4,
+        "compression_ratio": data_bytes / model_bytes if data_bytes and model_bytes else None,
+        "compression_ratio_float32": voxels * 4 / model_bytes if model_bytes else None,
+    }
+
+
+def compression_text(figures: dict) -> str:
+    """``"1.7x against the stored uint8 data, 6.6x against float32"`` (one figure when they agree)."""
+    float32 = f"{figures['compression_ratio_float32']:.1f}x against float32"
+    if figures["compression_ratio"] is None:
+        return f"{float32} (stored data type not recorded)"
+    stored = f"{figures['compression_ratio']:.1f}x against the stored {figures['data_dtype']} data"
+    return stored if figures["data_bytes"] == figures["float32_bytes"] else f"{stored}, {float32}"

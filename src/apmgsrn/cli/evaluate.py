@@ -6,7 +6,16 @@ import argparse
 import json
 import math
 
-from apmgsrn.cli.common import add_data_arguments, add_device_argument, format_bytes, open_data
+import apmgsrn
+from apmgsrn.cli.common import (
+    add_data_arguments,
+    add_device_argument,
+    compression_figures,
+    compression_text,
+    format_bytes,
+    open_data,
+    percent_of_range,
+)
 
 
 def register(subparsers) -> None:
@@ -21,33 +30,28 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import apmgsrn
     from apmgsrn.device import resolve_device
-    from apmgsrn.errors import ApmgsrnError
     from apmgsrn.inference.evaluate import evaluate
 
     device = resolve_device(args.device)
     model = apmgsrn.load(args.model, device=device)
     volume = open_data(args, args.data)
-    from apmgsrn.data import check_finite
-
-    check_finite(volume)
-    trained_shape = tuple(getattr(model, "volume_shape", ()))
-    if trained_shape and trained_shape != tuple(volume.shape):
-        raise ApmgsrnError(
-            f"{args.data}: volume is {volume.shape[2]}x{volume.shape[1]}x{volume.shape[0]} (x*y*z) but the model "
-            f"was trained on {trained_shape[2]}x{trained_shape[1]}x{trained_shape[0]}; pass the matching volume"
-        )
-    result = evaluate(model, volume, model_bytes=model.file_bytes, batch_size=args.batch_size)
+    result = evaluate(model.field, volume, trained_shape=model.description.volume_shape, progress=True,
+                      batch_size=args.batch_size)
+    model_bytes = model.description.file_bytes
+    compression = compression_figures(math.prod(volume.shape), str(volume.dtype), volume.dtype.itemsize, model_bytes)
+    figures = {**result.to_dict(), "model_bytes": model_bytes, **compression}
     if args.json:
-        values = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in result.to_dict().items()}
-        print(json.dumps(values))
+        finite = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in figures.items()}
+        print(json.dumps(finite))
         return 0
     print(f"PSNR              {result.psnr:.2f} dB")
+    share = percent_of_range(result.max_abs_error, result.data_min, result.data_max)
+    print(f"max abs error     {result.max_abs_error:.6g} ({share})")
     print(f"MSE               {result.mse:.6g}")
-    print(f"max abs error     {result.max_abs_error:.6g}")
     print(f"value range       [{result.data_min:.6g}, {result.data_max:.6g}]")
-    print(f"model size        {format_bytes(result.model_bytes)} ({result.model_bytes:,} bytes)")
-    print(f"raw float32 size  {format_bytes(result.raw_bytes)}")
-    print(f"compression ratio {result.compression_ratio:.1f}x")
+    print(f"model size        {format_bytes(model_bytes)} ({model_bytes:,} bytes)")
+    print(f"data size         {format_bytes(volume.stored_bytes)} as stored ({volume.dtype}), "
+          f"{format_bytes(compression['float32_bytes'])} as float32")
+    print(f"compression ratio {compression_text(compression)}")
     return 0

@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import apmgsrn
 from apmgsrn.cli.common import add_data_arguments, add_device_argument, open_data
+from apmgsrn.cli.paths import CommandPaths, Output
 from apmgsrn.errors import ApmgsrnError
 
 
@@ -16,7 +18,7 @@ def register(subparsers) -> None:
         description="Write PREFIX.png (grid boxes over maximum-intensity projections along z, y and x) and "
         "PREFIX.vtk (the boxes as hexahedra, in voxel-index coordinates, for ParaView). With --animate, "
         "train the model again with its recorded settings and seed, record the grids every K iterations "
-        "and write PREFIX.gif.",
+        "and write PREFIX.gif. Files of those names are replaced, unless one is an input or an apmgsrn model.",
     )
     parser.add_argument("model", help="an apmgsrn model file")
     parser.add_argument("data", help="the volume the model was trained on")
@@ -28,11 +30,16 @@ def register(subparsers) -> None:
     parser.add_argument("--every", type=int, default=50, metavar="K", help="animation: a frame every K iterations")
     parser.add_argument("--iterations", type=int, help="animation: train this many iterations instead")
     add_device_argument(parser)
-    parser.set_defaults(func=run)
+    parser.set_defaults(func=run, paths=paths)
+
+
+def paths(args: argparse.Namespace) -> CommandPaths:
+    suffixes = (".png", ".vtk", ".gif") if args.animate else (".png", ".vtk")
+    writes = [Output(f"{args.out}{suffix}", "--out", f"{suffix[1:]} file") for suffix in suffixes]
+    return CommandPaths(reads=[args.model, args.data], writes=writes)
 
 
 def run(args: argparse.Namespace) -> int:
-    import apmgsrn
     from apmgsrn.bench.grid_pictures import (
         grid_picture,
         projections,
@@ -42,30 +49,29 @@ def run(args: argparse.Namespace) -> int:
         write_grid_vtk,
     )
     from apmgsrn.device import resolve_device
+    from apmgsrn.inference.evaluate import check_volume_shape
 
-    if args.every < 1:
-        raise ApmgsrnError(f"--every {args.every}: give a positive number of iterations")
     prefix = Path(args.out)
     if not prefix.absolute().parent.is_dir():
         raise ApmgsrnError(f"{prefix}: output folder {prefix.parent} does not exist; create it or choose another --out")
-    field = apmgsrn.load(args.model)
-    boxes = require_grids(field, args.model)
+    model = apmgsrn.load(args.model)
+    boxes = require_grids(model.field, args.model)
     volume = open_data(args, args.data)
-    if tuple(volume.shape) != tuple(field.volume_shape):
-        raise ApmgsrnError(
-            f"{args.data}: volume shape differs from the one {args.model} was trained on; pass that volume"
+    check_volume_shape(volume.shape, model.description.volume_shape, args.data)
+    # The replay first: it refuses its settings before anything is written.
+    history = None
+    if args.animate:
+        history = record_grid_history(
+            model, volume, args.every, resolve_device(args.device), args.iterations,
+            log=lambda line: print(line, flush=True),
         )
-    mips = projections(volume, field.transform)
+    mips = projections(volume, model.field.transform)
     title = f"{Path(args.model).name}: {boxes.shape[0]} grids over {volume.describe()}"
     png, vtk = Path(f"{prefix}.png"), Path(f"{prefix}.vtk")
     grid_picture(boxes, mips, png, title)
     write_grid_vtk(boxes, vtk, volume.shape if args.vtk_coordinates == "index" else None)
     print(f"wrote {png} and {vtk}")
-    if args.animate:
-        history = record_grid_history(
-            field, volume, args.every, resolve_device(args.device), args.iterations,
-            log=lambda line: print(line, flush=True),
-        )
+    if history is not None:
         gif = Path(f"{prefix}.gif")
         frames = write_grid_animation(history, mips, gif, Path(args.model).name)
         print(f"wrote {gif} ({frames} frames)")

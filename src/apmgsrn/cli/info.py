@@ -3,15 +3,30 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import math
+
+import apmgsrn
+from apmgsrn.atomic import atomic_write
+from apmgsrn.cli.common import compression_figures, compression_text, format_bytes
+from apmgsrn.cli.paths import CommandPaths, Output
+from apmgsrn.errors import ApmgsrnError
 
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser("info", help="describe a model file")
     parser.add_argument("model", help="model file")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
-    parser.add_argument("--plot", metavar="FILE.png", help="also draw the training curves to this image")
-    parser.set_defaults(func=run)
+    parser.add_argument("--plot", metavar="FILE.png",
+                        help="also draw the training curves to this image (a file of that name is replaced, "
+                             "unless it is an apmgsrn model)")
+    parser.set_defaults(func=run, paths=paths)
+
+
+def paths(args: argparse.Namespace) -> CommandPaths:
+    writes = [Output(args.plot, "--plot", "plot")] if args.plot else []
+    return CommandPaths(reads=[args.model], writes=writes)
 
 
 def plot_training_curves(training: dict, out: str) -> None:
@@ -20,8 +35,6 @@ def plot_training_curves(training: dict, out: str) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from apmgsrn.errors import ApmgsrnError
 
     history = training.get("history") or {}
     if not history.get("iteration"):
@@ -42,43 +55,44 @@ def plot_training_curves(training: dict, out: str) -> None:
     top.set_title(f"training: {training.get('iterations')} iterations, PSNR {training.get('psnr', float('nan')):.2f} dB")
     fig.tight_layout()
     try:
-        fig.savefig(out, dpi=110)
-    except OSError as exc:
-        raise ApmgsrnError(f"{out}: cannot write the plot ({exc.strerror})") from None
+        atomic_write(out, lambda temp: fig.savefig(temp, dpi=110, format="png"), "plot")
     finally:
         plt.close(fig)
 
 
-def describe_field(field) -> dict:
-    """A JSON-able description of a single-field model."""
-    import dataclasses
+def describe_field(field, description) -> dict:
+    """A JSON-able description of a single-field model.
 
+    Args:
+        field: the :class:`~apmgsrn.models.field.NeuralField`.
+        description: its file's :class:`~apmgsrn.io.ModelDescription`.
+    """
     config = field.config
     info = {
         "model": config.model,
-        "encoder": dataclasses.asdict(config.encoder),
+        "encoder": {k: v for k, v in config.to_dict()["encoder"].items()},
         "decoder": dataclasses.asdict(config.decoder),
         "parameters": field.parameter_count(),
         "parameter_bytes": field.parameter_count() * 4,
-        "file_bytes": getattr(field, "file_bytes", None),
-        "volume_shape_xyz": list(reversed(field.volume_shape)),
-        "value_range": [field.value_min, field.value_max],
+        "file_bytes": description.file_bytes,
+        "volume_shape_xyz": list(reversed(description.volume_shape)),
+        "value_range": list(description.value_range),
         "transform": dataclasses.asdict(field.transform),
-        "source": getattr(field, "source", {}),
+        "source": description.source.to_dict(),
+        **_compression(description),
     }
-    training = dict(getattr(field, "training_summary", {}) or {})
+    training = dict(description.training)
     history = training.pop("history", None)
     if history and history.get("reconstruction"):
         info["final_reconstruction_loss"] = history["reconstruction"][-1]
     info["training"] = training
-    encoder_config = getattr(field.encoder, "config", None)
-    if hasattr(encoder_config, "level_table_sizes"):  # hash grid: what each level really stores
+    if config.model == "ngp":  # hash grid: what each level really stores
         info["levels"] = [
             {"resolution": r, "table_entries": n, "dense": r**3 <= n}
-            for r, n in zip(encoder_config.level_resolutions(), encoder_config.level_table_sizes())
+            for r, n in zip(config.encoder.level_resolutions(), config.encoder.level_table_sizes())
         ]
-    if hasattr(field.encoder, "grid_boxes"):
-        boxes = field.encoder.grid_boxes()  # [M, 8, 3]
+    boxes = field.encoder.grid_boxes()  # [M, 8, 3] or None
+    if boxes is not None:
         info["grids"] = [
             {"center": [round(v, 4) for v in box.mean(0).tolist()],
              "extent": [round(v, 4) for v in (box.max(0).values - box.min(0).values).tolist()]}
@@ -87,16 +101,20 @@ def describe_field(field) -> dict:
     return info
 
 
+def _compression(description) -> dict:
+    """Compression figures of the file against its training volume (stored dtype when the file records it)."""
+    return compression_figures(math.prod(description.volume_shape), description.source.dtype,
+                               description.source.itemsize, description.file_bytes)
+
+
 def run(args: argparse.Namespace) -> int:
-    import apmgsrn
-    from apmgsrn.cli.common import format_bytes
 
     model = apmgsrn.load(args.model)
-    if getattr(model, "kind", None) == "bricks":
+    if model.description.kind == "bricks":
         return _run_bricks(args, model)
-    info = describe_field(model)
+    info = describe_field(model.field, model.description)
     if args.plot:
-        plot_training_curves(getattr(model, "training_summary", {}), args.plot)
+        plot_training_curves(model.description.training, args.plot)
     if args.json:
         print(json.dumps(info))
         return 0
@@ -107,8 +125,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"decoder         {info['decoder']['hidden_layers']} x {info['decoder']['width']}, ReLU, no bias")
     print(f"parameters      {info['parameters']:,} ({format_bytes(info['parameter_bytes'])} as float32)")
     x, y, z = info["volume_shape_xyz"]
-    print(f"volume          {x}x{y}x{z} (x*y*z) from {info['source'].get('description', '?')}")
+    print(f"volume          {x}x{y}x{z} (x*y*z) from {info['source'].get('description') or '?'}")
     print(f"value range     [{info['value_range'][0]:.6g}, {info['value_range'][1]:.6g}], transform {info['transform']['kind']}")
+    _print_source_metadata(model.description)
+    print(f"compression     {compression_text(info)}")
     if t:
         print(f"training        {t.get('iterations')} iterations x {t.get('batch_size')} points, "
               f"{t.get('seconds')} s on {t.get('device')}, PSNR {t.get('psnr', float('nan')):.2f} dB")
@@ -127,30 +147,52 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _print_source_metadata(description) -> None:
+    """The variable's units and the coordinates of its axes, as the input had them (what decode writes back)."""
+    source = description.source
+    metadata = source.metadata
+    if metadata.units is not None:
+        print(f"variable        {source.variable or 'value'} in {metadata.units}")
+    if metadata.coordinates is None:
+        return
+    parts = []
+    for axis in (2, 1, 0):
+        coordinates = metadata.axis(axis)
+        first, last = coordinates.at([0.0, description.volume_shape[axis] - 1.0])
+        units = coordinates.attributes.get("units")
+        spacing = "even" if coordinates.even else "uneven"
+        parts.append(f"{coordinates.name} {first:.6g}..{last:.6g}{f' {units}' if units else ''} ({spacing})")
+    print(f"coordinates     {', '.join(parts)}")
+
+
 def describe_bricks(model) -> dict:
-    """A JSON-able description of a brick model: grid, ghost cells, blend and per-brick figures."""
-    first = model.bricks[0]
+    """A JSON-able description of a brick model (an :class:`apmgsrn.Model` of kind ``bricks``): grid, ghost
+    cells, blend and per-brick figures."""
+    description = model.description
+    layout = description.bricks
+    first = model.field.bricks[0]
     info = {
         "kind": "bricks",
-        "bricks": list(model.plan.counts),
-        "ghost_cells": model.plan.config.ghost_cells,
-        "blend": model.blend,
-        "brick_model": describe_field(first) | {"training": {}, "grids": None},
-        "parameters": model.parameter_count(),
-        "parameter_bytes": model.parameter_count() * 4,
-        "file_bytes": model.file_bytes,
-        "volume_shape_xyz": list(reversed(model.volume_shape)),
-        "value_range": [model.value_min, model.value_max],
-        "source": model.source,
-        "training": model.training_summary,
+        "bricks": list(layout.counts),
+        "ghost_cells": layout.ghost_cells,
+        "blend": layout.blend,
+        "brick_model": describe_field(first, description) | {"training": {}, "grids": None},
+        "parameters": description.parameters,
+        "parameter_bytes": description.parameters * 4,
+        "file_bytes": description.file_bytes,
+        "volume_shape_xyz": list(reversed(description.volume_shape)),
+        "value_range": list(description.value_range),
+        "source": description.source.to_dict(),
+        **_compression(description),
+        "training": description.training,
         "per_brick": [],
     }
-    for entry in model.brick_summaries:
-        summary = entry.get("summary") or {}
+    for entry in layout.entries:
+        summary = entry.summary
         info["per_brick"].append({
-            "name": entry.get("name"),
-            "position": entry.get("position"),
-            "voxels_zyx": [entry.get("start"), entry.get("stop")],
+            "name": entry.name,
+            "position": list(entry.position),
+            "voxels_zyx": [list(entry.start), list(entry.stop)],
             **{k: summary.get(k) for k in ("psnr", "iterations", "stopped_early", "seconds", "value_min",
                                            "value_max", "bytes", "device")},
         })
@@ -158,8 +200,6 @@ def describe_bricks(model) -> dict:
 
 
 def _run_bricks(args: argparse.Namespace, model) -> int:
-    from apmgsrn.cli.common import format_bytes
-
     info = describe_bricks(model)
     if args.json:
         # Strict JSON: an exact (constant) brick's infinite PSNR becomes null.
@@ -177,8 +217,10 @@ def _run_bricks(args: argparse.Namespace, model) -> int:
     print(f"parameters      {info['parameters']:,} in all ({format_bytes(info['parameter_bytes'])} as float32), "
           f"{each['parameters']:,} per brick")
     x, y, z = info["volume_shape_xyz"]
-    print(f"volume          {x}x{y}x{z} (x*y*z) from {info['source'].get('description', '?')}")
+    print(f"volume          {x}x{y}x{z} (x*y*z) from {info['source'].get('description') or '?'}")
     print(f"value range     [{info['value_range'][0]:.6g}, {info['value_range'][1]:.6g}]")
+    _print_source_metadata(model.description)
+    print(f"compression     {compression_text(info)}")
     t = info["training"] or {}
     if t:
         print(f"last run        {t.get('last_run_trained')} brick(s) in {t.get('last_run_seconds')} s on "

@@ -8,7 +8,9 @@ import math
 import time
 from pathlib import Path
 
-from apmgsrn.cli.common import add_data_arguments, add_device_argument, open_data
+from apmgsrn.choices import PRESET_UNITS
+from apmgsrn.cli.common import add_data_arguments, add_device_argument, volume_options
+from apmgsrn.cli.paths import CommandPaths, Output
 from apmgsrn.errors import ApmgsrnError
 
 
@@ -23,7 +25,9 @@ def register(subparsers) -> None:
         ),
     )
     parser.add_argument("input", metavar="MODEL_OR_DATA", help="model file or volume file")
-    parser.add_argument("--out", required=True, help="image (.png) or, with --frames, animation (.gif, .mp4)")
+    parser.add_argument("--out", required=True,
+                        help="image (.png) or, with --frames, animation (.gif, .mp4); a file of that name is "
+                             "replaced once the image is complete, unless it is an input or an apmgsrn model")
     view = parser.add_argument_group("camera")
     view.add_argument("--width", type=int, default=512, help="image width in pixels (default 512)")
     view.add_argument("--height", type=int, default=512, help="image height in pixels (default 512)")
@@ -36,11 +40,11 @@ def register(subparsers) -> None:
     tf = parser.add_argument_group("transfer function")
     tf.add_argument("--colormap", default="Cool to Warm",
                     help="built-in name (Cool to Warm, viridis, plasma, coolwarm, grayscale, jet, ... any "
-                         "matplotlib name) or a ParaView preset .json file (default: Cool to Warm)")
-    tf.add_argument("--preset-name", help="which preset of a .json file holding several (default: the first)")
-    tf.add_argument("--preset-units", choices=["auto", "normalized", "data"], default="auto",
-                    help="auto: a preset spanning exactly 0..1 is stretched to the range, other spans are "
-                         "data units (a session export)")
+                         "matplotlib name) or a ParaView preset .json/.xml file (default: Cool to Warm)")
+    tf.add_argument("--preset-name", help="which preset of a file holding several (default: the first)")
+    tf.add_argument("--preset-units", choices=PRESET_UNITS, default="normalized",
+                    help="normalized: stretch the preset over the range, as ParaView applies presets "
+                         "(default); data: keep its node positions, e.g. a transfer function saved from a session")
     tf.add_argument("--opacity", metavar="X0,A0,X1,A1,...",
                     help="opacity nodes: positions on 0..1 of the range and their opacity per reference step "
                          "(default: a preset's own, else 0,0,1,1)")
@@ -71,18 +75,39 @@ def register(subparsers) -> None:
     add_data_arguments(parser)
     add_device_argument(parser)
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
-    parser.set_defaults(func=run)
+    parser.set_defaults(func=run, paths=paths)
+
+
+def paths(args: argparse.Namespace) -> CommandPaths:
+    """Reads the model or volume, the --compare volume and a preset file; writes the image (and error
+    image), animation and --save-tf preset."""
+    reads = [args.input, args.compare]
+    if Path(args.colormap).suffix.lower() in (".json", ".xml"):
+        reads.append(args.colormap)
+    writes = [Output(args.out, "--out", "image")]
+    if args.compare:
+        writes.append(Output(error_image_path(args), "--error-out", "error image"))
+    if args.save_tf:
+        writes.append(Output(args.save_tf, "--save-tf", "transfer function"))
+    return CommandPaths(reads=reads, writes=writes)
+
+
+def error_image_path(args: argparse.Namespace) -> Path:
+    """``--error-out``, else ``OUT_error.png`` beside ``--out``."""
+    out = Path(args.out)
+    return Path(args.error_out) if args.error_out else out.with_name(out.stem + "_error.png")
 
 
 def run(args: argparse.Namespace) -> int:
+    # torch and the renderer load here, not when the CLI starts.
     from apmgsrn.device import resolve_device
-    from apmgsrn.render.camera import Camera, extent_from_shape
-    from apmgsrn.render.colormaps import make_transfer_function
+    from apmgsrn.render import Camera, RendererConfig, image_psnr, image_ssim, make_transfer_function
+    from apmgsrn.render.animation import render_frames, turntable_cameras, write_animation
     from apmgsrn.render.images import error_image, save_image, side_by_side
-    from apmgsrn.render.metrics import image_psnr, image_ssim
-    from apmgsrn.render.raymarch import RendererConfig, default_batch_size
+    from apmgsrn.render.paraview import save_transfer_function
+    from apmgsrn.render.raymarch import default_batch_size
+    from apmgsrn.sources import SourceOptions, open_source
 
-    _check_numbers(args)
     out = Path(args.out)
     animate = args.frames is not None
     if animate and args.compare:
@@ -108,26 +133,23 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         background=parse_background(args.background),
     )
-    source = _open_source(args, args.input, device)
+    options = SourceOptions(volume=volume_options(args))
+    source = open_source(args.input, device, options)
     value_range = parse_range(args.range) if args.range else source.value_range
     opacity = parse_opacity(args.opacity) if args.opacity else None
     transfer_function = make_transfer_function(
         args.colormap, value_range, opacity=opacity, preset_name=args.preset_name, preset_units=args.preset_units
     )
-    if args.range and args.colormap.lower().endswith(".json"):
+    if args.range and args.preset_units == "data":
         transfer_function = transfer_function.rescaled(*value_range)  # an explicit range always wins
-    extent = (1.0, 1.0, 1.0) if args.no_aspect else extent_from_shape(source.shape)
-    renderer = source.renderer(transfer_function, config, extent, device)
+    extent = (1.0, 1.0, 1.0) if args.no_aspect else source.extent
+    renderer = source.renderer(transfer_function, config, extent)
     report: dict = {"input": args.input, "out": str(out), "device": str(device)}
     if args.save_tf:
-        from apmgsrn.render.paraview import save_transfer_function
-
         save_transfer_function(transfer_function, args.save_tf)
         report["transfer_function"] = args.save_tf
 
     if animate:
-        from apmgsrn.render.animation import render_frames, turntable_cameras, write_animation
-
         cameras = turntable_cameras(
             args.frames, args.azimuth, args.elevation, args.distance, args.fov, args.width, args.height, extent
         )
@@ -158,12 +180,12 @@ def run(args: argparse.Namespace) -> int:
                                      f"field evaluated at {stats.field_evaluations:,} of {stats.samples_in_box:,} "
                                      f"samples in the box ({100 * skipped:.0f}% skipped or past opacity)")
 
-    reference_source = _open_source(args, args.compare, device)
-    reference = reference_source.renderer(transfer_function, config, extent, device).render(camera).image
+    reference_source = open_source(args.compare, device, options)
+    reference = reference_source.renderer(transfer_function, config, extent).render(camera).image
     psnr = image_psnr(result.image, reference)
     ssim = image_ssim(result.image, reference) if min(args.width, args.height) >= 11 else float("nan")
     save_image(side_by_side(result.image, reference), out)
-    error_path = Path(args.error_out) if args.error_out else out.with_name(out.stem + "_error.png")
+    error_path = error_image_path(args)
     error, scale = error_image(result.image, reference)
     save_image(error, error_path)
     report.update(compare=args.compare, psnr=psnr, ssim=ssim, error_image=str(error_path), error_scale=scale)
@@ -175,44 +197,6 @@ def run(args: argparse.Namespace) -> int:
     )
 
 
-class _Source:
-    """A model or a volume, ready to be rendered."""
-
-    def __init__(self, field, value_range, shape, volume=None):
-        self.field = field
-        self.value_range = value_range
-        self.shape = shape
-        self.volume = volume
-
-    def renderer(self, transfer_function, config, extent, device):
-        from apmgsrn.render.raymarch import VolumeRenderer
-
-        if self.volume is not None:
-            return VolumeRenderer.for_volume(self.volume, transfer_function, config, extent=extent, device=device)
-        return VolumeRenderer(self.field, transfer_function, config, extent=extent, device=device)
-
-
-def _open_source(args: argparse.Namespace, path: str, device) -> _Source:
-    if not Path(path).exists():
-        raise ApmgsrnError(f"{path}: no such file; give a model file or a volume file")
-    from apmgsrn.training.checkpoint import is_model_file
-
-    if is_model_file(path):
-        import apmgsrn
-
-        model = apmgsrn.load(path, device=device)
-        model.eval()
-        value_range = (float(model.value_min), float(model.value_max))
-        shape = tuple(getattr(model, "volume_shape", (2, 2, 2)))
-        return _Source(model, value_range, shape)
-    from apmgsrn.data import check_finite
-
-    volume = open_data(args, path)
-    check_finite(volume)
-    stats = volume.stats()
-    return _Source(None, (float(stats.min), float(stats.max)), tuple(volume.shape), volume=volume.to_numpy())
-
-
 def _finish(args: argparse.Namespace, report: dict, text: str) -> int:
     if args.json:
         clean = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in report.items()}
@@ -220,22 +204,6 @@ def _finish(args: argparse.Namespace, report: dict, text: str) -> int:
     else:
         print(text)
     return 0
-
-
-def _check_numbers(args: argparse.Namespace) -> None:
-    for name in ("width", "height", "spp", "reference_samples", "macro_cells"):
-        if getattr(args, name) < 1:
-            raise ApmgsrnError(f"--{name.replace('_', '-')} must be a positive integer")
-    if args.batch_size is not None and args.batch_size < 16:
-        raise ApmgsrnError("--batch-size must be at least 16")
-    if not 0.0 <= args.early_termination < 1.0:
-        raise ApmgsrnError("--early-termination must be in [0, 1)")
-    if not 0.0 < args.fov < 180.0:
-        raise ApmgsrnError("--fov must be between 0 and 180 degrees")
-    if args.distance is not None and args.distance <= 0:
-        raise ApmgsrnError("--distance must be positive")
-    if args.fps <= 0:
-        raise ApmgsrnError("--fps must be positive")
 
 
 def _floats(text: str, option: str) -> list[float]:

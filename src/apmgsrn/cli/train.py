@@ -4,115 +4,59 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 
-from apmgsrn.cli.common import add_data_arguments, add_device_argument, format_bytes, open_data, parse_triple
-from apmgsrn.errors import ApmgsrnError
+from apmgsrn.choices import VALUE_TRANSFORMS
+from apmgsrn.cli.common import (
+    add_data_arguments,
+    add_device_argument,
+    compression_figures,
+    compression_text,
+    format_bytes,
+    open_data,
+    percent_of_range,
+)
+from apmgsrn.cli.fit_options import add_fit_arguments, build_configs
+from apmgsrn.cli.paths import CommandPaths, Output
+from apmgsrn.cli.train_bricks import add_brick_arguments, run_bricks
+
+#: What ``--out`` may replace; README.md and docs/security.md say the same.
+OUT_HELP = (
+    "model file to write (a folder with --bricks). An existing apmgsrn model there is replaced atomically "
+    "when training succeeds; any other file, and the input itself, are refused"
+)
 
 
 def register(subparsers) -> None:
-    from apmgsrn.cli.train_bricks import add_brick_arguments
-    from apmgsrn.models.encoders.adaptive_multigrid import GRID_INITS
-    from apmgsrn.models.registry import ENCODERS
-    from apmgsrn.models.value_transform import TRANSFORMS
-    from apmgsrn.training.trainer import DECODER_PRECISIONS, DENSITY_NORMALIZATIONS, LR_SCHEDULES
-
     parser = subparsers.add_parser(
         "train",
         help="fit a model to a volume",
         description="Fit an adaptive multi-grid network to a volume and save it as one safe model file.",
     )
     parser.add_argument("data", help="volume file (.nc, .h5, .zarr, .raw, .npy, .vti, .vtr)")
-    parser.add_argument("--out", required=True, help="model file to write")
+    parser.add_argument("--out", required=True, help=OUT_HELP)
     add_data_arguments(parser)
-    parser.add_argument("--transform", choices=TRANSFORMS, default="none", help="value transform before fitting")
+    parser.add_argument("--transform", choices=VALUE_TRANSFORMS, default="none",
+                        help="value transform before fitting")
     parser.add_argument("--log-offset", type=float, default=0.0, help="offset added before --transform log10")
-    model = parser.add_argument_group("model")
-    model.add_argument("--model", choices=sorted(ENCODERS), default="apmgsrn")
-    model.add_argument("--preset", choices=["small", "medium", "large"], default="small")
-    model.add_argument("--grids", type=int, help="number of grids M")
-    model.add_argument("--features", type=int, help="features per grid C (per level for ngp)")
-    model.add_argument("--resolution", help="grid resolution R or D,H,W")
-    model.add_argument("--hidden-layers", type=int, help="decoder hidden layers (default 2)")
-    model.add_argument("--width", type=int, help="decoder width (default 64)")
-    model.add_argument("--grid-init", choices=GRID_INITS, help="grid initialisation")
-    model.add_argument("--backend", help="sampling backend: auto (default), torch, cpu, triton; ngp: torch "
-                       "(default), tcnn (tiny-cuda-nn on a GPU) or auto")
-    model.add_argument("--levels", type=int, help="ngp: resolution levels L")
-    model.add_argument("--log2-table-size", type=int, help="ngp: log2 of the hash table entries per level T")
-    model.add_argument("--base-resolution", type=int, help="ngp: coarsest level resolution")
-    model.add_argument("--finest-resolution", type=int, help="ngp: finest level resolution")
-    model.add_argument("--frequencies", type=int, help="fvsrn: Fourier frequencies (default 6)")
-    training = parser.add_argument_group("training")
-    training.add_argument("--iterations", type=int, help="default: 3000 on CPU, 50000 on GPU")
-    training.add_argument("--batch-size", type=int, help="points per iteration (default: 32768 CPU, 100000 GPU)")
-    training.add_argument("--lr", type=float, default=0.01)
-    training.add_argument("--transform-lr", type=float, default=0.001, help="learning rate of the grid transforms")
-    training.add_argument("--lr-schedule", choices=LR_SCHEDULES,
-                          help="cosine: anneal after the grids stop (default for every model); constant; "
-                               "plateau (paper); steps: x0.33 at 40/60/80%% (NGP/fVSRN reference code)")
-    training.add_argument("--density-start", type=int,
-                          help="iteration where the grids start moving (default: 5%% of the budget; paper 500)")
-    training.add_argument("--freeze-fraction", type=float, default=0.5,
-                          help="grids stop moving by this fraction of the budget (default 0.5; paper 0.8)")
-    training.add_argument("--density-normalization", choices=DENSITY_NORMALIZATIONS, default="mass",
-                          help="mass (default): share of all grid features; batch: the paper's rho / sum rho")
-    training.add_argument("--decoder-precision", choices=DECODER_PRECISIONS, default="auto",
-                          help="decoder hidden layers while training: auto (default: bfloat16 on CPUs with "
-                               "native bfloat16, else float32), float32, bfloat16")
-    training.add_argument("--seed", type=int, default=0)
-    training.add_argument("--checkpoint-every", type=int, default=250)
-    training.add_argument("--resume", action="store_true", help="continue an interrupted run from MODEL.ckpt")
+    add_fit_arguments(parser)
     add_brick_arguments(parser)
     add_device_argument(parser)
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
-    parser.set_defaults(func=run)
+    parser.set_defaults(func=run, paths=paths)
 
 
-def build_configs(args: argparse.Namespace, device):
-    """(FieldConfig, TrainConfig) from the command line, presets overridden by explicit flags."""
-    from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
-    from apmgsrn.training.trainer import TrainConfig, default_budget
-
-    iterations, batch_size = default_budget(device)
-    overrides = {
-        "grids": args.grids,
-        "features": args.features,
-        "resolution": parse_triple(args.resolution, "--resolution") if args.resolution else None,
-        "init": args.grid_init,
-        "backend": args.backend,
-        "hidden_layers": args.hidden_layers,
-        "width": args.width,
-        "levels": getattr(args, "levels", None),
-        "log2_table_size": getattr(args, "log2_table_size", None),
-        "base_resolution": getattr(args, "base_resolution", None),
-        "finest_resolution": getattr(args, "finest_resolution", None),
-        "frequencies": getattr(args, "frequencies", None),
-    }
-    try:
-        field_config = preset_config(args.model, args.preset, **overrides)
-        train_config = TrainConfig(
-            iterations=args.iterations or iterations,
-            batch_size=args.batch_size or batch_size,
-            lr=args.lr,
-            transform_lr=args.transform_lr,
-            lr_schedule=args.lr_schedule or DEFAULT_LR_SCHEDULES.get(args.model, "cosine"),
-            density_start=args.density_start,
-            freeze_fraction=args.freeze_fraction,
-            density_normalization=args.density_normalization,
-            decoder_precision=args.decoder_precision,
-            seed=args.seed,
-            checkpoint_every=args.checkpoint_every,
-        )
-    except (TypeError, ValueError) as exc:
-        raise ApmgsrnError(f"invalid model or training options: {exc}") from None
-    return field_config, train_config
+def paths(args: argparse.Namespace) -> CommandPaths:
+    """The volume is read; the model (and, for one model, its training checkpoint ``MODEL.ckpt``) written."""
+    writes = [Output(args.out, "--out", "model", model=True)]
+    if not args.bricks:
+        writes.append(Output(f"{args.out}.ckpt", "--out", "training checkpoint", model=True))
+    return CommandPaths(reads=[args.data], writes=writes)
 
 
 def run(args: argparse.Namespace) -> int:
-    if getattr(args, "bricks", None):
-        from apmgsrn.cli.train_bricks import run_bricks
-
+    if args.bricks:
         return run_bricks(args)
     from apmgsrn.device import resolve_device
     from apmgsrn.training.fit import fit_volume
@@ -130,14 +74,15 @@ def run(args: argparse.Namespace) -> int:
     except TrainingInterrupted as exc:
         print(f"{exc}; run the same command with --resume to continue")
         return 130
-    raw_bytes = volume.raw_bytes
+    voxels = math.prod(volume.shape)
+    compression = compression_figures(voxels, str(volume.dtype), volume.dtype.itemsize, result.model_bytes)
     summary = {
         "model": str(out),
         "psnr": result.psnr,
+        "max_abs_error": result.max_abs_error,
         "model_bytes": result.model_bytes,
         "parameters": result.field.parameter_count(),
-        "raw_bytes": raw_bytes,
-        "compression_ratio": raw_bytes / result.model_bytes,
+        **compression,
         "seconds": result.seconds,
         "iterations": result.iterations,
         "ms_per_iteration": 1000 * result.seconds / max(result.iterations, 1),
@@ -147,9 +92,15 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(summary))
     else:
         print(f"model       {out} ({format_bytes(result.model_bytes)}, {summary['parameters']:,} parameters)")
-        print(f"data        {volume.describe()} ({format_bytes(raw_bytes)} as float32)")
-        print(f"PSNR        {result.psnr:.2f} dB over all {volume.raw_bytes // 4:,} voxels")
-        print(f"compression {summary['compression_ratio']:.1f}x")
-        print(f"training    {result.iterations} iterations in {result.seconds:.1f} s "
-              f"({summary['ms_per_iteration']:.1f} ms/iteration), grids frozen at {result.frozen_at}")
+        print(f"data        {volume.describe()} ({format_bytes(volume.stored_bytes)} as stored)")
+        evaluation = result.evaluation
+        print(f"PSNR        {evaluation.psnr:.2f} dB over all {voxels:,} voxels; "
+              f"max abs error {evaluation.max_abs_error:.4g} "
+              f"({percent_of_range(evaluation.max_abs_error, evaluation.data_min, evaluation.data_max)})")
+        print(f"compression {compression_text(compression)}")
+        if result.iterations == 0:
+            print("training    none needed: every voxel has the same value")
+        else:
+            print(f"training    {result.iterations} iterations in {result.seconds:.1f} s "
+                  f"({summary['ms_per_iteration']:.1f} ms/iteration), grids frozen at {result.frozen_at}")
     return 0

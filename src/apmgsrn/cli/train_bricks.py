@@ -6,10 +6,10 @@ import argparse
 import json
 import math
 import os
-from dataclasses import replace
 from pathlib import Path
 
-from apmgsrn.cli.common import format_bytes, open_data, parse_triple
+from apmgsrn.cli.common import compression_figures, compression_text, format_bytes, open_data, parse_triple
+from apmgsrn.cli.fit_options import build_configs
 from apmgsrn.errors import ApmgsrnError
 
 
@@ -34,34 +34,21 @@ def add_brick_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run_bricks(args: argparse.Namespace) -> int:
     """Train (or finish) a brick model; the same command after a crash trains only missing bricks."""
-    from apmgsrn.cli.train import build_configs
     from apmgsrn.decomposition.coordinator import BrickProgress, train_bricks
     from apmgsrn.decomposition.executor import ExecutorConfig, open_job_queue
     from apmgsrn.decomposition.planner import DecompositionConfig
     from apmgsrn.device import resolve_device
-    from apmgsrn.decomposition.brick_training import BRICK_LR_CUTS
 
     counts = parse_triple(args.bricks, "--bricks")
-    if args.ghost_cells < 0:
-        raise ApmgsrnError(f"--ghost-cells {args.ghost_cells}: must be 0 or more")
-    if args.workers is not None and args.workers < 1:
-        raise ApmgsrnError(f"--workers {args.workers}: must be 1 or more")
-    if args.retries < 0:
-        raise ApmgsrnError(f"--retries {args.retries}: must be 0 or more")
-    if args.scheduler and args.workers:
-        raise ApmgsrnError("--workers starts local workers; with --scheduler the cluster's workers are used: drop one")
-    # SPEC section 6: a brick trains under the plateau schedule and is done after its third cut.
-    if args.lr_schedule is None:
-        args.lr_schedule = "plateau"
+    decomposition = DecompositionConfig(counts, args.ghost_cells, args.blend)
+    executor = ExecutorConfig(scheduler=args.scheduler, workers=args.workers, retries=args.retries)
     # The coordinator only sizes the budget; workers resolve --device themselves (auto: their own GPU).
+    # How a brick trains beyond these options (the plateau schedule's early stop) is decided by
+    # decomposition.brick_training.brick_policy.
     field_config, train_config = build_configs(args, resolve_device(args.device))
-    if train_config.lr_schedule == "plateau":
-        train_config = replace(train_config, stop_after_lr_cuts=BRICK_LR_CUTS)
     # Workers reopen the file by path, possibly from another folder or machine.
     volume = open_data(args, os.path.abspath(args.data))
     out = Path(args.out)
-    decomposition = DecompositionConfig(counts, args.ghost_cells, args.blend)
-    executor = ExecutorConfig(scheduler=args.scheduler, workers=args.workers, retries=args.retries)
     with open_job_queue(executor) as queue:
         summary = train_bricks(
             volume, decomposition, field_config, train_config, out, queue,
@@ -69,6 +56,8 @@ def run_bricks(args: argparse.Namespace) -> int:
             progress=BrickProgress(),
         )
     trained = [r for r in summary.trained if r.ok]
+    compression = compression_figures(math.prod(volume.shape), str(volume.dtype), volume.dtype.itemsize,
+                                      summary.model_bytes)
     result = {
         "model": str(out),
         "bricks": list(summary.plan.counts),
@@ -77,8 +66,7 @@ def run_bricks(args: argparse.Namespace) -> int:
         "reused": len(summary.reused),
         "failed": summary.failed,
         "model_bytes": summary.model_bytes,
-        "raw_bytes": volume.raw_bytes,
-        "compression_ratio": volume.raw_bytes / summary.model_bytes if summary.model_bytes else None,
+        **compression,
         "seconds": summary.seconds,
         "coordinator_peak_rss_bytes": summary.coordinator_peak_rss_bytes,
         "worker_peak_rss_bytes": summary.worker_peak_rss_bytes,
@@ -89,9 +77,9 @@ def run_bricks(args: argparse.Namespace) -> int:
     else:
         i, j, k = summary.plan.counts
         print(f"model       {out}/ ({i}x{j}x{k} bricks, {format_bytes(summary.model_bytes)})")
-        print(f"data        {volume.describe()} ({format_bytes(volume.raw_bytes)} as float32)")
+        print(f"data        {volume.describe()} ({format_bytes(volume.stored_bytes)} as stored)")
         if summary.model_bytes:
-            print(f"compression {result['compression_ratio']:.1f}x")
+            print(f"compression {compression_text(compression)}")
         print(f"time        {summary.seconds:.1f} s for {len(trained)} brick(s); {len(summary.reused)} done earlier")
         worker_peak = max(summary.worker_peak_rss_bytes.values(), default=0)
         print(f"peak memory coordinator {format_bytes(summary.coordinator_peak_rss_bytes)}, "

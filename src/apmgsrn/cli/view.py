@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import ipaddress
 import socket
 import sys
 from pathlib import Path
@@ -55,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
     from apmgsrn.device import resolve_device
     from apmgsrn.viewer.app import ViewerApp, ViewerAppConfig
     from apmgsrn.viewer.catalog import Catalog
-    from apmgsrn.viewer.session import ViewerConfig
+    from apmgsrn.viewer.guard import is_loopback_name
+    from apmgsrn.viewer.settings import ViewerConfig
 
     device = resolve_device(args.device)
     catalog = Catalog(args.path)
@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
             macro_cells=32 if device.type == "cuda" else 16,
         ),
     )
-    if not _is_loopback(args.host):
+    if not is_loopback_name(args.host):
         print(
             f"warning: binding to {args.host}: anyone who can reach this machine on port {port} can open the "
             "page and render every file under PATH; prefer the default 127.0.0.1 and an SSH tunnel",
@@ -85,21 +85,18 @@ def run(args: argparse.Namespace) -> int:
     if ":" in shown_host:
         shown_host = f"[{shown_host}]"
     print(f"apmgsrn viewer: serving {catalog.root if catalog.single is None else catalog.root / catalog.single}")
+    if app.skipped:
+        print(f"not listed: {len(app.skipped)} file(s) under PATH (the page lists them too)")
+        for skipped in app.skipped[:10]:
+            print(f"  {skipped.name}: {skipped.reason}")
+        if len(app.skipped) > 10:
+            print(f"  and {len(app.skipped) - 10} more")
     print(f"open http://{shown_host}:{port}/   (Ctrl-C stops)", flush=True)
     try:
         app.serve()
     except KeyboardInterrupt:
         pass
     return 0
-
-
-def _is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def _free_port(host: str) -> int:

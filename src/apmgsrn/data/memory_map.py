@@ -18,7 +18,9 @@ class MemoryMappedVolume(Volume):
 
     def _read_stored(self, z: slice, y: slice, x: slice) -> np.ndarray:
         # Copy into a fresh float32 array: the result must not keep the map (or file) alive.
-        return np.array(self._get_handle()[z, y, x], dtype=np.float32, order="C")
+        stored = self._get_handle()[z, y, x]
+        self._check_float32_range(stored)
+        return np.array(stored, dtype=np.float32, order="C")
 
     def _close_handle(self, handle: Any) -> None:
         # np.memmap has no close(); the mapping is released when the last reference goes.

@@ -55,7 +55,7 @@ def parse_dtype(text: str, path: Path | str = "") -> np.dtype:
         where = f"{path}: " if path else ""
         raise ApmgsrnError(
             f"{where}unknown voxel type {text!r}; use one of uint8, int8, uint16, int16, uint32, int32, "
-            "float16, float32, float64 (e.g. --dtype uint8)"
+            "float16, float32, float64 (e.g. dtype=uint8)", arguments=("dtype",)
         )
     return dtype
 
@@ -101,14 +101,15 @@ class RawVolume(MemoryMappedVolume):
         type_name = dtype if dtype is not None else named_dtype
         if xyz is None or type_name is None:
             missing = " and ".join(
-                flag for flag, value in (("--shape X,Y,Z", xyz), ("--dtype TYPE", type_name)) if value is None
+                text for text, value in (("shape=X,Y,Z", xyz), ("dtype=TYPE", type_name)) if value is None
             )
             raise ApmgsrnError(
                 f"{path}: a raw file has no header; pass {missing}, or name the file NAME_XxYxZ_dtype.raw "
-                "(e.g. volume_256x256x256_uint8.raw)"
+                "(e.g. volume_256x256x256_uint8.raw)", arguments=("shape", "dtype"),
             )
         if len(xyz) != 3 or min(xyz) <= 0:
-            raise ApmgsrnError(f"{path}: invalid shape {xyz}; pass --shape X,Y,Z with three positive integers")
+            raise ApmgsrnError(f"{path}: invalid shape {xyz}; pass shape=X,Y,Z with three positive integers",
+                               arguments=("shape",))
         voxel_type = parse_dtype(type_name, path)
         x_size, y_size, z_size = xyz
         expected = x_size * y_size * z_size * voxel_type.itemsize
@@ -117,10 +118,11 @@ class RawVolume(MemoryMappedVolume):
             voxels = x_size * y_size * z_size
             hint = ""
             if actual and actual % voxels == 0 and actual // voxels in (1, 2, 4, 8):
-                hint = f" (the size fits {actual // voxels}-byte voxels: check --dtype)"
+                hint = f" (the size fits {actual // voxels}-byte voxels: check dtype=)"
             raise ApmgsrnError(
                 f"{path}: file is {actual} bytes but {x_size}x{y_size}x{z_size} (x*y*z) {voxel_type} needs "
-                f"{expected} bytes{hint}; the file is truncated or --shape/--dtype is wrong"
+                f"{expected} bytes{hint}; the file is truncated or shape= or dtype= is wrong",
+                arguments=("shape", "dtype"),
             )
         super().__init__(path, None, (z_size, y_size, x_size), voxel_type, fill_nonfinite)
 

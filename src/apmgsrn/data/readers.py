@@ -28,9 +28,9 @@ def supported_formats() -> str:
     return f"{listed}, or a Zarr directory"
 
 
-def _refuse(path: Path, what: str, flag: str, value: object) -> None:
+def _refuse(path: Path, what: str, argument: str, value: object) -> None:
     if value is not None:
-        raise ApmgsrnError(f"{path}: {flag} does not apply to {what}; drop {flag}")
+        raise ApmgsrnError(f"{path}: {argument}= does not apply to {what}; drop {argument}=", arguments=(argument,))
 
 
 def open_volume(
@@ -66,8 +66,8 @@ def open_volume(
         raise ApmgsrnError(f"{path}: no such file or directory; check the path")
     suffix = path.suffix.lower()
     if suffix not in SUPPORTED_SUFFIXES["raw"]:
-        _refuse(path, "files with their own header (only raw .raw/.bin files)", "--shape", shape)
-        _refuse(path, "files with their own header (only raw .raw/.bin files)", "--dtype", dtype)
+        _refuse(path, "files with their own header (only raw .raw/.bin files)", "shape", shape)
+        _refuse(path, "files with their own header (only raw .raw/.bin files)", "dtype", dtype)
 
     if path.is_dir():
         from apmgsrn.data.zarr_store import ZarrVolume, is_zarr_directory
@@ -96,21 +96,21 @@ def open_volume(
     if suffix in SUPPORTED_SUFFIXES["raw"]:
         from apmgsrn.data.raw import RawVolume
 
-        _refuse(path, "raw files (they hold a single array)", "--variable", variable)
-        _refuse(path, "raw files (they have no time dimension)", "--time", time)
+        _refuse(path, "raw files (they hold a single array)", "variable", variable)
+        _refuse(path, "raw files (they have no time dimension)", "time", time)
         if isinstance(shape, str):
             shape = parse_shape(shape)
         return RawVolume(path, shape, dtype, fill_nonfinite)
     if suffix in SUPPORTED_SUFFIXES["NumPy"]:
         from apmgsrn.data.numpy_file import NumpyVolume
 
-        _refuse(path, ".npy files (they hold a single array)", "--variable", variable)
-        _refuse(path, ".npy files (they have no time dimension)", "--time", time)
+        _refuse(path, ".npy files (they hold a single array)", "variable", variable)
+        _refuse(path, ".npy files (they have no time dimension)", "time", time)
         return NumpyVolume(path, fill_nonfinite)
     if suffix in SUPPORTED_SUFFIXES["VTK XML"]:
         from apmgsrn.data.vtk_xml import VTKVolume
 
-        _refuse(path, "VTK XML files (they have no time dimension)", "--time", time)
+        _refuse(path, "VTK XML files (they have no time dimension)", "time", time)
         return VTKVolume(path, variable, fill_nonfinite)
     raise ApmgsrnError(
         f"{path}: unknown volume format {suffix or '(no suffix)'!r}; supported: {supported_formats()}"

@@ -61,7 +61,7 @@ def choose_array(
     Args:
         path: The file, for messages.
         arrays: Everything the file holds.
-        requested: Name the user passed with ``--variable`` (``None`` for the default).
+        requested: Name the user passed as ``variable`` (``None`` for the default).
         kind: What the format calls its arrays ("variable", "dataset", "array"), for messages.
         default_ndims: Dimension counts eligible as the default (``(3, 4)`` where a leading time
             axis is conventional, as in NetCDF).
@@ -78,7 +78,7 @@ def choose_array(
                 return info
         raise ApmgsrnError(
             f"{path}: no {kind} named {requested!r}; available: {_listing(arrays)}; "
-            "pass --variable with one of these names"
+            "pass variable= with one of these names", arguments=("variable",),
         )
     eligible = [a for a in arrays if a.numeric and len(a.shape) in default_ndims]
     if len(eligible) == 1:
@@ -86,11 +86,11 @@ def choose_array(
     if not eligible:
         raise ApmgsrnError(
             f"{path}: no 3-D {kind} found (found: {_listing(arrays)}); "
-            "apmgsrn needs a 3-D volume (z, y, x); pass --variable NAME if one of these is it"
+            "apmgsrn needs a 3-D volume (z, y, x); pass variable=NAME if one of these is it", arguments=("variable",),
         )
     raise ApmgsrnError(
         f"{path}: several 3-D {kind}s: {', '.join(repr(a.name) for a in eligible)}; "
-        "pass --variable NAME to choose one"
+        "pass variable=NAME to choose one", arguments=("variable",),
     )
 
 
@@ -102,7 +102,7 @@ def select_time(
     Args:
         path: The file, for messages.
         info: The chosen array.
-        time: Index the user passed with ``--time`` (``None`` for the default).
+        time: Index the user passed as ``time`` (``None`` for the default).
         kind: What the format calls its arrays, for messages.
 
     Returns:
@@ -110,16 +110,18 @@ def select_time(
 
     Raises:
         ApmgsrnError: If the array is not numeric, not 3-D/4-D, has several time steps and no
-            ``--time``, or ``--time`` is out of range or given for data without a time axis.
+            ``time``, or ``time`` is out of range or given for data without a time axis.
     """
     if not info.numeric:
         raise ApmgsrnError(
-            f"{path}: {kind} {info.summary()} is not numeric; pass --variable with a numeric 3-D {kind}"
+            f"{path}: {kind} {info.summary()} is not numeric; pass variable= with a numeric 3-D {kind}",
+            arguments=("variable",),
         )
     ndim = len(info.shape)
     if ndim == 3:
         if time is not None:
-            raise ApmgsrnError(f"{path}: {kind} {info.summary()} has no time dimension; drop --time")
+            raise ApmgsrnError(f"{path}: {kind} {info.summary()} has no time dimension; drop time=",
+                               arguments=("time",))
         return None, (info.shape[0], info.shape[1], info.shape[2])
     if ndim == 4:
         steps = info.shape[0]
@@ -129,12 +131,12 @@ def select_time(
             else:
                 raise ApmgsrnError(
                     f"{path}: {kind} {info.summary()} has a time dimension of length {steps}; "
-                    f"pass --time INDEX (0..{steps - 1})"
+                    f"pass time=INDEX (0..{steps - 1})", arguments=("time",),
                 )
         if not isinstance(time, (int, np.integer)) or not 0 <= int(time) < steps:
             raise ApmgsrnError(
-                f"{path}: --time {time} is out of range: {kind} {info.name!r} has {steps} time steps "
-                f"(pass --time 0..{steps - 1})"
+                f"{path}: time={time} is out of range: {kind} {info.name!r} has {steps} time steps "
+                f"(pass time=0..{steps - 1})", arguments=("time",),
             )
         return int(time), (info.shape[1], info.shape[2], info.shape[3])
     raise ApmgsrnError(

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from apmgsrn.data.grid import VolumeMetadata
 from apmgsrn.errors import ApmgsrnError
 
 #: Voxels per z-slab when streaming statistics: 2**24 float32 voxels are 64 MiB.
@@ -57,7 +58,8 @@ def parse_shape(text: str) -> tuple[int, int, int]:
     parts = [p.strip() for p in re.split(r"[,xX*]", str(text).strip())]
     if len(parts) != 3 or not all(p.isdigit() for p in parts) or any(int(p) <= 0 for p in parts):
         raise ApmgsrnError(
-            f"invalid shape {text!r}: give three positive integers X,Y,Z (x first), e.g. --shape 256,256,128"
+            f"invalid shape {text!r}: give three positive integers X,Y,Z (x first), e.g. shape=256,256,128",
+            arguments=("shape",),
         )
     return int(parts[0]), int(parts[1]), int(parts[2])
 
@@ -99,6 +101,8 @@ class Volume:
         shape: ``(D, H, W) = (z, y, x)``, C order, x fastest.
         dtype: The stored dtype (``uint8``, ``float32``, ...); reads always return float32.
         fill_nonfinite: If set, reads replace NaN/Inf by this value.
+        metadata: What the file says beside the voxels (attributes, units, dimension names, coordinates,
+            compression); readers of formats that say nothing leave it empty.
 
     Subclasses implement `_read_stored` (and, for file-backed data, `_open_handle`).
     """
@@ -121,9 +125,11 @@ class Volume:
             fill_nonfinite = float(fill_nonfinite)
             if not math.isfinite(fill_nonfinite):
                 raise ApmgsrnError(
-                    f"{self.path}: --fill-nonfinite must be a finite number, got {fill_nonfinite}"
+                    f"{self.path}: fill_nonfinite={fill_nonfinite}: must be a finite number",
+                    arguments=("fill_nonfinite",),
                 )
         self.fill_nonfinite = fill_nonfinite
+        self.metadata = VolumeMetadata()
         self._stats: VolumeStats | None = None
         self._lock = threading.RLock()
         self._handle: Any = None
@@ -224,6 +230,7 @@ class Volume:
         if np.ma.isMaskedArray(data):
             # NetCDF _FillValue / missing values become NaN, so check_finite reports them.
             data = np.ma.filled(data.astype(np.float32), np.nan)
+        self._check_float32_range(data)
         out = np.asarray(data, dtype=np.float32, order="C")
         if not out.flags.writeable:
             out = out.copy()
@@ -231,6 +238,20 @@ class Volume:
         if out.shape != expected:  # an internal reader bug, not a user error
             raise RuntimeError(f"reader returned shape {out.shape} for a region of shape {expected}")
         return out
+
+    def _check_float32_range(self, data) -> None:
+        """Refuse finite values that float32, which everything here computes in, cannot hold."""
+        data = np.asarray(data)
+        if data.dtype.kind != "f" or data.dtype.itemsize <= 4 or data.size == 0:
+            return
+        finite = data[np.isfinite(data)]
+        largest = float(np.abs(finite).max()) if finite.size else 0.0
+        if largest > float(np.finfo(np.float32).max):
+            raise ApmgsrnError(
+                f"{self.path}: holds {data.dtype} values up to {largest:.3g}, beyond float32's range "
+                f"({float(np.finfo(np.float32).max):.3g}) in which apmgsrn computes; store the data in other "
+                "units (rescaled) first"
+            )
 
     def read(self, z: slice = slice(None), y: slice = slice(None), x: slice = slice(None)) -> np.ndarray:
         """Read a region; only that region is fetched from disk.
@@ -317,9 +338,15 @@ class Volume:
     # ----------------------------------------------------------------- description
     @property
     def raw_bytes(self) -> int:
-        """Size of the volume as float32, ``D*H*W*4`` bytes (the reference for compression ratios)."""
-        depth, height, width = self.shape
-        return depth * height * width * 4
+        """Size of the volume as float32, ``D*H*W*4`` bytes: what it takes in memory here, and the second
+        reference of compression ratios (SPEC section 8)."""
+        return math.prod(self.shape) * 4
+
+    @property
+    def stored_bytes(self) -> int:
+        """Size of the volume in its stored dtype (a uint8 volume is 1 byte a voxel): the reference of
+        compression ratios (SPEC section 8)."""
+        return math.prod(self.shape) * self.dtype.itemsize
 
     def describe(self) -> str:
         """One line naming file, variable, dims (x*y*z) and stored dtype.
@@ -344,6 +371,7 @@ class ArrayVolume(Volume):
         path: Name to report in messages (nothing is read from it).
         variable: Optional variable name to report.
         fill_nonfinite: If set, reads replace NaN/Inf by this value.
+        metadata: attributes, dimension names and coordinates of the array (e.g. an xarray DataArray's).
     """
 
     def __init__(
@@ -352,12 +380,15 @@ class ArrayVolume(Volume):
         path: str | Path = "array",
         variable: str | None = None,
         fill_nonfinite: float | None = None,
+        metadata: VolumeMetadata | None = None,
     ) -> None:
         array = np.asarray(array)
         if array.ndim != 3:
             raise ApmgsrnError(f"{path}: data is {array.ndim}-D with shape {array.shape}; apmgsrn needs a 3-D volume")
         self._array = array
         super().__init__(Path(path), variable, array.shape, array.dtype, fill_nonfinite)
+        if metadata is not None:
+            self.metadata = metadata
 
     def _read_stored(self, z: slice, y: slice, x: slice) -> np.ndarray:
         # Always a fresh float32 array: never hand out a view of the caller's array or of a
@@ -385,5 +416,5 @@ def check_finite(volume: Volume) -> None:
         total = volume.shape[0] * volume.shape[1] * volume.shape[2]
         raise ApmgsrnError(
             f"{volume.path}: {stats.nonfinite} of {total} voxels are NaN or Inf; "
-            "pass --fill-nonfinite VALUE to replace them (e.g. --fill-nonfinite 0)"
+            "pass fill_nonfinite=VALUE to replace them (e.g. fill_nonfinite=0)", arguments=("fill_nonfinite",),
         )

@@ -6,10 +6,13 @@ optional extra and is imported only here, when such a file is opened.
 
 from __future__ import annotations
 
+import os
+import re
 from pathlib import Path
 
 import numpy as np
 
+from apmgsrn.data.grid import AxisCoordinates, VolumeMetadata
 from apmgsrn.data.variables import ArrayInfo, choose_array
 from apmgsrn.data.volume import ArrayVolume
 from apmgsrn.errors import ApmgsrnError
@@ -21,8 +24,66 @@ _READERS = {
 }
 
 
-def _read_vtk_arrays(path: Path) -> dict[str, tuple[ArrayInfo, np.ndarray]]:
-    """Every point and cell array of a VTK XML file, reshaped to C order (z, y, x[, components])."""
+#: Most bytes the XML header of a VTK file is searched for its extents (the appended data follows it).
+HEADER_SEARCH_BYTES = 16 << 20
+#: Largest expansion of stored bytes each compressor can give (zlib's is 1032:1, LZ4's about 255:1);
+#: a file declaring more data than this times its own size cannot hold it. LZMA has no small bound.
+COMPRESSION_BOUND = {"": 1.0, "vtkZLibDataCompressor": 1100.0, "vtkLZ4DataCompressor": 300.0}
+
+
+def _available_memory() -> int:
+    """Bytes of memory available now (Linux ``/proc/meminfo``), else the physical memory size."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def check_declared_size(path: Path) -> None:
+    """Refuse a VTK XML file whose declared extents it cannot hold, or that would not fit in memory,
+    before VTK allocates anything (a 335-byte file declaring 2001^3 points would abort the process).
+
+    Raises:
+        ApmgsrnError: the declared data is larger than the file could hold or than half the free memory.
+    """
+    with open(path, "rb") as f:
+        head = f.read(HEADER_SEARCH_BYTES)
+    head = head.split(b"<AppendedData", 1)[0].decode("latin-1")
+    extents = re.findall(r'\b(?:Whole)?Extent\s*=\s*"([^"]*)"', head)
+    arrays = max(1, len(re.findall(r"<DataArray\b", head)))
+    compressor = re.search(r'\bcompressor\s*=\s*"([^"]*)"', head)
+    largest = 0
+    for text in extents:
+        try:
+            low_x, high_x, low_y, high_y, low_z, high_z = (int(v) for v in text.split())
+        except ValueError:
+            raise ApmgsrnError(f"{path}: extent {text!r} is not six integers; the file is damaged") from None
+        counts = [high_x - low_x + 1, high_y - low_y + 1, high_z - low_z + 1]
+        if min(counts) < 1:
+            raise ApmgsrnError(f"{path}: extent {text!r} is empty or inverted; the file is damaged")
+        largest = max(largest, counts[0] * counts[1] * counts[2])
+    declared = largest * 4  # bytes of one float32 array of that many points
+    bound = COMPRESSION_BOUND.get(compressor.group(1) if compressor else "")
+    size = path.stat().st_size
+    if bound is not None and declared > bound * size + 4096:
+        raise ApmgsrnError(
+            f"{path}: declares {largest:,} points ({declared / 2**30:.1f} GiB a float32 array) but the file is only "
+            f"{size:,} bytes; it is damaged or truncated"
+        )
+    if declared * arrays > _available_memory() // 2:
+        raise ApmgsrnError(
+            f"{path}: declares {arrays} array(s) of {largest:,} points ({declared * arrays / 2**30:.1f} GiB), more "
+            "than half the free memory; this reader holds .vti/.vtr data in memory: convert the file to NetCDF, "
+            "HDF5 or Zarr, which are read lazily"
+        )
+
+
+def _read_vtk_arrays(path: Path) -> tuple[dict[str, tuple[ArrayInfo, np.ndarray, bool]], object]:
+    """Every point and cell array of a VTK XML file, reshaped to C order (z, y, x[, components]), each with
+    whether it is a cell array; and the grid (for its geometry)."""
     try:
         from vtkmodules import vtkIOXML
         from vtkmodules.util.numpy_support import vtk_to_numpy
@@ -37,6 +98,7 @@ def _read_vtk_arrays(path: Path) -> dict[str, tuple[ArrayInfo, np.ndarray]]:
         raise ApmgsrnError(
             f"{path}: not a readable VTK XML {label} file; check the file type and that it is not damaged"
         )
+    check_declared_size(path)
     reader.SetFileName(str(path))
     # VTK prints parse errors of damaged files to stderr; silence them and check the output instead.
     warnings_were_on = vtkObject.GetGlobalWarningDisplay()
@@ -51,8 +113,8 @@ def _read_vtk_arrays(path: Path) -> dict[str, tuple[ArrayInfo, np.ndarray]]:
         raise ApmgsrnError(f"{path}: VTK could not read the data (damaged or truncated {label} file)")
     # A cell spans two points, except along an axis with a single point (a flat grid).
     cells = tuple(max(n - 1, 1) for n in (nz, ny, nx))
-    arrays: dict[str, tuple[ArrayInfo, np.ndarray]] = {}
-    for attributes, dims in ((grid.GetPointData(), (nz, ny, nx)), (grid.GetCellData(), cells)):
+    arrays: dict[str, tuple[ArrayInfo, np.ndarray, bool]] = {}
+    for attributes, dims, cell in ((grid.GetPointData(), (nz, ny, nx), False), (grid.GetCellData(), cells, True)):
         for index in range(attributes.GetNumberOfArrays()):
             vtk_array = attributes.GetArray(index)
             name = attributes.GetArrayName(index)
@@ -65,15 +127,48 @@ def _read_vtk_arrays(path: Path) -> dict[str, tuple[ArrayInfo, np.ndarray]]:
             values = np.array(vtk_to_numpy(vtk_array), copy=True)
             shape = dims + ((components,) if components > 1 else ())
             values = values.reshape(shape)  # [Z, Y, X] or [Z, Y, X, C]
-            arrays[name] = (ArrayInfo(name=name, shape=shape, dtype=values.dtype), values)
-    return arrays
+            arrays[name] = (ArrayInfo(name=name, shape=shape, dtype=values.dtype), values, cell)
+    return arrays, grid
+
+
+def _grid_coordinates(path: Path, grid, cell: bool) -> tuple[AxisCoordinates, AxisCoordinates, AxisCoordinates]:
+    """Where the points (or cell centres) of a VTK grid lie, per (z, y, x) axis: ImageData's origin and
+    spacing, RectilinearGrid's coordinate arrays (uneven ones kept value by value).
+
+    Raises:
+        ApmgsrnError: ImageData turned by a direction matrix (its axes are not x, y and z).
+    """
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    if hasattr(grid, "GetXCoordinates"):
+        corners = [vtk_to_numpy(c).astype(np.float64) for c in
+                   (grid.GetZCoordinates(), grid.GetYCoordinates(), grid.GetXCoordinates())]
+    else:
+        if hasattr(grid, "GetDirectionMatrix"):
+            matrix = grid.GetDirectionMatrix()
+            direction = np.array([[matrix.GetElement(i, j) for j in range(3)] for i in range(3)])
+            if not np.allclose(direction, np.eye(3)):
+                raise ApmgsrnError(
+                    f"{path}: its image axes are turned (Direction is not the identity); apmgsrn reads axis-aligned "
+                    "grids only: resample the image onto x, y and z first"
+                )
+        nx, ny, nz = grid.GetDimensions()
+        origin, spacing = grid.GetOrigin(), grid.GetSpacing()
+        corners = [origin[a] + spacing[a] * np.arange(n, dtype=np.float64) for a, n in ((2, nz), (1, ny), (0, nx))]
+    axes = []
+    for name, values in zip(("z", "y", "x"), corners):
+        if cell and values.size > 1:
+            values = 0.5 * (values[:-1] + values[1:])  # a cell array's voxels sit at the cell centres
+        axes.append(AxisCoordinates.from_values(name, values))
+    return tuple(axes)
 
 
 class VTKVolume(ArrayVolume):
     """A scalar point or cell array of a ``.vti``/``.vtr`` file, held in memory.
 
-    Rectilinear coordinates are not used: voxels are treated as a regular grid, like every
-    other format.
+    The grid's geometry is kept (``metadata.coordinates``): ImageData's origin and spacing, RectilinearGrid's
+    coordinates, uneven ones value by value (the network is fitted on voxel indices; a decode writes the
+    coordinates back, and refuses formats that cannot hold uneven ones).
 
     Args:
         path: The ``.vti`` or ``.vtr`` file.
@@ -83,11 +178,13 @@ class VTKVolume(ArrayVolume):
 
     def __init__(self, path: Path, variable: str | None = None, fill_nonfinite: float | None = None) -> None:
         path = Path(path)
-        arrays = _read_vtk_arrays(path)
-        info = choose_array(path, [info for info, _ in arrays.values()], variable, "array", default_ndims=(3, 4))
+        arrays, grid = _read_vtk_arrays(path)
+        info = choose_array(path, [entry[0] for entry in arrays.values()], variable, "array", default_ndims=(3, 4))
         if len(info.shape) == 4:
             raise ApmgsrnError(
                 f"{path}: array {info.summary()} has {info.shape[3]} components; "
-                "apmgsrn needs a scalar array: pass --variable with a 1-component array"
+                "apmgsrn needs a scalar array: pass variable= with a 1-component array", arguments=("variable",)
             )
-        super().__init__(arrays[info.name][1], path, info.name, fill_nonfinite)
+        _, values, cell = arrays[info.name]
+        metadata = VolumeMetadata(coordinates=_grid_coordinates(path, grid, cell))
+        super().__init__(values, path, info.name, fill_nonfinite, metadata=metadata)

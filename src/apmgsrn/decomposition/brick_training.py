@@ -7,8 +7,8 @@ small :class:`BrickResult`; the trained network goes straight to the brick's mod
 
 from __future__ import annotations
 
-import math
 import os
+import pickle
 import resource
 import socket
 from dataclasses import dataclass, replace
@@ -17,9 +17,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from apmgsrn.data import open_volume
+from apmgsrn.data.memory_map import MemoryMappedVolume
+from apmgsrn.data.readers import SUPPORTED_SUFFIXES
+from apmgsrn.decomposition.executor import BRICK_RESOURCE
 from apmgsrn.decomposition.planner import Brick
+from apmgsrn.device import resolve_device
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.io import SourceInfo
 from apmgsrn.models.registry import FieldConfig
+from apmgsrn.training.fit import fit, prepare_values
 from apmgsrn.training.trainer import TrainConfig
 
 #: Paper (SPEC section 6): a brick is done after the plateau scheduler's third learning-rate cut.
@@ -57,7 +64,7 @@ class BrickJob:
     log_offset: float = 0.0
     device: str = "auto"
     threads: int | None = None
-    source: dict | None = None
+    source: SourceInfo = SourceInfo()
     psnr_voxels: int | None = None
 
 
@@ -71,6 +78,7 @@ class BrickResult:
         ok: True when the model file was written.
         message: why not, for a refused brick (a problem with the data, not worth retrying).
         psnr: PSNR over the brick's box (its own value range), dB.
+        max_abs_error: largest absolute error over the brick's box (or the voxels its PSNR used), data units.
         seconds: training time.
         iterations: iterations run (fewer than the budget after an early stop).
         stopped_early: the plateau scheduler ended training before the budget.
@@ -88,6 +96,7 @@ class BrickResult:
     ok: bool
     message: str = ""
     psnr: float = float("nan")
+    max_abs_error: float = float("nan")
     seconds: float = 0.0
     iterations: int = 0
     stopped_early: bool = False
@@ -119,8 +128,6 @@ class VolumeRecipe:
     dtype: str | None = None
 
     def open(self):
-        from apmgsrn.data import open_volume
-
         return open_volume(self.path, variable=self.variable, time=self.time, shape=self.shape_xyz,
                            dtype=self.dtype, fill_nonfinite=self.fill_nonfinite)
 
@@ -134,14 +141,10 @@ def shippable_volume(volume):
     Returns:
         Something a :class:`BrickJob` can carry to another process.
     """
-    import pickle
-
     try:
         pickle.dumps(volume)
         return volume
     except Exception:  # noqa: BLE001 - any pickling failure: reopen by path instead
-        from apmgsrn.data.readers import SUPPORTED_SUFFIXES
-
         raw = Path(volume.path).suffix.lower() in SUPPORTED_SUFFIXES["raw"]
         return VolumeRecipe(
             path=str(Path(volume.path).absolute()),
@@ -151,11 +154,6 @@ def shippable_volume(volume):
             shape_xyz=tuple(reversed(volume.shape)) if raw else None,
             dtype=str(volume.dtype) if raw else None,
         )
-
-
-def checkpoint_path_for(model_path: Path) -> Path:
-    """The training checkpoint beside a brick's model file."""
-    return Path(str(model_path) + ".ckpt")
 
 
 def peak_rss_bytes() -> int:
@@ -172,9 +170,7 @@ def _job_threads(job: BrickJob) -> int:
         cores = os.cpu_count() or 1
     slots = 1
     try:
-        from distributed import Worker, get_worker
-
-        from apmgsrn.decomposition.executor import BRICK_RESOURCE
+        from distributed import Worker, get_worker  # optional extra
 
         here = get_worker()  # raises outside a Dask worker
         if BRICK_RESOURCE in (here.state.total_resources or {}):
@@ -208,8 +204,6 @@ def read_brick(volume, brick: Brick) -> np.ndarray:
     Returns:
         float32 ``[d, h, w]``.
     """
-    from apmgsrn.data.memory_map import MemoryMappedVolume
-
     z, y, x = brick.slices()
     if not isinstance(volume, MemoryMappedVolume):
         region = volume.read(z, y, x)
@@ -239,8 +233,6 @@ def train_brick(job: BrickJob) -> BrickResult:
     Returns:
         The brick's figures.
     """
-    from apmgsrn.device import keep_large_allocations_cached, resolve_device
-
     brick = job.brick
     worker = f"{socket.gethostname()}:{os.getpid()}"
     threads = torch.get_num_threads()
@@ -248,7 +240,6 @@ def train_brick(job: BrickJob) -> BrickResult:
         device = resolve_device(job.device)
         if device.type == "cpu":
             torch.set_num_threads(_job_threads(job))
-            keep_large_allocations_cached()
         elif device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
         volume = job.volume.open() if isinstance(job.volume, VolumeRecipe) else job.volume
@@ -262,118 +253,58 @@ def train_brick(job: BrickJob) -> BrickResult:
 
 
 def _fit_region(job: BrickJob, region: np.ndarray, device: torch.device, worker: str, path) -> BrickResult:
-    from apmgsrn.models.field import NeuralField
-    from apmgsrn.models.value_transform import fit_value_transform
-    from apmgsrn.training.checkpoint import save_field
-    from apmgsrn.training.trainer import Trainer
-
     brick = job.brick
     where = f"{path} ({brick.name}, voxels z {brick.start[0]}:{brick.stop[0]} " \
             f"y {brick.start[1]}:{brick.stop[1]} x {brick.start[2]}:{brick.stop[2]})"
-    if not np.isfinite(region).all():
-        raise ApmgsrnError(
-            f"{where}: holds NaN or Inf voxels; pass --fill-nonfinite VALUE to replace them (e.g. --fill-nonfinite 0)"
-        )
-    value_min, value_max = float(region.min()), float(region.max())
-    value_transform = fit_value_transform(job.transform, [region], value_min, job.log_offset, where)
-    fitted = value_transform.apply(region)
-    fit_min, fit_max = float(fitted.min()), float(fitted.max())
-    span = fit_max - fit_min
-    # In place where the transform already made a copy: one extra brick-sized array at most.
-    scaled = fitted if fitted is not region else fitted.copy()
-    scaled -= np.float32(fit_min)
-    scaled /= np.float32(span if span > 0 else 1.0)
-    values = torch.from_numpy(scaled).to(device)  # [d, h, w] in [0, 1]
-    del fitted, scaled
-
-    config = job.train_config
-    field = NeuralField(
-        job.field_config,
-        fit_min=fit_min,
-        fit_max=fit_max,
-        value_min=value_min,
-        value_max=value_max,
-        transform=value_transform,
-        volume_shape=brick.shape,
-        generator=torch.Generator().manual_seed(config.seed),
-    ).to(device)
-    checkpoint = checkpoint_path_for(Path(job.model_path))
-    resumed_from = 0
-    if span > 0:
-        fingerprint = {"brick": brick.name, "box": [list(brick.start), list(brick.stop)],
-                       "source": job.source or {}, "field": job.field_config.to_dict()}
-        trainer = Trainer(field, values, config, checkpoint, fingerprint, progress=False)
-        if checkpoint.exists():
-            trainer.load_checkpoint(checkpoint)
-            resumed_from = trainer.state.iteration
-        state = trainer.run(resume=False)
-        iterations, seconds, frozen_at = state.iteration, state.elapsed, state.frozen_at
-        stopped_early = state.iteration < config.iterations
-        history = state.history
-    else:
-        # A constant brick (empty space) is exact without training: the output scaling returns the
-        # constant whatever the network says.
-        iterations, seconds, frozen_at, stopped_early, history = 0, 0.0, None, True, {}
-    del values
-    psnr = _brick_psnr(field, region, device, job.psnr_voxels)
-    training = {
-        "iterations": iterations,
-        "batch_size": config.batch_size,
-        "seconds": round(seconds, 3),
-        "frozen_at": frozen_at,
-        "stopped_early": stopped_early,
-        "psnr": psnr,
-        "device": str(device),
-        "config": _config_dict(config),
-        "history": history,
-        "brick": {"name": brick.name, "index": brick.index, "position": list(brick.position),
-                  "start": list(brick.start), "stop": list(brick.stop)},
-    }
-    save_field(job.model_path, field, training=training, source=job.source or {})
-    if checkpoint.exists():
-        checkpoint.unlink()
+    prepared = prepare_values(region, job.transform, job.log_offset, where, device)
+    box = {"name": brick.name, "index": brick.index, "position": list(brick.position),
+           "start": list(brick.start), "stop": list(brick.stop)}
+    fingerprint = {"brick": brick.name, "box": [list(brick.start), list(brick.stop)],
+                   "source": job.source.to_dict(), "field": job.field_config.to_dict()}
+    # A brick always resumes its own checkpoint: the job may be a retry after a crash.
+    result = fit(prepared, region, job.field_config, job.train_config, Path(job.model_path), job.source,
+                 fingerprint, resume=True, psnr_voxels=job.psnr_voxels, summary_extra={"brick": box})
     peak_device = int(torch.cuda.max_memory_allocated(device)) if device.type == "cuda" else 0
     return BrickResult(
         name=brick.name,
         index=brick.index,
         ok=True,
-        psnr=psnr,
-        seconds=seconds,
-        iterations=iterations,
-        stopped_early=stopped_early,
-        value_min=value_min,
-        value_max=value_max,
-        model_bytes=Path(job.model_path).stat().st_size,
+        psnr=result.psnr,
+        max_abs_error=result.max_abs_error,
+        seconds=result.seconds,
+        iterations=result.iterations,
+        stopped_early=result.stopped_early,
+        value_min=prepared.value_min,
+        value_max=prepared.value_max,
+        model_bytes=result.model_bytes,
         peak_rss_bytes=peak_rss_bytes(),
         peak_device_bytes=peak_device,
         worker=worker,
         device=str(device),
-        resumed_from=resumed_from,
+        resumed_from=result.resumed_from,
     )
 
 
-def _brick_psnr(field, region: np.ndarray, device: torch.device, max_voxels: int | None) -> float:
-    """PSNR over the brick (its own value range), on every voxel or on a strided subset."""
-    from apmgsrn.inference.evaluate import evaluate_tensor, psnr_from_mse
-    from apmgsrn.inference.query import query
-    from apmgsrn.ops.trilinear import voxel_coordinates
+def brick_policy(config: TrainConfig) -> TrainConfig:
+    """How the bricks of a run train, given the run's config (the brick policy lives here, not in the CLI).
 
-    if not max_voxels or region.size <= max_voxels:
-        return evaluate_tensor(field, torch.from_numpy(region).to(device))
-    stride = max(1, math.ceil((region.size / max_voxels) ** (1 / 3)))
-    truth = torch.from_numpy(np.ascontiguousarray(region[::stride, ::stride, ::stride])).reshape(-1).double()
-    prediction = query(field, voxel_coordinates(region.shape, stride=stride)).double().cpu()
-    mse = float((prediction - truth).square().mean())
-    return psnr_from_mse(mse, float(region.max() - region.min()))
+    Under the paper's ``plateau`` schedule a brick is done after the scheduler's third learning-rate cut
+    (SPEC section 6), which frees its worker for the next brick; every other schedule, the default
+    budget-following ``cosine`` included, runs the whole budget.
 
+    Args:
+        config: the run's training config.
 
-def _config_dict(config: TrainConfig) -> dict:
-    from dataclasses import asdict
-
-    return asdict(config)
+    Returns:
+        The config every brick trains with (before its own seed, see :func:`brick_train_config`).
+    """
+    if config.lr_schedule == "plateau" and config.stop_after_lr_cuts is None:
+        return replace(config, stop_after_lr_cuts=BRICK_LR_CUTS)
+    return config
 
 
 def brick_train_config(config: TrainConfig, brick: Brick) -> TrainConfig:
-    """The run's training config for one brick: its own seed (run seed + brick index), so every brick
-    is reproducible on its own and a rerun after a crash retrains it to the same model."""
-    return replace(config, seed=config.seed + brick.index)
+    """The run's training config for one brick: :func:`brick_policy`, and its own seed (run seed + brick
+    index), so every brick is reproducible on its own and a rerun after a crash retrains it to the same
+    model."""
+    return replace(brick_policy(config), seed=config.seed + brick.index)

@@ -30,11 +30,8 @@ class BrickedField(nn.Module):
         blend: start with blending on (the ``blend`` attribute may be changed later).
 
     Attributes:
-        plan, blend, volume_shape ``(D, H, W)``, value_min, value_max (data units, over all bricks),
-        file_bytes (set by the loader), source and brick_summaries (set by the loader).
+        plan, blend, volume_shape ``(D, H, W)``, value_min, value_max (data units, over all bricks).
     """
-
-    kind = "bricks"
 
     def __init__(self, plan: BrickPlan, fields: list[nn.Module], blend: bool = False):
         super().__init__()
@@ -44,12 +41,8 @@ class BrickedField(nn.Module):
         self.blend = bool(blend)
         self.bricks = nn.ModuleList(fields)
         self.volume_shape = tuple(plan.volume_shape)
-        self.value_min = float(min(getattr(f, "value_min", 0.0) for f in fields))
-        self.value_max = float(max(getattr(f, "value_max", 0.0) for f in fields))
-        self.file_bytes: int | None = None
-        self.source: dict = {}
-        self.brick_summaries: list[dict] = []
-        self.training_summary: dict = {}
+        self.value_min = float(min(f.value_min for f in fields))
+        self.value_max = float(max(f.value_max for f in fields))
 
         depth, height, width = plan.volume_shape
         sizes = [width, height, depth]  # x, y, z

@@ -8,9 +8,7 @@ since every brick is seeded with ``seed + brick index`` the finished model is th
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import sys
 import time
 import uuid
@@ -18,18 +16,12 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TextIO
 
-from apmgsrn.decomposition.brick_model import (
-    brick_file_name,
-    brick_summary_from_file,
-    manifest_path,
-    missing_bricks,
-    new_manifest,
-    read_manifest,
-    write_manifest,
-)
+from apmgsrn.data.fingerprint import volume_fingerprint
+from apmgsrn.decomposition.brick_model import missing_bricks
 from apmgsrn.decomposition.brick_training import (
     BrickJob,
     BrickResult,
+    brick_policy,
     brick_train_config,
     peak_rss_bytes,
     shippable_volume,
@@ -38,8 +30,18 @@ from apmgsrn.decomposition.brick_training import (
 from apmgsrn.decomposition.executor import JobQueue
 from apmgsrn.decomposition.planner import BrickPlan, DecompositionConfig, plan_bricks
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.io import SourceInfo
+from apmgsrn.io.brick_folder import (
+    brick_file_name,
+    brick_summary_from_file,
+    manifest_path,
+    new_manifest,
+    read_manifest,
+    write_manifest,
+)
 from apmgsrn.models.registry import FieldConfig
-from apmgsrn.training.trainer import TrainConfig
+from apmgsrn.progress import Progress
+from apmgsrn.training.trainer import TrainConfig, as_json
 
 
 @dataclass(frozen=True)
@@ -76,8 +78,8 @@ class BrickTrainingSummary:
 class BrickProgress:
     """Shows bricks done / running / failed, each finished brick's PSNR and time, and the total time.
 
-    On a terminal: a progress bar with the counts, and one line per finished or failed brick above it;
-    elsewhere (logs, CI): the same lines only.
+    One line per finished or failed brick, plus the count of bricks done where the user is looking (a
+    bar on a terminal or in a notebook, a periodic line in logs; see :mod:`apmgsrn.progress`).
 
     Args:
         stream: where to write (default stderr, so that ``--json`` output on stdout stays clean).
@@ -87,71 +89,53 @@ class BrickProgress:
     def __init__(self, stream: TextIO | None = None, enabled: bool = True):
         self.stream = stream if stream is not None else sys.stderr
         self.enabled = enabled
-        self._bar = None
+        self._progress = Progress(0, enabled=False)
         self.total = 0
         self.done = 0
         self.failed = 0
 
     def start(self, plan: BrickPlan, to_train: int, where: str) -> None:
         self.total = to_train
-        if not self.enabled:
-            return
+        self._progress = Progress(to_train, unit="brick", description="bricks", stream=self.stream,
+                                  enabled=self.enabled)
         i, j, k = plan.counts
         reused = len(plan) - to_train
-        self._write(
+        self._progress.write(
             f"bricks      {i}x{j}x{k} = {len(plan)} (ghost cells {plan.config.ghost_cells}); "
             f"{to_train} to train, {reused} already done; {where}"
         )
-        if to_train and _is_terminal(self.stream):
-            from tqdm import tqdm
-
-            self._bar = tqdm(total=to_train, unit="brick", file=self.stream, dynamic_ncols=True, leave=True)
-
-    def _write(self, line: str) -> None:
-        if self._bar is not None:
-            self._bar.write(line, file=self.stream)
-        else:
-            print(line, file=self.stream, flush=True)
 
     def finished(self, result: BrickResult) -> None:
         self.done += 1
-        if not self.enabled:
-            return
         early = f", stopped early at {result.iterations}" if result.stopped_early and result.iterations else ""
         empty = ", constant: no training needed" if result.iterations == 0 else ""
         resumed = f", resumed at {result.resumed_from}" if result.resumed_from else ""
-        self._write(
+        self._progress.write(
             f"[{self.done + self.failed:>{len(str(self.total))}}/{self.total}] {result.name} done: "
-            f"PSNR {result.psnr:.2f} dB, {result.iterations} it, {result.seconds:.1f} s{early}{empty}{resumed} "
-            f"({result.worker})"
+            f"PSNR {result.psnr:.2f} dB, max error {result.max_abs_error:.4g}, {result.iterations} it, "
+            f"{result.seconds:.1f} s{early}{empty}{resumed} ({result.worker})"
         )
-        self._advance()
+        self._progress.update(1)
 
     def brick_failed(self, name: str, message: str) -> None:
         self.failed += 1
-        if not self.enabled:
-            return
-        self._write(f"[{self.done + self.failed:>{len(str(self.total))}}/{self.total}] {name} FAILED: {message}")
-        self._advance()
-
-    def _advance(self) -> None:
-        if self._bar is not None:
-            self._bar.update(1)
+        self._progress.write(
+            f"[{self.done + self.failed:>{len(str(self.total))}}/{self.total}] {name} FAILED: {message}"
+        )
+        self._progress.update(1)
 
     def tick(self, running: int) -> None:
-        if self._bar is not None:
-            self._bar.set_postfix_str(f"done {self.done}, running {running}, failed {self.failed}", refresh=True)
+        self._progress.set_fields(done=str(self.done), running=str(running), failed=str(self.failed))
 
     def close(self, summary: BrickTrainingSummary) -> None:
-        if self._bar is not None:
-            self._bar.close()
-            self._bar = None
+        self._progress.close()
         if not self.enabled:
             return
-        self._write(
+        print(
             f"finished    {len(summary.plan) - len(summary.failed) - len(missing_names(summary))} of {len(summary.plan)} "
             f"bricks ({len(summary.trained)} trained now, {len(summary.reused)} earlier), {len(summary.failed)} failed, "
-            f"total {summary.seconds:.1f} s"
+            f"total {summary.seconds:.1f} s",
+            file=self.stream, flush=True,
         )
 
 
@@ -161,22 +145,11 @@ def missing_names(summary: BrickTrainingSummary) -> list[str]:
     return [b.name for b in summary.plan.bricks if b.name not in finished]
 
 
-def _is_terminal(stream: TextIO) -> bool:
-    try:
-        return stream.isatty()
-    except (AttributeError, ValueError):
-        return False
-
-
-def _jsonable(value):
-    return json.loads(json.dumps(value))
-
-
 def training_settings(volume, plan: BrickPlan, field_config: FieldConfig, train_config: TrainConfig,
                       transform: str, log_offset: float) -> dict:
     """Everything that decides the bricks' models; a rerun must match it to reuse finished bricks."""
-    return _jsonable({
-        "volume": {"path": os.path.basename(str(volume.path)), "variable": volume.variable,
+    return as_json({
+        "volume": {"path": Path(str(volume.path)).name, "variable": volume.variable,
                    "time": getattr(volume, "time", None), "shape": list(volume.shape)},
         "grid": list(plan.counts),
         "ghost_cells": plan.config.ghost_cells,
@@ -187,34 +160,59 @@ def training_settings(volume, plan: BrickPlan, field_config: FieldConfig, train_
     })
 
 
-def _prepare_directory(out: Path, settings: dict) -> dict | None:
-    """Create the model folder, or check that an existing one belongs to the same run.
+def stored_settings(manifest: dict) -> dict:
+    """A manifest's settings as this version writes them: the field config read back through
+    :class:`~apmgsrn.models.registry.FieldConfig`, so run-time fields older versions stored (the kernel
+    backend) do not make an unfinished folder look like another run's."""
+    settings = dict(manifest.get("settings") or {})
+    try:
+        settings["field"] = as_json(FieldConfig.from_dict(settings.get("field")).to_dict())
+    except (TypeError, ValueError):
+        pass  # not a config this version reads: the comparison reports it as differing
+    return settings
+
+
+def _prepare_directory(out: Path, settings: dict, data: dict) -> dict | None:
+    """Create the model folder, or check that an existing one belongs to the same run on the same data
+    (``data``: :func:`~apmgsrn.data.fingerprint.volume_fingerprint`; folders written before it was recorded
+    are finished without that check).
 
     Returns:
         The existing manifest, or None for a new folder.
     """
     if out.exists() and not out.is_dir():
-        raise ApmgsrnError(f"{out}: exists and is a file; a brick model is a folder: choose another --out")
+        raise ApmgsrnError(f"{out}: exists and is a file; a brick model is a folder: pass another out=",
+                           arguments=("out",))
     if not out.absolute().parent.is_dir():
-        raise ApmgsrnError(f"{out}: output folder {out.parent} does not exist; create it or choose another --out")
+        raise ApmgsrnError(f"{out}: output folder {out.parent} does not exist; create it or pass another out=",
+                           arguments=("out",))
     if out.is_dir():
         if manifest_path(out).exists():
             manifest = read_manifest(out)
-            if manifest.get("settings") != settings:
-                differs = sorted(k for k in set(settings) | set(manifest.get("settings") or {})
-                                 if settings.get(k) != (manifest.get("settings") or {}).get(k))
+            stored = stored_settings(manifest)
+            if stored != settings:
+                differs = sorted(k for k in set(settings) | set(stored) if settings.get(k) != stored.get(k))
                 raise ApmgsrnError(
                     f"{out}: holds a brick model made with other settings ({', '.join(differs)} differ); "
-                    "rerun with the same options to finish it, or choose another --out"
+                    "rerun with the same options to finish it, or pass another out=", arguments=("out",),
+                )
+            stored_data = manifest.get("data")
+            if stored_data is not None and stored_data != data:
+                differs = sorted(k for k in set(data) | set(stored_data) if data.get(k) != stored_data.get(k))
+                raise ApmgsrnError(
+                    f"{out}: holds a brick model of other data ({', '.join(differs)} differ); rerun on the same "
+                    "data file to finish it, or pass another out=", arguments=("out",),
                 )
             return manifest
         if any(out.iterdir()):
-            raise ApmgsrnError(f"{out}: folder is not empty and holds no brick model; choose a new or empty --out")
+            raise ApmgsrnError(f"{out}: folder is not empty and holds no brick model; pass a new or empty folder "
+                               "as out=", arguments=("out",))
         return None
     try:
         out.mkdir()
     except OSError as exc:
-        raise ApmgsrnError(f"{out}: cannot create the model folder ({exc.strerror}); choose another --out") from None
+        raise ApmgsrnError(f"{out}: cannot create the model folder ({exc.strerror}); pass another out=",
+                           arguments=("out",)) from None
     return None
 
 
@@ -239,8 +237,10 @@ def train_bricks(
             own brick. File-backed volumes must be readable under the same path on every worker.
         decomposition: brick counts (x, y, z), ghost cells and the blend flag saved with the model.
         field_config: the model of every brick.
-        train_config: how to train every brick (brick ``b`` uses seed ``seed + b``); for the paper's
-            per-brick early stop use ``lr_schedule="plateau"`` with ``stop_after_lr_cuts=3``.
+        train_config: how to train every brick, through :func:`~apmgsrn.decomposition.brick_training.brick_policy`
+            (under ``lr_schedule="plateau"`` a brick ends after the third cut, the paper's per-brick early
+            stop; the default budget-following ``cosine`` runs the whole budget); brick ``b`` uses seed
+            ``seed + b``.
         out: the model folder (created; an existing one must come from the same settings).
         queue: where the jobs run (see :func:`apmgsrn.decomposition.executor.open_job_queue`).
         transform: value transform, fitted per brick.
@@ -260,10 +260,14 @@ def train_bricks(
     out = Path(out)
     progress = progress or BrickProgress(enabled=False)
     plan = plan_bricks(volume.shape, decomposition, str(volume.path))
-    source = {"path": os.path.basename(str(volume.path)), "variable": volume.variable,
-              "description": volume.describe()}
+    source = SourceInfo.of_volume(volume)
+    train_config = brick_policy(train_config)
     settings = training_settings(volume, plan, field_config, train_config, transform, log_offset)
-    manifest = _prepare_directory(out, settings) or new_manifest(plan, settings, source)
+    data = as_json(volume_fingerprint(volume))
+    manifest = _prepare_directory(out, settings, data) or new_manifest(
+        plan.volume_shape, plan.counts, plan.config.ghost_cells, decomposition.blend, plan.bricks, settings, source
+    )
+    manifest["data"] = data
     manifest["blend"] = decomposition.blend
     manifest["complete"] = False
     write_manifest(out, manifest)
@@ -281,12 +285,12 @@ def train_bricks(
             brick=brick,
             field_config=field_config,
             train_config=brick_train_config(train_config, brick),
-            model_path=(out / brick_file_name(brick)).absolute(),
+            model_path=(out / brick_file_name(brick.name)).absolute(),
             transform=transform,
             log_offset=log_offset,
             device=device,
             threads=queue.threads_per_job,
-            source=source,
+            source=source.crop(brick.start, brick.stop),  # the brick file describes its own voxels
             psnr_voxels=psnr_voxels,
         )
         futures[queue.submit(train_brick, job, key=f"{brick.name}-{token}")] = brick
@@ -344,7 +348,7 @@ def _finish(out: Path, plan: BrickPlan, manifest: dict, trained: list[BrickResul
                                 "value_min": result.value_min, "value_max": result.value_max,
                                 "bytes": result.model_bytes, "device": result.device}
         else:
-            entry["summary"] = brick_summary_from_file(out / brick_file_name(brick))
+            entry["summary"] = brick_summary_from_file(out / brick_file_name(brick.name))
         low = min(low, float(entry["summary"]["value_min"]))
         high = max(high, float(entry["summary"]["value_max"]))
     complete = not missing
@@ -362,7 +366,7 @@ def _finish(out: Path, plan: BrickPlan, manifest: dict, trained: list[BrickResul
     }
     write_manifest(out, manifest)
     model_bytes = manifest_path(out).stat().st_size + sum(
-        (out / brick_file_name(b)).stat().st_size for b in plan.bricks if b.name not in missing
+        (out / brick_file_name(b.name)).stat().st_size for b in plan.bricks if b.name not in missing
     )
     return BrickTrainingSummary(
         out=out,

@@ -22,7 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from apmgsrn.errors import ApmgsrnError
+from apmgsrn.arguments import check_int, check_optional_int
+from apmgsrn.errors import ApmgsrnError, InvalidArgument
 
 #: Local CPU workers when ``--workers`` is not given (at most; never more than the cores).
 DEFAULT_CPU_WORKERS = 4
@@ -49,6 +50,7 @@ class ExecutorConfig:
             memory divided by the workers.
         use_dask: False runs the jobs in threads of this process without Dask (also the fallback when
             Dask is not installed and no scheduler was given).
+        dashboard: serve the local cluster's Dask dashboard on 127.0.0.1 (any free port); off by default.
     """
 
     scheduler: str | None = None
@@ -57,12 +59,16 @@ class ExecutorConfig:
     processes: bool = True
     memory_limit: int | str | None = None
     use_dask: bool = True
+    dashboard: bool = False
 
     def __post_init__(self) -> None:
-        if self.workers is not None and self.workers < 1:
-            raise ValueError(f"workers must be >= 1, got {self.workers}")
-        if self.retries < 0:
-            raise ValueError(f"retries must be >= 0, got {self.retries}")
+        check_optional_int("workers", self.workers, 1)
+        check_int("retries", self.retries, 0)
+        if self.scheduler is not None and self.workers is not None:
+            raise InvalidArgument(
+                f"workers={self.workers} starts local workers, but with scheduler={self.scheduler!r} the "
+                "cluster's workers are used: drop one", arguments=("workers", "scheduler"),
+            )
 
 
 def visible_gpus() -> list[str]:
@@ -243,7 +249,8 @@ def open_job_queue(config: ExecutorConfig) -> JobQueue:
     except ImportError:
         if config.scheduler:
             raise ApmgsrnError(
-                f"--scheduler {config.scheduler}: Dask is not installed; run `pip install apmgsrn[distributed]`"
+                f"scheduler={config.scheduler!r}: Dask is not installed; run `pip install apmgsrn[distributed]`",
+                arguments=("scheduler",),
             ) from None
         return LocalJobQueue(config.workers or 1, config.retries)
     if config.scheduler:
@@ -267,8 +274,28 @@ def _join_cluster(config: ExecutorConfig) -> DaskJobQueue:
                 )
             client = Client(scheduler_file=str(path), timeout="30s")
     except (OSError, TimeoutError) as exc:
-        raise ApmgsrnError(f"--scheduler {target}: cannot reach the Dask scheduler ({exc}); check that it runs") from None
+        raise ApmgsrnError(f"scheduler={target!r}: cannot reach the Dask scheduler ({exc}); check that it runs",
+                           arguments=("scheduler",)) from None
     return DaskJobQueue(client, config.retries, owned=(client,))
+
+
+def _local_security():
+    """TLS with a fresh throw-away certificate for a local process cluster, so that no other local user's
+    client can reach its scheduler or workers (Dask refuses a connection without the certificate).
+
+    Returns:
+        ``(protocol, Security)``: ``"tls://"`` and the credentials, or ``"inproc://"`` and None for a cluster
+        of threads in this process (unreachable from outside it).
+    """
+    from distributed.security import Security
+
+    try:
+        return "tls://", Security.temporary()
+    except ImportError:
+        raise ApmgsrnError(
+            "a local Dask cluster needs the 'cryptography' package for its TLS credentials; run "
+            "`pip install apmgsrn[distributed]`"
+        ) from None
 
 
 def _start_local_cluster(config: ExecutorConfig) -> DaskJobQueue:
@@ -280,6 +307,9 @@ def _start_local_cluster(config: ExecutorConfig) -> DaskJobQueue:
     workers = config.workers or (len(gpus) if gpus else max(1, min(cores, DEFAULT_CPU_WORKERS)))
     threads_per_job = max(1, cores // workers)
     memory_limit = config.memory_limit or int(psutil.virtual_memory().total // workers)
+    # Loopback only, TLS between scheduler, workers and this client, dashboard only when asked for.
+    protocol, security = _local_security() if config.processes else ("inproc://", None)
+    dashboard = "127.0.0.1:0" if config.dashboard else None
     if gpus:
         # One process per worker, each seeing one GPU (round robin when there are more workers than GPUs).
         specs = {
@@ -289,13 +319,18 @@ def _start_local_cluster(config: ExecutorConfig) -> DaskJobQueue:
                     "nthreads": 1,
                     "memory_limit": memory_limit,
                     "env": {"CUDA_VISIBLE_DEVICES": gpus[i % len(gpus)]},
+                    "host": "127.0.0.1",
+                    "protocol": protocol,
+                    "security": security,
                 },
             }
             for i in range(workers)
         }
         cluster = SpecCluster(
             workers=specs,
-            scheduler={"cls": Scheduler, "options": {"dashboard_address": ":0"}},
+            scheduler={"cls": Scheduler, "options": {"dashboard_address": dashboard, "host": "127.0.0.1",
+                                                     "protocol": protocol, "security": security}},
+            security=security,
             silence_logs=logging.ERROR,
         )
         where = f"local Dask cluster: {workers} worker(s) on GPU(s) {','.join(gpus)}"
@@ -305,12 +340,17 @@ def _start_local_cluster(config: ExecutorConfig) -> DaskJobQueue:
             threads_per_worker=1,
             processes=config.processes,
             memory_limit=memory_limit,
-            dashboard_address=":0",  # any free port: never collide with another cluster
+            host="127.0.0.1" if config.processes else None,
+            protocol=protocol,
+            security=security,
+            dashboard_address=dashboard,
             silence_logs=logging.ERROR,
         )
         kind = "processes" if config.processes else "threads"
         where = f"local Dask cluster: {workers} CPU worker {kind}, {threads_per_job} torch thread(s) each"
-    client = Client(cluster)
+    client = Client(cluster, security=security)
     queue = DaskJobQueue(client, config.retries, owned=(client, cluster), threads_per_job=threads_per_job)
     queue.description = where
+    if config.dashboard:
+        queue.description += f"; dashboard {cluster.dashboard_link}"
     return queue

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from apmgsrn.errors import ApmgsrnError
+from apmgsrn.arguments import check_int
+from apmgsrn.errors import ApmgsrnError, InvalidArgument
 
 
 @dataclass(frozen=True)
@@ -29,11 +30,11 @@ class DecompositionConfig:
     blend: bool = False
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "bricks", tuple(int(n) for n in self.bricks))
-        if len(self.bricks) != 3 or min(self.bricks) < 1:
-            raise ValueError(f"brick counts must be three positive integers, got {self.bricks}")
-        if self.ghost_cells < 0:
-            raise ValueError(f"ghost cells must be >= 0, got {self.ghost_cells}")
+        if len(self.bricks) != 3:
+            raise InvalidArgument(f"bricks={self.bricks!r}: must be three brick counts (x, y, z)",
+                                  arguments=("bricks",))
+        object.__setattr__(self, "bricks", tuple(check_int("bricks", n, 1) for n in self.bricks))
+        check_int("ghost_cells", self.ghost_cells, 0)
 
 
 @dataclass(frozen=True)
@@ -151,7 +152,7 @@ def plan_bricks(volume_shape: tuple[int, int, int], config: DecompositionConfig,
             where = f"{source}: " if source else ""
             raise ApmgsrnError(
                 f"{where}{count} bricks along {axis} but the volume has only {n} voxels there; "
-                f"pass fewer --bricks along {axis}"
+                f"choose at most {n} bricks along {axis} in bricks=", arguments=("bricks",),
             )
     ranges_x, ranges_y, ranges_z = (axis_ranges(n, c, config.ghost_cells) for n, c in zip(sizes_xyz, counts_xyz))
     bricks = []

@@ -1,4 +1,5 @@
-"""Full-volume quality measures (SPEC section 8), streamed over z-slabs of the volume."""
+"""How well a field reproduces a volume (SPEC section 8): PSNR and largest error over every voxel,
+streamed over z-slabs of the volume, with the check that the volume is the one the field was trained on."""
 
 from __future__ import annotations
 
@@ -8,22 +9,29 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from apmgsrn.inference.query import query
-from apmgsrn.ops.trilinear import voxel_coordinates
+from apmgsrn.data import Volume, format_xyz
+from apmgsrn.errors import ApmgsrnError
+from apmgsrn.inference.slabs import QUERY_BATCH, SLAB_VOXELS, field_slabs
+from apmgsrn.progress import Progress
 
 
 @dataclass(frozen=True)
 class Evaluation:
-    """PSNR over every voxel and friends; ``psnr`` is ``inf`` for an exact fit."""
+    """Errors of a reconstruction in data units; ``psnr`` is ``inf`` for an exact one.
+
+    Attributes:
+        psnr: ``20 log10(data_max - data_min) - 10 log10(mse)``, dB.
+        mse: mean squared error over the compared voxels.
+        max_abs_error: largest absolute error.
+        data_min, data_max: value range of the ground truth (every voxel, also when only a subset
+            was compared).
+    """
 
     psnr: float
     mse: float
     max_abs_error: float
     data_min: float
     data_max: float
-    model_bytes: int
-    raw_bytes: int
-    compression_ratio: float
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -38,54 +46,113 @@ def psnr_from_mse(mse: float, data_range: float) -> float:
     return 20 * math.log10(data_range) - 10 * math.log10(mse)
 
 
-def evaluate(field, volume, model_bytes: int, batch_size: int = 2**18, slab_voxels: int = 2**22) -> Evaluation:
-    """Compare ``field`` with every voxel of ``volume`` (a :class:`apmgsrn.data.Volume`), slab by slab.
+class ErrorAccumulator:
+    """Squared-error sum, largest absolute error and the truth's range over blocks, in float64."""
+
+    def __init__(self) -> None:
+        self.squared = 0.0
+        self.count = 0
+        self.max_abs = 0.0
+        self.data_min = math.inf
+        self.data_max = -math.inf
+
+    def add(self, prediction: np.ndarray | torch.Tensor, truth: np.ndarray) -> None:
+        """Compare one block: ``prediction`` and ``truth`` of the same number of voxels, data units."""
+        predicted = np.asarray(prediction, dtype=np.float64).reshape(-1)
+        expected = np.asarray(truth, dtype=np.float64).reshape(-1)
+        diff = predicted - expected
+        self.squared += float(np.dot(diff, diff))
+        self.count += diff.size
+        if diff.size:
+            self.max_abs = max(self.max_abs, float(np.abs(diff).max()))
+        self.add_range(truth)
+
+    def add_range(self, truth: np.ndarray) -> None:
+        """Widen the truth's value range by voxels that are not compared (a strided subset's slab)."""
+        if truth.size:
+            self.data_min = min(self.data_min, float(truth.min()))
+            self.data_max = max(self.data_max, float(truth.max()))
+
+    def result(self) -> Evaluation:
+        mse = self.squared / max(self.count, 1)
+        return Evaluation(
+            psnr=psnr_from_mse(mse, self.data_max - self.data_min),
+            mse=mse,
+            max_abs_error=self.max_abs,
+            data_min=self.data_min,
+            data_max=self.data_max,
+        )
+
+
+def check_volume_shape(shape: tuple[int, ...], trained_shape: tuple[int, ...], where: str) -> None:
+    """Refuse a volume whose shape is not the one the model was trained on.
+
+    Args:
+        shape: ``(D, H, W)`` of the volume given.
+        trained_shape: ``(D, H, W)`` the model was trained on.
+        where: the volume's file, for the message.
+
+    Raises:
+        ApmgsrnError: the shapes differ.
+    """
+    if tuple(shape) != tuple(trained_shape):
+        raise ApmgsrnError(
+            f"{where}: volume is {format_xyz(shape)} (x*y*z) but the model was trained on "
+            f"{format_xyz(trained_shape)}; pass the matching volume"
+        )
+
+
+def evaluate(
+    field,
+    truth: Volume | np.ndarray,
+    trained_shape: tuple[int, int, int] | None = None,
+    max_voxels: int | None = None,
+    progress: bool = False,
+    slab_voxels: int = SLAB_VOXELS,
+    batch_size: int = QUERY_BATCH,
+) -> Evaluation:
+    """Compare ``field`` with every voxel of ``truth`` (or a regular subset), one z-slab at a time.
 
     Args:
         field: module ``[N, 3] -> [N, 1]`` in data units.
-        volume: the ground truth; only one slab is in memory at a time.
-        model_bytes: size of the model file (for the compression ratio).
+        truth: the ground truth ``[D, H, W]`` in data units: a :class:`~apmgsrn.data.Volume` (read one
+            slab at a time) or an array in memory.
+        trained_shape: the shape the field was trained on; a volume of another shape is refused.
+        max_voxels: compare only every ``s``-th voxel along each axis, ``s`` chosen for about this many
+            voxels (None: all of them); the value range still covers every voxel.
+        progress: show progress (see :mod:`apmgsrn.progress`).
+        slab_voxels: evaluated voxels per slab.
         batch_size: points per forward pass.
-        slab_voxels: voxels per slab read from disk.
+
+    Raises:
+        ApmgsrnError: the shape differs from ``trained_shape``, or the truth holds NaN or Inf.
     """
-    shape = volume.shape
-    squared, count, max_abs = 0.0, 0, 0.0
-    data_min, data_max = math.inf, -math.inf
-    for z, block in volume.iter_slabs(slab_voxels):
-        points = voxel_coordinates(shape, z)  # [dz * H * W, 3]
-        prediction = query(field, points, batch_size).numpy().astype(np.float64)
-        truth = block.reshape(-1).astype(np.float64)
-        diff = prediction - truth
-        squared += float(np.dot(diff, diff))
-        count += diff.size
-        max_abs = max(max_abs, float(np.abs(diff).max()))
-        data_min = min(data_min, float(truth.min()))
-        data_max = max(data_max, float(truth.max()))
-    mse = squared / count
-    raw_bytes = int(np.prod(shape)) * 4
-    return Evaluation(
-        psnr=psnr_from_mse(mse, data_max - data_min),
-        mse=mse,
-        max_abs_error=max_abs,
-        data_min=data_min,
-        data_max=data_max,
-        model_bytes=int(model_bytes),
-        raw_bytes=raw_bytes,
-        compression_ratio=raw_bytes / model_bytes,
-    )
+    shape = tuple(truth.shape)
+    where = str(truth.path) if isinstance(truth, Volume) else "volume"
+    if trained_shape is not None:
+        check_volume_shape(shape, trained_shape, where)
+    size = math.prod(shape)
+    stride = 1
+    if max_voxels and size > max_voxels:
+        stride = max(1, math.ceil((size / max_voxels) ** (1 / 3)))
+    errors = ErrorAccumulator()
+    compared = math.prod(len(range(0, n, stride)) for n in shape)
+    with Progress(compared, unit="voxel", description="eval", enabled=progress) as shown:
+        for z, predicted in field_slabs(field, shape, slab_voxels, stride, batch_size):
+            block = truth.read(z) if isinstance(truth, Volume) else truth[z]  # [dz, H, W]
+            if not np.isfinite(block).all():
+                raise ApmgsrnError(
+                    f"{where}: holds NaN or Inf voxels (z {z.start}:{z.stop}); "
+                    "pass fill_nonfinite=VALUE to replace them (e.g. fill_nonfinite=0)", arguments=("fill_nonfinite",),
+                )
+            errors.add(predicted.numpy(), block[::stride, ::stride, ::stride])
+            errors.add_range(block)
+            shown.update(predicted.numel())
+    return errors.result()
 
 
-def evaluate_tensor(field, volume: torch.Tensor, batch_size: int = 2**18) -> float:
-    """PSNR of ``field`` against an in-memory ``[D, H, W]`` volume (data units), used after training."""
-    shape = tuple(volume.shape)
-    squared, count = 0.0, 0
-    d = shape[0]
-    step = max(1, 2**22 // (shape[1] * shape[2]))
-    for z0 in range(0, d, step):
-        z = slice(z0, min(z0 + step, d))
-        points = voxel_coordinates(shape, z)
-        prediction = query(field, points, batch_size).double()
-        truth = volume[z].reshape(-1).double().cpu()
-        squared += float((prediction.cpu() - truth).square().sum())
-        count += truth.numel()
-    return psnr_from_mse(squared / count, float(volume.max() - volume.min()))
+def compare_arrays(restored: np.ndarray, truth: np.ndarray) -> Evaluation:
+    """Errors of a whole restored array (a decompressed or decoded volume) against the truth."""
+    errors = ErrorAccumulator()
+    errors.add(restored, truth)
+    return errors.result()

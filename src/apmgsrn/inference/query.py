@@ -4,13 +4,19 @@ from __future__ import annotations
 
 import torch
 
+from apmgsrn.arguments import MAX_BATCH_SIZE, check_int
+
 
 @torch.no_grad()
 def query(field, points: torch.Tensor, batch_size: int = 2**18) -> torch.Tensor:
     """Values of ``field`` at ``points`` ``[N, 3]`` -> ``[N]``, ``batch_size`` points per forward pass.
 
     Points are moved to the field's device batch by batch; the result is on the points' device.
+
+    Raises:
+        InvalidArgument: ``batch_size`` is not an integer from 1 to :data:`~apmgsrn.arguments.MAX_BATCH_SIZE`.
     """
+    check_int("batch_size", batch_size, 1, MAX_BATCH_SIZE)
     device = _device_of(field)
     out = torch.empty(points.shape[0], dtype=torch.float32, device=points.device)
     for start in range(0, points.shape[0], batch_size):

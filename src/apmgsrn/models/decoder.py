@@ -7,6 +7,9 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+#: Sanity bounds of a config (a model file claiming more is refused before anything is allocated).
+MAX_HIDDEN_LAYERS, MAX_WIDTH = 64, 8192
+
 
 @dataclass(frozen=True)
 class DecoderConfig:
@@ -16,15 +19,26 @@ class DecoderConfig:
     width: int = 64
 
     def __post_init__(self) -> None:
-        if self.hidden_layers < 1 or self.width < 1:
-            raise ValueError(f"invalid decoder size: {self}")
+        if not 1 <= self.hidden_layers <= MAX_HIDDEN_LAYERS or not 1 <= self.width <= MAX_WIDTH:
+            raise ValueError(
+                f"invalid decoder size: {self} (1..{MAX_HIDDEN_LAYERS} hidden layers, width 1..{MAX_WIDTH})"
+            )
+
+    def layer_sizes(self, in_features: int) -> list[int]:
+        """Units of every layer, input first: ``[in, width, ..., width, 1]``."""
+        return [in_features] + [self.width] * self.hidden_layers + [1]
+
+    def parameter_shapes(self, in_features: int) -> dict[str, tuple[int, ...]]:
+        """Shape of every stored weight (``nn.Sequential`` names: linear layers at even indices)."""
+        sizes = self.layer_sizes(in_features)
+        return {f"{2 * i}.weight": (sizes[i + 1], sizes[i]) for i in range(len(sizes) - 1)}
 
 
 class Decoder(nn.Sequential):
     """MLP ``[N, in_features] -> [N, 1]`` with Xavier (Glorot) initialised, bias-free layers."""
 
     def __init__(self, in_features: int, config: DecoderConfig, generator: torch.Generator | None = None):
-        sizes = [in_features] + [config.width] * config.hidden_layers + [1]
+        sizes = config.layer_sizes(in_features)
         layers: list[nn.Module] = []
         for i in range(len(sizes) - 1):
             layers.append(nn.Linear(sizes[i], sizes[i + 1], bias=False))

@@ -17,7 +17,7 @@ class NeuralField(nn.Module):
     fitted (transformed) units, then the inverse value transform gives data units.
 
     Attributes:
-        config: what was built.
+        config: what was built (fitted to ``volume_shape``: see :meth:`FieldConfig.fitted_to`).
         fit_min, fit_max: value range in fitted units (after the value transform).
         value_min, value_max: value range of the training data in data units.
         volume_shape: ``(D, H, W)`` of the training volume.
@@ -36,12 +36,9 @@ class NeuralField(nn.Module):
         generator: torch.Generator | None = None,
     ):
         super().__init__()
-        self.config = config
         self.volume_shape = tuple(int(s) for s in volume_shape)
-        encoder_class = ENCODERS[config.model][1]
-        # Encoders whose layout follows the volume's lattice take its shape (saved in every model file).
-        extra = {"volume_shape": self.volume_shape} if getattr(encoder_class, "follows_volume_shape", False) else {}
-        self.encoder = encoder_class(config.encoder, generator=generator, **extra)
+        self.config = config.fitted_to(self.volume_shape)
+        self.encoder = ENCODERS[config.model][1](self.config.encoder, generator=generator)
         self.decoder = Decoder(self.encoder.out_features, config.decoder, generator=generator)
         self.fit_min = float(fit_min)
         self.fit_max = float(fit_max)
@@ -60,8 +57,20 @@ class NeuralField(nn.Module):
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """Values in data units ``[N, 1]`` at ``points`` ``[N, 3]``."""
+        if self.value_min == self.value_max:
+            # A constant volume: its value exactly, whatever the transform would round it to.
+            return torch.full((points.shape[0], 1), self.value_min, dtype=points.dtype, device=points.device)
         fitted = self.normalized(points) * (self.fit_max - self.fit_min) + self.fit_min
         return self.transform.inverse(fitted)
 
     def parameter_count(self) -> int:
         return sum(p.numel() for p in self.parameters())
+
+    def check_parameters(self) -> str | None:
+        """Why these parameters cannot be a trained model (NaN/Inf, a singular grid map), or None."""
+        problem = self.encoder.check_parameters()
+        if problem is None:
+            for name, tensor in self.decoder.named_parameters():
+                if not bool(torch.isfinite(tensor).all()):
+                    return f"decoder parameter {name} holds NaN or Inf"
+        return problem

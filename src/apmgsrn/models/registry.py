@@ -5,13 +5,16 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+from apmgsrn.arguments import check_choice
+from apmgsrn.choices import BACKENDS
+from apmgsrn.errors import InvalidArgument
 from apmgsrn.models.decoder import DecoderConfig
 from apmgsrn.models.encoders.adaptive_multigrid import AdaptiveMultiGridConfig, AdaptiveMultiGridEncoder
 from apmgsrn.models.encoders.dense_grid import DenseGridConfig, DenseGridEncoder
 from apmgsrn.models.encoders.hash_grid import HashGridConfig, HashGridEncoder
-from apmgsrn.models.encoders.hybrid_grid import HybridGridConfig, HybridGridEncoder
+from apmgsrn.models.encoders.hybrid_grid import NO_LATTICE, HybridGridConfig, HybridGridEncoder
 
-# model name -> (encoder config class, encoder class)
+# model name (apmgsrn.choices.MODEL_KINDS, in that order) -> (encoder config class, encoder class)
 ENCODERS: dict[str, tuple[type, type]] = {
     "apmgsrn": (AdaptiveMultiGridConfig, AdaptiveMultiGridEncoder),
     "fvsrn": (DenseGridConfig, DenseGridEncoder),
@@ -19,7 +22,7 @@ ENCODERS: dict[str, tuple[type, type]] = {
     "hybrid": (HybridGridConfig, HybridGridEncoder),
 }
 
-# model name -> preset name -> encoder config fields (SPEC section 5, paper Table 1 sizes)
+# model name -> preset name (apmgsrn.choices.SIZE_PRESETS) -> encoder config fields (SPEC section 5, paper Table 1 sizes)
 PRESETS: dict[str, dict[str, dict]] = {
     "apmgsrn": {
         "small": dict(grids=16, features=1, resolution=(16, 16, 16)),
@@ -36,8 +39,9 @@ PRESETS: dict[str, dict[str, dict]] = {
         "medium": dict(levels=18, features=2, log2_table_size=15, base_resolution=16, finest_resolution=512),
         "large": dict(levels=17, features=2, log2_table_size=20, base_resolution=16, finest_resolution=256),
     },
-    # Half the features in the domain levels' tables, half in the adaptive grids; each preset holds at most
-    # as many parameters as the smallest baseline of its size on any volume (tests/test_hybrid_grid.py).
+    # Not the default (docs/models.md): measured on 6 of the 9 shared volumes at small, 1 seed. Each preset
+    # holds at most as many parameters as the smallest baseline of its size on any volume
+    # (tests/test_hybrid_grid.py).
     "hybrid": {
         "small": dict(levels=15, features=2, log2_table_size=10, coarsest=8, grids=8, grid_features=1,
                       grid_resolution=16),
@@ -50,7 +54,14 @@ PRESETS: dict[str, dict[str, dict]] = {
 
 # model name -> default learning-rate schedule of the trainer (see TrainConfig.lr_schedule). Measured under
 # the CPU protocol (docs/baselines.md): the budget-following cosine also suits the baselines.
-DEFAULT_LR_SCHEDULES: dict[str, str] = {"apmgsrn": "cosine", "fvsrn": "cosine", "ngp": "cosine", "hybrid": "cosine"}
+DEFAULT_LR_SCHEDULES: dict[str, str] = {
+    "apmgsrn": "cosine", "fvsrn": "cosine", "ngp": "cosine", "hybrid": "cosine"
+}
+
+
+#: Config fields that choose how to run, not what to build: never saved, so a model trained with one
+#: kernel backend (say Triton on a GPU) loads anywhere and picks the fastest backend where it runs.
+RUN_TIME_FIELDS = ("backend",)
 
 
 @dataclass(frozen=True)
@@ -61,17 +72,70 @@ class FieldConfig:
     encoder: object
     decoder: DecoderConfig = DecoderConfig()
 
+    def __post_init__(self) -> None:
+        if self.model not in ENCODERS:
+            raise ValueError(f"unknown model kind {self.model!r}")
+        # Each encoder accepts its own kernels; refused here, not at the first forward pass.
+        check_choice("backend", getattr(self.encoder, "backend", "auto"), BACKENDS[self.model])
+
     def to_dict(self) -> dict:
-        return {"model": self.model, "encoder": dataclasses.asdict(self.encoder), "decoder": dataclasses.asdict(self.decoder)}
+        encoder = {k: v for k, v in dataclasses.asdict(self.encoder).items() if k not in RUN_TIME_FIELDS}
+        return {"model": self.model, "encoder": encoder, "decoder": dataclasses.asdict(self.decoder)}
 
     @staticmethod
     def from_dict(data: dict) -> "FieldConfig":
+        """The config a model file describes; run-time fields stored by older versions are dropped.
+
+        Raises:
+            ValueError: an unknown model kind, unknown or mistyped fields, or sizes out of bounds.
+        """
+        if not isinstance(data, dict) or not isinstance(data.get("model"), str):
+            raise ValueError("field config is not an object with a model name")
         model = data["model"]
         if model not in ENCODERS:
             raise ValueError(f"unknown model kind {model!r}")
         config_class = ENCODERS[model][0]
-        encoder_fields = {k: tuple(v) if isinstance(v, list) else v for k, v in data["encoder"].items()}
-        return FieldConfig(model, config_class(**encoder_fields), DecoderConfig(**data["decoder"]))
+        encoder = _config_fields(config_class, data.get("encoder"), "encoder")
+        decoder = _config_fields(DecoderConfig, data.get("decoder"), "decoder")
+        return FieldConfig(model, config_class(**encoder), DecoderConfig(**decoder))
+
+    def fitted_to(self, volume_shape: tuple[int, int, int]) -> "FieldConfig":
+        """This config for a field fitted to a ``(D, H, W)`` volume.
+
+        An encoder whose layout follows the volume's voxel lattice (the hybrid's ``lattice``) records the
+        shape here, unless it has one already (a config read from a model file); the others are unchanged.
+        """
+        if getattr(self.encoder, "lattice", None) != NO_LATTICE or min(volume_shape) < 1:
+            return self
+        return dataclasses.replace(self, encoder=dataclasses.replace(self.encoder, lattice=tuple(volume_shape)))
+
+    def parameter_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Shape of every stored parameter of the field, named as in its ``state_dict``."""
+        encoder = {f"encoder.{k}": v for k, v in self.encoder.parameter_shapes().items()}
+        decoder = {f"decoder.{k}": v for k, v in self.decoder.parameter_shapes(self.encoder.out_features).items()}
+        return encoder | decoder
+
+
+def _config_fields(config_class: type, data, name: str) -> dict:
+    """Keyword arguments for ``config_class`` from stored JSON: known fields of plain types only."""
+    if not isinstance(data, dict):
+        raise ValueError(f"{name} config is not an object")
+    known = {f.name: f for f in dataclasses.fields(config_class)}
+    fields = {}
+    for key, value in data.items():
+        if key in RUN_TIME_FIELDS:
+            continue
+        if key not in known:
+            raise ValueError(f"unknown {name} field {key!r}")
+        default = known[key].default
+        if isinstance(default, tuple):
+            if not isinstance(value, (list, tuple)) or not all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+                raise ValueError(f"{name}.{key} is not a list of integers")
+            value = tuple(value)
+        elif type(default) is not type(value) and not (isinstance(default, float) and type(value) is int):
+            raise ValueError(f"{name}.{key} is a {type(value).__name__}, not a {type(default).__name__}")
+        fields[key] = value
+    return fields
 
 
 def preset_config(model: str, preset: str, **overrides) -> FieldConfig:
@@ -92,5 +156,10 @@ def preset_config(model: str, preset: str, **overrides) -> FieldConfig:
         width=overrides.pop("width", DecoderConfig.width),
     )
     config_class = ENCODERS[model][0]
+    known = {f.name for f in dataclasses.fields(config_class)}
+    for name in overrides:
+        if name not in known:
+            raise InvalidArgument(f"{name}={overrides[name]!r}: does not apply to {model} models",
+                                  arguments=(name,))
     fields = {**PRESETS[model][preset], **overrides}
     return FieldConfig(model, config_class(**fields), decoder)

@@ -8,7 +8,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-TRANSFORMS = ("none", "log10", "zscore")
+from apmgsrn.arguments import check_choice, check_number
+from apmgsrn.choices import VALUE_TRANSFORMS as TRANSFORMS
+from apmgsrn.errors import ApmgsrnError
+
 
 
 @dataclass(frozen=True)
@@ -60,13 +63,13 @@ def fit_value_transform(kind: str, slabs, data_min: float, offset: float = 0.0, 
     Returns:
         The transform.
     """
-    from apmgsrn.errors import ApmgsrnError
-
+    check_choice("transform", kind, TRANSFORMS)
+    check_number("log_offset", offset)
     if kind == "log10":
         if not data_min + offset > 0:
             raise ApmgsrnError(
-                f"{source}: --transform log10 needs values > 0, but the minimum is {data_min:g}; "
-                f"pass --log-offset VALUE with VALUE > {-data_min:g}"
+                f"{source}: transform=log10 needs values > 0, but the minimum is {data_min:g}; "
+                f"pass log_offset=VALUE with VALUE > {0.0 - data_min:g}", arguments=("transform", "log_offset"),
             )
         return ValueTransform("log10", offset=offset)
     if kind == "zscore":

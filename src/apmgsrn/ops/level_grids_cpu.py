@@ -11,7 +11,8 @@ over the tile's points and vectorises (AVX2 gathers with ``-march=native``). The
 trilinear weights into the table; each extra thread scatters into a private copy of the gradient (the
 tables are small: 0.3 MB at the small preset), summed at the end, so there are no atomics.
 
-Built and cached like :mod:`apmgsrn.ops.multigrid_cpu` (same compiler choice, flags and cache folder);
+Built and cached like :mod:`apmgsrn.ops.multigrid_cpu` (same compiler choice and flags, through
+:mod:`apmgsrn.ops.kernel_cache`);
 when it cannot be built the dispatcher falls back to the reference.
 """
 
@@ -19,11 +20,15 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import os
+import shutil
 import threading
 
 import torch
 
-from apmgsrn.ops.level_grids import LevelLayout
+from apmgsrn.ops.kernel_cache import build_library, cpu_signature, kernel_key
+from apmgsrn.ops.level_layout import LevelLayout
+from apmgsrn.ops.multigrid_cpu import COMMON_FLAGS, FLAG_SETS
 
 C_SOURCE = r"""
 #include <math.h>
@@ -211,9 +216,12 @@ def load_library() -> ctypes.CDLL | None:
             return _library
         _tried = True
         try:
-            from apmgsrn.ops.multigrid_cpu import build_library
-
-            lib = build_library("level_grids_cpu", C_SOURCE)
+            wanted = os.environ.get("CC")
+            compiler = shutil.which(wanted) if wanted else shutil.which("gcc") or shutil.which("cc")
+            if compiler is None:
+                raise RuntimeError(f"C compiler {wanted!r} not found" if wanted else "no C compiler (gcc or cc) on PATH")
+            key = kernel_key(C_SOURCE, repr((COMMON_FLAGS, FLAG_SETS)), compiler, cpu_signature())
+            lib = ctypes.CDLL(str(build_library(f"level_grids_cpu_{key}.so", compiler, C_SOURCE, COMMON_FLAGS, FLAG_SETS)))
             p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
             lib.lg_forward.argtypes = [p, i64, i64, p, p, p, p, p, p, i64, i32]
             lib.lg_backward.argtypes = [p, i64, i64, p, p, p, p, p, i64, p, p, i64, i32]

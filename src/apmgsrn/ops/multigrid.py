@@ -18,6 +18,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from apmgsrn.choices import MULTIGRID_BACKENDS
+
 
 def local_coordinates(
     points: torch.Tensor, matrices: torch.Tensor, translations: torch.Tensor
@@ -61,7 +63,7 @@ def multigrid_features_reference(
     return sampled.view(m * c, n).t()  # [N, M * C]
 
 
-BACKENDS = ("torch", "cpu", "triton")
+BACKENDS = MULTIGRID_BACKENDS
 """Backend names accepted besides ``"auto"``: the pure-PyTorch reference, the fused C/OpenMP CPU
 kernel (:mod:`apmgsrn.ops.multigrid_cpu`) and the fused Triton GPU kernels
 (:mod:`apmgsrn.ops.multigrid_triton`)."""

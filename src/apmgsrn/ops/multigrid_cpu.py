@@ -14,8 +14,9 @@ to the points that touch the grid, weighed and gathered by loops that gcc vector
 Build: plain C (no PyTorch headers, so it compiles in one to two seconds), called through :mod:`ctypes`
 (which releases the GIL), linked with ``-fopenmp``. PyTorch ships ``libgomp.so.1`` under the same soname
 and loads it first, so the kernel runs on PyTorch's own OpenMP thread pool and honours
-``torch.set_num_threads``. The shared object is cached under ``$APMGSRN_CACHE/kernels`` (default
-``~/.cache/apmgsrn/kernels``, a temporary folder if that is not writable) keyed by the hash of the
+``torch.set_num_threads``. The shared object is cached by :mod:`apmgsrn.ops.kernel_cache` under
+``$APMGSRN_CACHE/kernels`` (default ``~/.cache/apmgsrn/kernels``; only a folder this user owns and nobody
+else can write is trusted, else it is built into a private temporary folder) keyed by the hash of the
 source, the flags, the compiler and the CPU, so it compiles once per machine. ``$CC`` picks the compiler
 (default gcc, then cc). If it cannot be built (no compiler, no OpenMP is fine: it then runs on one thread),
 :func:`load_library` returns ``None`` and the dispatcher falls back to the reference.
@@ -27,16 +28,13 @@ zero-padded trilinear sampling (a corner outside the grid contributes zero), gri
 from __future__ import annotations
 
 import ctypes
-import hashlib
 import os
-import platform
 import shutil
-import subprocess
-import tempfile
 import threading
-from pathlib import Path
 
 import torch
+
+from apmgsrn.ops.kernel_cache import build_library, cpu_signature, kernel_key
 
 # The C source. Coordinates are folded into index space once per grid: ``f = A' p + t'`` with
 # ``A' = A (size - 1) / 2`` and ``t' = (t + 1) (size - 1) / 2`` (corner-aligned unnormalisation), so a
@@ -417,82 +415,6 @@ _load_error: str | None = None
 _tried = False
 
 
-def _cpu_signature() -> str:
-    """What the machine code depends on (``-march=native``): the CPU's model and flags."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-        lines = [ln for ln in text.splitlines() if ln.startswith(("model name", "flags"))][:2]
-        return "\n".join(lines)
-    except OSError:
-        return platform.processor() or platform.machine()
-
-
-def cache_dir() -> Path:
-    """Folder of built kernels: ``$APMGSRN_CACHE/kernels``, default ``~/.cache/apmgsrn/kernels``."""
-    root = os.environ.get("APMGSRN_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "apmgsrn")
-    return Path(root) / "kernels"
-
-
-def _compile(folder: Path, name: str, compiler: str, source: str) -> Path:
-    """Compile C ``source`` into ``folder / name``, trying :data:`FLAG_SETS` in order."""
-    folder.mkdir(parents=True, exist_ok=True)
-    errors = []
-    with tempfile.TemporaryDirectory(dir=folder) as tmp:
-        src = Path(tmp) / "kernel.c"
-        src.write_text(source)
-        out = Path(tmp) / name
-        for extra in FLAG_SETS:
-            proc = subprocess.run(
-                [compiler, *COMMON_FLAGS, *extra, str(src), "-o", str(out), "-lm"],
-                capture_output=True,
-                text=True,
-                timeout=300,
-            )
-            if proc.returncode == 0:
-                target = folder / name
-                # Atomic: a concurrent process sees either no file or a complete one.
-                os.replace(out, target)
-                return target
-            errors.append(f"{' '.join(extra) or 'plain'}: {proc.stderr.strip()[-800:]}")
-    raise RuntimeError(f"{compiler} could not build the kernel:\n" + "\n".join(errors))
-
-
-def _build(name: str, compiler: str, source: str) -> Path:
-    """The cached library, compiled on first use; a temporary folder if the cache is not writable."""
-    target = cache_dir() / name
-    if target.exists():
-        return target
-    try:
-        return _compile(cache_dir(), name, compiler, source)
-    except OSError:
-        fallback = Path(tempfile.gettempdir()) / f"apmgsrn-kernels-{os.getuid() if hasattr(os, 'getuid') else 0}"
-        target = fallback / name
-        return target if target.exists() else _compile(fallback, name, compiler, source)
-
-
-def build_library(stem: str, source: str) -> ctypes.CDLL:
-    """Compile (once per machine, cached) and load a C kernel library.
-
-    Args:
-        stem: file-name stem of the cached shared object (a hash of source, flags, compiler and CPU is
-            appended).
-        source: the C source.
-
-    Returns:
-        The loaded library (its functions still need their ``argtypes``).
-
-    Raises:
-        RuntimeError: no C compiler, or it could not build the source.
-    """
-    wanted = os.environ.get("CC")
-    compiler = shutil.which(wanted) if wanted else shutil.which("gcc") or shutil.which("cc")
-    if compiler is None:
-        raise RuntimeError(f"C compiler {wanted!r} not found" if wanted else "no C compiler (gcc or cc) on PATH")
-    flags = repr((COMMON_FLAGS, FLAG_SETS))
-    key = hashlib.sha256("\0".join([source, flags, compiler, _cpu_signature()]).encode()).hexdigest()[:16]
-    return ctypes.CDLL(str(_build(f"{stem}_{key}.so", compiler, source)))
-
-
 def _declare(lib: ctypes.CDLL) -> None:
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
     sizes = [i64] * 9  # c, d, h, w, then strides sm, sc, sz, sy, sx
@@ -516,7 +438,13 @@ def load_library() -> ctypes.CDLL | None:
             return _library
         _tried = True
         try:
-            lib = build_library("multigrid_cpu", C_SOURCE)
+            wanted = os.environ.get("CC")
+            compiler = shutil.which(wanted) if wanted else shutil.which("gcc") or shutil.which("cc")
+            if compiler is None:
+                raise RuntimeError(f"C compiler {wanted!r} not found" if wanted else "no C compiler (gcc or cc) on PATH")
+            key = kernel_key(C_SOURCE, repr((COMMON_FLAGS, FLAG_SETS)), compiler, cpu_signature())
+            path = build_library(f"multigrid_cpu_{key}.so", compiler, C_SOURCE, COMMON_FLAGS, FLAG_SETS)
+            lib = ctypes.CDLL(str(path))
             _declare(lib)
             _library = lib
         except Exception as err:  # noqa: BLE001 - any build problem means "use the reference"

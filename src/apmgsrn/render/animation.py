@@ -12,12 +12,16 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
+from apmgsrn.arguments import check_int, check_number
+from apmgsrn.atomic import atomic_write, check_output_path
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.render.camera import Camera
 from apmgsrn.render.images import as_uint8
 from apmgsrn.render.raymarch import VolumeRenderer
 
 ANIMATION_SUFFIXES = (".gif", ".mp4")
+#: Most frames of a turntable (a GIF holds them all in memory before writing).
+MAX_FRAMES = 3600
 
 
 def turntable_cameras(
@@ -39,8 +43,7 @@ def turntable_cameras(
     Returns:
         The cameras in order.
     """
-    if frames < 1:
-        raise ApmgsrnError(f"--frames must be at least 1, got {frames}")
+    check_int("frames", frames, 1, MAX_FRAMES)
     return [
         Camera.orbit(azimuth + 360.0 * i / frames, elevation, distance, fov, width, height, extent)
         for i in range(frames)
@@ -65,21 +68,23 @@ def write_animation(frames: Iterable[np.ndarray], path: str | os.PathLike, fps: 
         The path written.
 
     Raises:
-        ApmgsrnError: unknown suffix, missing folder, or MP4 without imageio-ffmpeg.
+        ApmgsrnError: unknown suffix, missing folder, MP4 without imageio-ffmpeg, or a failed write (the file
+            is written atomically: nothing partial is left under ``path``).
     """
+    check_number("fps", fps, 0.0, 1000.0, low_open=True)
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in ANIMATION_SUFFIXES:
-        raise ApmgsrnError(f"{path}: an animation must be a .gif or .mp4 file; change the --out name")
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise ApmgsrnError(f"{path}: folder {folder} does not exist; create it or choose another path")
+        raise ApmgsrnError(f"{path}: an animation must be a .gif or .mp4 file; choose another path")
+    check_output_path(path, "animation")
     if suffix == ".gif":
-        return _write_gif(list(frames), path, fps)
-    return _write_mp4(frames, path, fps)
+        frames = list(frames)  # rendered before the file is opened
+        return atomic_write(path, lambda temp: _write_gif(frames, temp, fps), "animation")
+    _check_mp4_writer(path)
+    return atomic_write(path, lambda temp: _write_mp4(frames, temp, fps), "animation")
 
 
-def _write_gif(frames: list[np.ndarray], path: Path, fps: float) -> Path:
+def _write_gif(frames: list[np.ndarray], path: str, fps: float) -> None:
     from PIL import Image
 
     if not frames:
@@ -93,18 +98,22 @@ def _write_gif(frames: list[np.ndarray], path: Path, fps: float) -> Path:
         loop=0,
         disposal=1,
     )
-    return path
 
 
-def _write_mp4(frames: Iterable[np.ndarray], path: Path, fps: float) -> Path:
+def _check_mp4_writer(path: Path) -> None:
     try:
-        import imageio.v2 as imageio
+        import imageio.v2  # noqa: F401
         import imageio_ffmpeg  # noqa: F401  (imageio's ffmpeg plug-in needs it)
     except ImportError:
         raise ApmgsrnError(
             f"{path}: writing MP4 needs imageio and imageio-ffmpeg; run "
             "`pip install 'apmgsrn[video]'` or write a .gif instead"
         ) from None
+
+
+def _write_mp4(frames: Iterable[np.ndarray], path: str, fps: float) -> None:
+    import imageio.v2 as imageio
+
     # H.264 with yuv420p wants even sizes; pad the last row/column by edge replication if needed.
     writer = imageio.get_writer(path, fps=fps, codec="libx264", quality=8, macro_block_size=1, pixelformat="yuv420p")
     try:
@@ -114,5 +123,4 @@ def _write_mp4(frames: Iterable[np.ndarray], path: Path, fps: float) -> Path:
             writer.append_data(frame)
     finally:
         writer.close()
-    return path
 

@@ -16,6 +16,12 @@ from dataclasses import dataclass
 
 import torch
 
+from apmgsrn.arguments import check_int, check_number
+from apmgsrn.errors import InvalidArgument
+
+#: Widest and tallest image, pixels: an 8192 x 8192 frame already needs about 1 GB of buffers.
+MAX_IMAGE_SIDE = 8192
+
 
 @dataclass(frozen=True)
 class Camera:
@@ -29,10 +35,13 @@ class Camera:
     height: int = 512
 
     def __post_init__(self) -> None:
-        if self.width < 1 or self.height < 1:
-            raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
-        if not 0.0 < self.fov < 180.0:
-            raise ValueError(f"field of view must be in (0, 180) degrees, got {self.fov}")
+        check_int("width", self.width, 1, MAX_IMAGE_SIDE)
+        check_int("height", self.height, 1, MAX_IMAGE_SIDE)
+        check_number("fov", self.fov, 0.0, 180.0, low_open=True, high_open=True)
+        for name in ("position", "target", "up"):
+            vector = getattr(self, name)
+            if len(vector) != 3 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in vector):
+                raise InvalidArgument(f"{name}={vector!r}: must be three finite numbers", arguments=(name,))
         if math.dist(self.position, self.target) == 0.0:
             raise ValueError("camera position and target coincide")
 
@@ -60,8 +69,14 @@ class Camera:
         Returns:
             The camera.
         """
+        check_number("azimuth", azimuth)
+        check_number("elevation", elevation)
+        check_number("fov", fov, 0.0, 180.0, low_open=True, high_open=True)
+        check_int("width", width, 1, MAX_IMAGE_SIDE)
+        check_int("height", height, 1, MAX_IMAGE_SIDE)
         if distance is None:
             distance = fit_distance(fov, width, height, extent)
+        check_number("distance", distance, 0.0, low_open=True)
         az, el = math.radians(azimuth), math.radians(elevation)
         position = (
             distance * math.cos(el) * math.sin(az),

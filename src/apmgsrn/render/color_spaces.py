@@ -1,45 +1,48 @@
-"""Colour-space conversions and the interpolations ParaView offers between two colour-map nodes.
+"""Colour-space conversions and the interpolations ParaView applies between two colour-map nodes.
 
-All functions work on numpy arrays of sRGB colours in ``[0, 1]`` with the channel as the last axis.
-Lab is CIE L*a*b* with the D65 white point (what VTK uses); "Diverging" is Moreland's Msh interpolation
-("Diverging Color Maps for Scientific Visualization", 2009), the colour space of ParaView's default
-"Cool to Warm" map.
+ParaView colours through VTK's ``vtkColorTransferFunction``, so every formula and constant here is VTK's:
+sRGB <-> XYZ with VTK's four-digit matrices (the two are not exact inverses), CIE Lab against VTK's white
+``(0.9505, 1.0, 1.089)`` with its ``0.008856`` / ``7.787`` linear segment, an out-of-gamut colour scaled
+down by its largest channel before negatives are cut to 0, and Moreland's "Diverging" (Msh) interpolation
+("Diverging Color Maps for Scientific Visualization", 2009) with VTK's thresholds. Matching these
+exactly matters: ParaView's "Viridis (matplotlib)" is 256 nodes in the Diverging space, and near its hue
+seam (the sign of Lab's ``b``) a different white point picks the other branch of ``atan2``.
+
+All functions take numpy arrays of sRGB colours in ``[0, 1]`` with the channel as the last axis; the
+interpolations take per-sample end colours ``[N, 3]`` and positions ``[N]``.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-# sRGB primaries to CIE XYZ, D65 white (IEC 61966-2-1).
-_RGB_TO_XYZ = np.array(
-    [
-        [0.4124564, 0.3575761, 0.1804375],
-        [0.2126729, 0.7151522, 0.0721750],
-        [0.0193339, 0.1191920, 0.9503041],
-    ]
-)
-_XYZ_TO_RGB = np.linalg.inv(_RGB_TO_XYZ)
-_WHITE_D65 = np.array([0.95047, 1.0, 1.08883])
-_LAB_EPSILON = 216.0 / 24389.0  # (6/29)^3: where the cube root gives way to the linear segment
-_LAB_KAPPA = 24389.0 / 27.0
+# VTK's sRGB <-> XYZ matrices (D65, 2 degree observer), four digits as vtkMath has them.
+_RGB_TO_XYZ = np.array([[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722], [0.0193, 0.1192, 0.9505]])
+_XYZ_TO_RGB = np.array([[3.2406, -1.5372, -0.4986], [-0.9689, 1.8758, 0.0415], [0.0557, -0.2040, 1.0570]])
+_WHITE = np.array([0.9505, 1.0, 1.089])
+_LAB_EPSILON = 0.008856  # where the cube root gives way to the linear segment
+_LAB_SLOPE = 7.787
 
-SUPPORTED_COLOR_SPACES = ("RGB", "Lab", "Diverging", "HSV", "Step")
+# ParaView's colour-space names, in the order of its enumeration (a preset may give the number).
+PARAVIEW_COLOR_SPACES = ("RGB", "HSV", "Lab", "Diverging", "Lab/CIEDE2000", "Step")
+SUPPORTED_COLOR_SPACES = ("RGB", "HSV", "Lab", "Diverging", "Step")
 
 
 def srgb_to_linear(rgb: np.ndarray) -> np.ndarray:
     """Undo the sRGB transfer curve. Args: rgb ``[..., 3]`` in [0, 1]. Returns: linear ``[..., 3]``."""
     rgb = np.asarray(rgb, dtype=np.float64)
-    return np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
+    return np.where(rgb > 0.04045, ((rgb + 0.055) / 1.055) ** 2.4, rgb / 12.92)
 
 
 def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
-    """Apply the sRGB transfer curve. Args: linear ``[..., 3]``. Returns: sRGB ``[..., 3]`` clipped to [0, 1]."""
-    linear = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
-    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1.0 / 2.4) - 0.055)
+    """Apply the sRGB transfer curve, unclipped. Args: linear ``[..., 3]``. Returns: sRGB ``[..., 3]``."""
+    linear = np.asarray(linear, dtype=np.float64)
+    curved = 1.055 * np.power(np.abs(linear), 1.0 / 2.4) - 0.055  # abs: only used where linear > 0
+    return np.where(linear > 0.0031308, curved, 12.92 * linear)
 
 
 def rgb_to_lab(rgb: np.ndarray) -> np.ndarray:
-    """sRGB to CIE Lab (D65).
+    """sRGB to CIE Lab as VTK computes it.
 
     Args:
         rgb: ``[..., 3]`` sRGB in [0, 1].
@@ -47,16 +50,17 @@ def rgb_to_lab(rgb: np.ndarray) -> np.ndarray:
     Returns:
         ``[..., 3]`` (L, a, b), L in [0, 100].
     """
-    xyz = srgb_to_linear(rgb) @ _RGB_TO_XYZ.T / _WHITE_D65
-    f = np.where(xyz > _LAB_EPSILON, np.cbrt(xyz), (_LAB_KAPPA * xyz + 16.0) / 116.0)
+    xyz = srgb_to_linear(rgb) @ _RGB_TO_XYZ.T / _WHITE
+    f = np.where(xyz > _LAB_EPSILON, np.cbrt(xyz), _LAB_SLOPE * xyz + 16.0 / 116.0)
     lightness = 116.0 * f[..., 1] - 16.0
-    a = 500.0 * (f[..., 0] - f[..., 1])
-    b = 200.0 * (f[..., 1] - f[..., 2])
-    return np.stack([lightness, a, b], axis=-1)
+    return np.stack([lightness, 500.0 * (f[..., 0] - f[..., 1]), 200.0 * (f[..., 1] - f[..., 2])], axis=-1)
 
 
 def lab_to_rgb(lab: np.ndarray) -> np.ndarray:
-    """CIE Lab (D65) to sRGB, clipped to the gamut.
+    """CIE Lab to sRGB as VTK computes it, brought into the gamut the way VTK does.
+
+    A colour with a channel above 1 is divided by its largest channel (keeping its hue), then negative
+    channels are set to 0.
 
     Args:
         lab: ``[..., 3]`` (L, a, b).
@@ -66,24 +70,27 @@ def lab_to_rgb(lab: np.ndarray) -> np.ndarray:
     """
     lab = np.asarray(lab, dtype=np.float64)
     fy = (lab[..., 0] + 16.0) / 116.0
-    fx = fy + lab[..., 1] / 500.0
-    fz = fy - lab[..., 2] / 200.0
-    f = np.stack([fx, fy, fz], axis=-1)
-    xyz = np.where(f**3 > _LAB_EPSILON, f**3, (116.0 * f - 16.0) / _LAB_KAPPA) * _WHITE_D65
-    return linear_to_srgb(xyz @ _XYZ_TO_RGB.T)
+    f = np.stack([lab[..., 1] / 500.0 + fy, fy, fy - lab[..., 2] / 200.0], axis=-1)
+    cubed = f**3
+    xyz = np.where(cubed > _LAB_EPSILON, cubed, (f - 16.0 / 116.0) / _LAB_SLOPE) * _WHITE
+    rgb = linear_to_srgb(xyz @ _XYZ_TO_RGB.T)
+    largest = rgb.max(axis=-1, keepdims=True)
+    rgb = np.where(largest > 1.0, rgb / np.where(largest > 1.0, largest, 1.0), rgb)
+    return np.maximum(rgb, 0.0)
 
 
 def rgb_to_msh(rgb: np.ndarray) -> np.ndarray:
-    """sRGB to Moreland's polar Lab form (M, s, h): magnitude, saturation angle, hue angle."""
+    """sRGB to Moreland's polar Lab (M, s, h); s is 0 below M 0.001 and h is 0 below s 0.001, as in VTK."""
     lab = rgb_to_lab(rgb)
     magnitude = np.linalg.norm(lab, axis=-1)
-    saturation = np.arccos(np.clip(lab[..., 0] / np.maximum(magnitude, 1e-12), -1.0, 1.0))
-    hue = np.arctan2(lab[..., 2], lab[..., 1])
+    ratio = lab[..., 0] / np.where(magnitude > 0.001, magnitude, 1.0)
+    saturation = np.where(magnitude > 0.001, np.arccos(np.clip(ratio, -1.0, 1.0)), 0.0)
+    hue = np.where(saturation > 0.001, np.arctan2(lab[..., 2], lab[..., 1]), 0.0)
     return np.stack([magnitude, saturation, hue], axis=-1)
 
 
 def msh_to_rgb(msh: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`rgb_to_msh`."""
+    """Inverse of :func:`rgb_to_msh` (through :func:`lab_to_rgb`)."""
     msh = np.asarray(msh, dtype=np.float64)
     m, s, h = msh[..., 0], msh[..., 1], msh[..., 2]
     lab = np.stack([m * np.cos(s), m * np.sin(s) * np.cos(h), m * np.sin(s) * np.sin(h)], axis=-1)
@@ -91,84 +98,114 @@ def msh_to_rgb(msh: np.ndarray) -> np.ndarray:
 
 
 def rgb_to_hsv(rgb: np.ndarray) -> np.ndarray:
-    """sRGB to HSV, hue in [0, 1)."""
+    """sRGB to HSV, hue in [0, 1) (0 for greys), as VTK computes it."""
     rgb = np.asarray(rgb, dtype=np.float64)
     high = rgb.max(axis=-1)
-    low = rgb.min(axis=-1)
-    chroma = high - low
+    chroma = high - rgb.min(axis=-1)
     safe = np.where(chroma > 0, chroma, 1.0)
     r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    # VTK's order: red first, then green, then blue when channels tie for the largest.
     hue = np.where(
-        high == r, ((g - b) / safe) % 6.0, np.where(high == g, (b - r) / safe + 2.0, (r - g) / safe + 4.0)
+        r == high,
+        (g - b) / safe / 6.0,
+        np.where(g == high, 1.0 / 3.0 + (b - r) / safe / 6.0, 2.0 / 3.0 + (r - g) / safe / 6.0),
     )
-    hue = np.where(chroma > 0, hue / 6.0, 0.0)
+    hue = np.where(chroma > 0, np.where(hue < 0.0, hue + 1.0, hue), 0.0)
     saturation = np.where(high > 0, chroma / np.where(high > 0, high, 1.0), 0.0)
     return np.stack([hue, saturation, high], axis=-1)
 
 
 def hsv_to_rgb(hsv: np.ndarray) -> np.ndarray:
-    """HSV (hue in [0, 1)) to sRGB."""
+    """HSV (hue in [0, 1], 1 the same as 0) to sRGB."""
     hsv = np.asarray(hsv, dtype=np.float64)
     h6 = (hsv[..., 0] % 1.0) * 6.0
     s, v = hsv[..., 1], hsv[..., 2]
-    # Standard piecewise form: each channel is v minus a clipped triangle wave of the hue.
+    # Each channel is v minus a clipped triangle wave of the hue.
     k = np.stack([(5.0 + h6) % 6.0, (3.0 + h6) % 6.0, (1.0 + h6) % 6.0], axis=-1)
     return v[..., None] - v[..., None] * s[..., None] * np.clip(np.minimum(k, 4.0 - k), 0.0, 1.0)
 
 
-def _adjust_hue(msh: np.ndarray, unsaturated_magnitude: float) -> float:
-    """Hue to give an unsaturated end so the ramp towards the saturated one keeps a constant hue spin."""
-    m, s, h = msh
-    if m >= unsaturated_magnitude:
-        return float(h)
-    spin = s * np.sqrt(unsaturated_magnitude**2 - m**2) / (m * np.sin(s))
-    return float(h + spin) if h > -np.pi / 3.0 else float(h - spin)
+def _angle_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Smallest angle between two hue angles (radians), in [0, pi]."""
+    gap = np.abs(a - b) % (2.0 * np.pi)
+    return np.where(gap > np.pi, 2.0 * np.pi - gap, gap)
+
+
+def _spun_hue(saturated: np.ndarray, unsaturated_magnitude: np.ndarray) -> np.ndarray:
+    """Hue for an unsaturated end so the ramp from the saturated end ``[N, 3]`` keeps a steady hue spin."""
+    m, s, h = saturated[:, 0], saturated[:, 1], saturated[:, 2]
+    gap = np.maximum(unsaturated_magnitude**2 - m**2, 0.0)
+    spin = s * np.sqrt(gap) / np.where(m * np.sin(s) != 0, m * np.sin(s), 1.0)
+    # VTK spins away from hue 0 except for purples; it holds the hue when the magnitudes are close.
+    spun = np.where(h > -0.3 * np.pi, h + spin, h - spin)
+    return np.where(m >= unsaturated_magnitude - 0.1, h, spun)
 
 
 def interpolate_diverging(rgb0: np.ndarray, rgb1: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Moreland's diverging interpolation between two colours.
+    """Moreland's diverging interpolation as VTK does it.
+
+    Two saturated ends whose hues differ by more than 0.33 pi get an unsaturated centre (magnitude at
+    least 88) at ``t = 0.5``; an unsaturated end takes a hue spun from the saturated one; then M, s and h
+    are interpolated linearly (the hue without wrapping, as VTK does).
 
     Args:
-        rgb0, rgb1: ``[3]`` end colours.
+        rgb0, rgb1: ``[N, 3]`` end colours of each sample's segment.
         t: ``[N]`` positions in [0, 1].
 
     Returns:
         ``[N, 3]`` sRGB colours.
     """
-    t = np.asarray(t, dtype=np.float64)
-    msh0 = rgb_to_msh(np.asarray(rgb0, dtype=np.float64))
-    msh1 = rgb_to_msh(np.asarray(rgb1, dtype=np.float64))
-    out = np.empty(t.shape + (3,))
-    hue_gap = abs(msh0[2] - msh1[2])
-    hue_gap = min(hue_gap, 2 * np.pi - hue_gap)
-    if msh0[1] > 0.05 and msh1[1] > 0.05 and hue_gap > np.pi / 3.0:
-        # Two distinct saturated hues: pass through an unsaturated (white-ish) centre.
-        centre = np.array([max(msh0[0], msh1[0], 88.0), 0.0, 0.0])
-        low = t < 0.5
-        out[low] = _interpolate_msh(msh0, centre, 2.0 * t[low])
-        out[~low] = _interpolate_msh(centre, msh1, 2.0 * t[~low] - 1.0)
-        return out
-    return _interpolate_msh(msh0, msh1, t)
+    msh0 = rgb_to_msh(rgb0)  # [N, 3]
+    msh1 = rgb_to_msh(rgb1)
+    t = np.asarray(t, dtype=np.float64).copy()
+    split = (msh0[:, 1] > 0.05) & (msh1[:, 1] > 0.05) & (_angle_between(msh0[:, 2], msh1[:, 2]) > 0.33 * np.pi)
+    white = np.maximum(np.maximum(msh0[:, 0], msh1[:, 0]), 88.0)
+    centre = np.stack([white, np.zeros_like(t), np.zeros_like(t)], axis=1)
+    first_half = split & (t < 0.5)
+    second_half = split & ~(t < 0.5)
+    msh1 = np.where(first_half[:, None], centre, msh1)
+    msh0 = np.where(second_half[:, None], centre, msh0)
+    t = np.where(first_half, 2.0 * t, np.where(second_half, 2.0 * t - 1.0, t))
+    grey0 = (msh0[:, 1] < 0.05) & (msh1[:, 1] > 0.05)
+    grey1 = (msh1[:, 1] < 0.05) & (msh0[:, 1] > 0.05)
+    msh0[:, 2] = np.where(grey0, _spun_hue(msh1, msh0[:, 0]), msh0[:, 2])
+    msh1[:, 2] = np.where(grey1, _spun_hue(msh0, msh1[:, 0]), msh1[:, 2])
+    return msh_to_rgb((1.0 - t)[:, None] * msh0 + t[:, None] * msh1)
 
 
-def _interpolate_msh(msh0: np.ndarray, msh1: np.ndarray, t: np.ndarray) -> np.ndarray:
-    msh0 = msh0.copy()
-    msh1 = msh1.copy()
-    if msh0[1] < 0.05 and msh1[1] > 0.05:
-        msh0[2] = _adjust_hue(msh1, msh0[0])
-    elif msh1[1] < 0.05 and msh0[1] > 0.05:
-        msh1[2] = _adjust_hue(msh0, msh1[0])
-    msh = (1.0 - t)[:, None] * msh0 + t[:, None] * msh1  # [N, 3]
-    return msh_to_rgb(msh)
-
-
-def interpolate_colors(rgb0: np.ndarray, rgb1: np.ndarray, t: np.ndarray, space: str) -> np.ndarray:
-    """Interpolate between two colour-map nodes the way ParaView's colour spaces do.
+def interpolate_hsv(rgb0: np.ndarray, rgb1: np.ndarray, t: np.ndarray, wrap: bool) -> np.ndarray:
+    """Linear interpolation in HSV.
 
     Args:
-        rgb0, rgb1: ``[3]`` sRGB end colours.
+        rgb0, rgb1: ``[N, 3]`` end colours.
         t: ``[N]`` positions in [0, 1].
-        space: one of ``SUPPORTED_COLOR_SPACES``.
+        wrap: go round the hue circle the short way (VTK's ``HSVWrap``). ParaView applies presets with
+            it off unless the preset says ``"HSVWrap": 1``, so "Blue to Red Rainbow" passes through green.
+
+    Returns:
+        ``[N, 3]`` sRGB colours.
+    """
+    hsv0, hsv1 = rgb_to_hsv(rgb0), rgb_to_hsv(rgb1)  # [N, 3]
+    if wrap:  # move the higher hue down by a turn when the two are more than half a turn apart
+        far = np.abs(hsv0[:, 0] - hsv1[:, 0]) > 0.5
+        first_higher = hsv0[:, 0] > hsv1[:, 0]
+        hsv0[:, 0] -= far & first_higher
+        hsv1[:, 0] -= far & ~first_higher
+    hsv = (1.0 - t)[:, None] * hsv0 + t[:, None] * hsv1
+    hsv[:, 0] = np.where(hsv[:, 0] < 0.0, hsv[:, 0] + 1.0, hsv[:, 0])
+    return hsv_to_rgb(hsv)
+
+
+def interpolate_colors(
+    rgb0: np.ndarray, rgb1: np.ndarray, t: np.ndarray, space: str, hsv_wrap: bool = False
+) -> np.ndarray:
+    """The colour a fraction ``t`` of the way between two colour-map nodes, in one of ParaView's spaces.
+
+    Args:
+        rgb0, rgb1: ``[N, 3]`` sRGB colours of each sample's lower and upper node.
+        t: ``[N]`` positions in (0, 1].
+        space: one of ``SUPPORTED_COLOR_SPACES``. ``Step`` is the upper node's colour (VTK's step mode).
+        hsv_wrap: for ``HSV`` only, see :func:`interpolate_hsv`.
 
     Returns:
         ``[N, 3]`` sRGB in [0, 1].
@@ -177,24 +214,15 @@ def interpolate_colors(rgb0: np.ndarray, rgb1: np.ndarray, t: np.ndarray, space:
     rgb1 = np.asarray(rgb1, dtype=np.float64)
     t = np.asarray(t, dtype=np.float64)
     if space == "RGB":
-        return (1.0 - t)[:, None] * rgb0 + t[:, None] * rgb1
-    if space == "Step":
-        # ParaView's "Step" holds each node's colour up to the next node.
-        return np.where((t < 1.0)[:, None], rgb0, rgb1)
-    if space == "Lab":
-        lab = (1.0 - t)[:, None] * rgb_to_lab(rgb0) + t[:, None] * rgb_to_lab(rgb1)
-        return lab_to_rgb(lab)
-    if space == "HSV":
-        hsv0, hsv1 = rgb_to_hsv(rgb0), rgb_to_hsv(rgb1)
-        # Go round the hue circle the short way, as VTK does by default.
-        dh = hsv1[0] - hsv0[0]
-        if dh > 0.5:
-            dh -= 1.0
-        elif dh < -0.5:
-            dh += 1.0
-        hue = (hsv0[0] + t * dh) % 1.0
-        rest = (1.0 - t)[:, None] * hsv0[1:] + t[:, None] * hsv1[1:]
-        return hsv_to_rgb(np.concatenate([hue[:, None], rest], axis=1))
-    if space == "Diverging":
-        return interpolate_diverging(rgb0, rgb1, t)
-    raise ValueError(f"unknown colour space {space!r}")
+        out = (1.0 - t)[:, None] * rgb0 + t[:, None] * rgb1
+    elif space == "Step":
+        out = rgb1.copy()
+    elif space == "Lab":
+        out = lab_to_rgb((1.0 - t)[:, None] * rgb_to_lab(rgb0) + t[:, None] * rgb_to_lab(rgb1))
+    elif space == "HSV":
+        out = interpolate_hsv(rgb0, rgb1, t, hsv_wrap)
+    elif space == "Diverging":
+        out = interpolate_diverging(rgb0, rgb1, t)
+    else:
+        raise ValueError(f"unknown colour space {space!r}: use one of {', '.join(SUPPORTED_COLOR_SPACES)}")
+    return np.clip(out, 0.0, 1.0)

@@ -1,23 +1,30 @@
-"""Built-in colour maps, each with nodes on [0, 1] (a preset, stretched to the data range when used).
+"""Built-in colour maps, each with nodes on [0, 1] (a preset, stretched to the data range when used), and
+:func:`make_transfer_function`, which turns a map name or a ParaView preset file into a transfer function.
 
-ParaView's default "Cool to Warm" is given by its two end colours and Moreland's diverging
-interpolation, exactly as ParaView defines it. "grayscale" is a linear RGB ramp. The matplotlib maps
+ParaView's default "Cool to Warm" has the nodes and Diverging space of ParaView's own preset (its two
+end colours and the light grey between them). "grayscale" is a linear RGB ramp. The matplotlib maps
 (viridis, plasma, inferno, magma, cividis, coolwarm, jet, turbo, and any other name matplotlib knows) are
-sampled at 256 nodes with RGB interpolation, as ParaView's own "(matplotlib)" presets are; matplotlib is
-imported only when one of them is asked for.
+sampled at 256 nodes with RGB interpolation; matplotlib is imported only when one of them is asked for.
+Cool to Warm, grayscale, viridis, plasma, inferno, magma and turbo give ParaView's colours for its presets
+of those names within 1/255 (tested against ParaView); matplotlib's jet and coolwarm are not ParaView's
+"Jet" and "Cool to Warm" (use ParaView's preset file for those).
 """
 
 from __future__ import annotations
 
 import re
 
+import numpy as np
+
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.render.paraview import PRESET_SUFFIXES, load_transfer_function
 from apmgsrn.render.transfer_function import ColorMap, TransferFunction, opacity_from_normalized
 
-# ParaView's default colour map (vtkPVLookupTable / "Cool to Warm" preset): two nodes, Diverging space.
+# ParaView's default colour map ("Cool to Warm" preset): three nodes, Diverging space.
 COOL_TO_WARM = ColorMap(
     points=(
         (0.0, 0.23137254902, 0.298039215686, 0.752941176471),
+        (0.5, 0.865, 0.865, 0.865),
         (1.0, 0.705882352941, 0.0156862745098, 0.149019607843),
     ),
     color_space="Diverging",
@@ -75,8 +82,7 @@ def builtin_colormap(name: str) -> ColorMap:
 
 
 def _from_matplotlib(name: str) -> ColorMap:
-    import matplotlib  # heavy: only when a matplotlib map is asked for
-    import numpy as np
+    import matplotlib  # about a second to import: only when one of its maps is asked for
 
     try:
         cmap = matplotlib.colormaps[name]
@@ -101,19 +107,20 @@ def make_transfer_function(
     value_range: tuple[float, float] = (0.0, 1.0),
     opacity: tuple[tuple[float, float], ...] | None = None,
     preset_name: str | None = None,
-    preset_units: str = "auto",
+    preset_units: str = "normalized",
 ) -> TransferFunction:
     """A transfer function from a colour-map name or a ParaView preset file, over a value range.
 
     Args:
         colormap: a built-in name (see ``BUILTIN_COLORMAPS``), a matplotlib name, or a path to a ParaView
-            ``.json`` preset file.
-        value_range: ``(min, max)`` in data units the map is stretched to (a session export in data units
-            keeps its own range, see ``paraview.load_transfer_function``).
+            ``.json`` or ``.xml`` preset file.
+        value_range: ``(min, max)`` in data units the map is stretched to (unless ``preset_units`` is
+            ``"data"``).
         opacity: ``(position, alpha)`` pairs on [0, 1] of the final range; None keeps a preset's own
             opacity, else uses ``DEFAULT_OPACITY``.
         preset_name: which preset of a multi-preset file.
-        preset_units: ``auto``, ``normalized`` or ``data`` (see ``paraview.load_transfer_function``).
+        preset_units: ``normalized`` (ParaView's default) or ``data`` (keep a preset's own node positions,
+            as saved from a session); see ``paraview.apply_preset``.
 
     Returns:
         The transfer function, nodes in data units.
@@ -121,9 +128,7 @@ def make_transfer_function(
     lo, hi = value_range
     if not hi > lo:
         hi = lo + 1.0  # a constant volume: any non-empty range shows it
-    if colormap.lower().endswith(".json"):
-        from apmgsrn.render.paraview import load_transfer_function
-
+    if colormap.lower().endswith(PRESET_SUFFIXES):
         tf = load_transfer_function(
             colormap, (lo, hi), name=preset_name, units=preset_units, default_opacity=DEFAULT_OPACITY
         )

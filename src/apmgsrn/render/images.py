@@ -8,13 +8,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from apmgsrn.atomic import atomic_write
 from apmgsrn.errors import ApmgsrnError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 
 
 def as_uint8(image: torch.Tensor | np.ndarray) -> np.ndarray:
-    """``[H, W, 3]`` uint8 from a float image in [0, 1] (tensor or array) or a uint8 array."""
+    """``[H, W, 3]`` (or ``[H, W, 4]``) uint8 from a float image in [0, 1] (tensor or array) or a uint8 array."""
     if isinstance(image, torch.Tensor):
         image = image.detach().cpu().numpy()
     if image.dtype == np.uint8:
@@ -33,16 +34,16 @@ def save_image(image: torch.Tensor | np.ndarray, path: str | os.PathLike) -> Pat
         The path written.
 
     Raises:
-        ApmgsrnError: unknown suffix or missing folder.
+        ApmgsrnError: unknown suffix, missing or unwritable folder, or a failed write (nothing is left under
+            ``path`` then: the file is written atomically).
     """
     from PIL import Image
 
     path = Path(path)
     if path.suffix.lower() not in IMAGE_SUFFIXES:
         raise ApmgsrnError(f"{path}: unknown image type {path.suffix!r}; use a .png file name")
-    _check_folder(path)
-    Image.fromarray(as_uint8(image)).save(path)
-    return path
+    pixels = Image.fromarray(as_uint8(image))
+    return atomic_write(path, pixels.save, "image")
 
 
 def side_by_side(left: torch.Tensor, right: torch.Tensor, gap: int = 4) -> torch.Tensor:
@@ -73,9 +74,3 @@ def error_image(
     normalized = (error / top).clamp(0.0, 1.0).numpy()
     rgba = matplotlib.colormaps[colormap](normalized)  # [H, W, 4]
     return torch.from_numpy(rgba[..., :3].astype(np.float32)), top
-
-
-def _check_folder(path: Path) -> None:
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise ApmgsrnError(f"{path}: folder {folder} does not exist; create it or choose another path")

@@ -1,46 +1,43 @@
-"""Emission-absorption ray marching of any field through the volume's box (SPEC section 7).
+"""The volume renderer: emission-absorption ray marching of any field through the volume's box (SPEC 7).
 
-Sampling. Rays are clipped to the box ``[-e, e]`` (``e`` the extent, longest half side 1). The step
-length is fixed: ``step = longest box side / samples_per_ray``, so ``samples_per_ray`` samples cross the
-box along its longest axis (a ray along the diagonal of a cube takes up to ``sqrt(3)`` times as many).
-Sample ``i`` of a ray sits at ``t_near + (i + u) * step`` with ``u = 0.5``, or a per-pixel hashed offset
-in ``[0, 1)`` when jitter is on (seeded, so a pixel always gets the same offset). Each sample stands for
-the part of the ray closer to it than to its neighbours, clipped to the box, so the segment lengths
-``dt_i`` add up to the chord exactly and a homogeneous medium obeys Beer-Lambert exactly.
-
-Opacity correction. The transfer function's opacity ``a`` is the opacity of a slab one *reference step*
-thick (``longest box side / reference_samples``); a sample of length ``dt`` gets
-``alpha = 1 - (1 - a) ** (dt / reference_step)``, so images do not depend on ``samples_per_ray``.
-
-Compositing is front to back: ``C += T * alpha * colour``, ``T *= 1 - alpha``, background added with the
-final ``T``. A sample that finds ``T < early_termination`` contributes nothing and ends its ray.
+A render composes the stages of the other modules: rays are clipped to the box and, with empty-space
+skipping, to the box around the macro cells the transfer function may show (``bounds``); their samples
+are laid out a fixed step apart (``sampling``); the field is evaluated at the samples that are worth it;
+the transfer table turns values into colour and opacity; and the samples are composited front to back
+with opacity corrected for the step length (``compositing``).
 
 Work is bounded by ``batch_size``: rays are taken in chunks, and each round advances every live ray of
 a chunk by ``K`` samples with ``live rays * K <= batch_size``; the field sees only samples that are
 inside the box, in front of the termination point and, with empty-space skipping, in a macro cell that
-the opacity map does not make transparent (see ``empty_space``). Skipped samples have opacity exactly 0,
-so skipping never changes the image for exact bounds (the raw volume).
+the opacity map does not make transparent. Skipped samples have opacity exactly 0, so skipping never
+changes the image for exact bounds (the raw volume).
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import torch
 
+from apmgsrn.arguments import MAX_BATCH_SIZE, check_int, check_number
+from apmgsrn.errors import InvalidArgument
+from apmgsrn.render.bounds import Occupancy, ValueBounds
 from apmgsrn.render.camera import Camera
-from apmgsrn.render.empty_space import ValueBounds, occupied_box
+from apmgsrn.render.compositing import FrontToBack, corrected_alpha
+from apmgsrn.render.field import Field, VolumeField, evaluate_field, field_device
+from apmgsrn.render.images import as_uint8
+from apmgsrn.render.sampling import RaySamples, sample_offsets
 from apmgsrn.render.transfer_function import TransferFunction, TransferTable
 
-Field = Callable[[torch.Tensor], torch.Tensor]
+#: Most samples per ray across the box (a 2^16-voxel axis), and macro cells per axis (their value bounds
+#: take ``cells^3`` floats).
+MAX_SAMPLES_PER_RAY, MAX_MACRO_CELLS = 1 << 16, 1024
 
 
 @dataclass(frozen=True)
 class RendererConfig:
-    """What the renderer does; see the module notes for the meaning of each step length."""
+    """What the renderer does; ``sampling`` and ``compositing`` explain the two step lengths."""
 
     samples_per_ray: int = 256  # samples across the box's longest side
     reference_samples: int = 256  # opacity is per step of (longest side / reference_samples)
@@ -55,12 +52,19 @@ class RendererConfig:
     table_size: int = 4096  # entries of the baked transfer function
 
     def __post_init__(self) -> None:
-        if self.samples_per_ray < 1 or self.reference_samples < 1:
-            raise ValueError("samples_per_ray and reference_samples must be positive")
-        if self.batch_size < 16:
-            raise ValueError("batch_size must be at least 16")
-        if not 0.0 <= self.early_termination < 1.0:
-            raise ValueError("early_termination must be in [0, 1)")
+        check_int("samples_per_ray", self.samples_per_ray, 1, MAX_SAMPLES_PER_RAY)
+        check_int("reference_samples", self.reference_samples, 1, MAX_SAMPLES_PER_RAY)
+        check_int("batch_size", self.batch_size, 16, MAX_BATCH_SIZE)
+        check_number("early_termination", self.early_termination, 0.0, 1.0, high_open=True)
+        check_int("macro_cells", self.macro_cells, 1, MAX_MACRO_CELLS)
+        check_int("samples_per_cell", self.samples_per_cell, 1, 64)
+        check_int("seed", self.seed, 0, 2**63 - 1)
+        check_int("table_size", self.table_size, 2, 1 << 20)
+        if len(self.background) != 3:
+            raise InvalidArgument(f"background={self.background!r}: must be three numbers in [0, 1]",
+                                  arguments=("background",))
+        for value in self.background:
+            check_number("background", value, 0.0, 1.0)
 
 
 @dataclass
@@ -86,7 +90,7 @@ class RenderResult:
 
     def to_uint8(self) -> np.ndarray:
         """``[H, W, 3]`` uint8 copy of the image."""
-        return to_uint8(self.image)
+        return as_uint8(self.image)
 
 
 def default_batch_size(device: torch.device | str) -> int:
@@ -101,16 +105,12 @@ def default_batch_size(device: torch.device | str) -> int:
     return 1 << 20 if torch.device(device).type == "cuda" else 1 << 18
 
 
-def to_uint8(image: torch.Tensor) -> np.ndarray:
-    """Quantise an ``[H, W, 3]`` image in [0, 1] to uint8 (rounding to nearest)."""
-    return (image.detach().clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
-
-
 class VolumeRenderer:
     """Renders a field ``[N, 3] -> [N, 1]`` with a transfer function from any camera.
 
     Holds the run state the config does not: the field, the baked transfer function, the value bounds
-    and the resulting macro-cell occupancy (redone by :meth:`set_transfer_function`).
+    and the resulting macro-cell :class:`~apmgsrn.render.bounds.Occupancy` (redone by
+    :meth:`set_transfer_function`).
     """
 
     def __init__(
@@ -132,41 +132,57 @@ class VolumeRenderer:
         """
         self.field = field
         self.config = config
-        self.device = torch.device(device) if device is not None else _field_device(field)
+        self.device = torch.device(device) if device is not None else field_device(field)
         if len(extent) != 3 or min(extent) <= 0:
             raise ValueError(f"extent must be three positive half sizes, got {extent}")
         self.extent = tuple(float(e) for e in extent)
         self.bounds = bounds.to(self.device) if bounds is not None else None
         self.transfer_function = transfer_function
         self.table: TransferTable = transfer_function.table(config.table_size, self.device)
-        self._occupancy: torch.Tensor | None = None
-        self._occupied_box: tuple[torch.Tensor, torch.Tensor] | None = None
+        self.occupancy: Occupancy | None = None
         self._classify()
 
     @classmethod
     def for_volume(
         cls,
-        volume: torch.Tensor | np.ndarray,
+        volume: torch.Tensor | np.ndarray | VolumeField,
         transfer_function: TransferFunction,
         config: RendererConfig = RendererConfig(),
         extent: tuple[float, float, float] = (1.0, 1.0, 1.0),
-        device: torch.device | str = "cpu",
+        device: torch.device | str | None = None,
     ) -> "VolumeRenderer":
         """A renderer of the raw volume (the reference), with exact pooled bounds.
 
         Args:
-            volume: ``[D, H, W]`` values.
+            volume: ``[D, H, W]`` values, or a :class:`VolumeField` already holding them.
             transfer_function, config, extent: as for the constructor.
-            device: where to keep the volume and march.
+            device: where to keep the volume and march (default: the CPU, or the VolumeField's device).
 
         Returns:
             The renderer.
         """
-        from apmgsrn.render.volume_field import VolumeField
-
-        field = VolumeField(volume, device=device)
+        if isinstance(volume, VolumeField):
+            field = volume
+            device = field.device if device is None else device
+        else:
+            device = "cpu" if device is None else device
+            field = VolumeField(volume, device=device)
         bounds = ValueBounds.from_volume(field.volume, config.macro_cells) if config.empty_space_skipping else None
         return cls(field, transfer_function, config, extent=extent, bounds=bounds, device=device)
+
+    def reconfigured(self, config: RendererConfig) -> "VolumeRenderer":
+        """The same field, transfer function, extent and device with other settings.
+
+        Args:
+            config: the new settings.
+
+        Returns:
+            A new renderer; it keeps the value bounds (often seconds of sampling for a model) when the
+            macro cells and their sampling are unchanged.
+        """
+        cells = (config.macro_cells, config.samples_per_cell)
+        bounds = self.bounds if cells == (self.config.macro_cells, self.config.samples_per_cell) else None
+        return VolumeRenderer(self.field, self.transfer_function, config, self.extent, bounds, self.device)
 
     # ------------------------------------------------------------------ transfer function / skipping
     def set_transfer_function(self, transfer_function: TransferFunction) -> None:
@@ -190,19 +206,13 @@ class VolumeRenderer:
         return self.bounds
 
     def _classify(self) -> None:
-        if not self.config.empty_space_skipping or self.bounds is None:
-            self._occupancy = None
-            self._occupied_box = None
-            return
-        self._occupancy = self.bounds.occupancy(self.table)
-        self._occupied_box = occupied_box(self._occupancy)
+        skipping = self.config.empty_space_skipping and self.bounds is not None
+        self.occupancy = Occupancy(self.bounds, self.table) if skipping else None
 
     @property
     def visible_fraction(self) -> float | None:
         """Fraction of macro cells the current transfer function may show (None without skipping)."""
-        if self._occupancy is None:
-            return None
-        return float(self._occupancy.float().mean())
+        return self.occupancy.visible_fraction if self.occupancy is not None else None
 
     # ------------------------------------------------------------------ rendering
     @property
@@ -215,54 +225,44 @@ class VolumeRenderer:
         """Slab thickness the transfer function's opacities refer to, world units."""
         return 2.0 * max(self.extent) / self.config.reference_samples
 
-    def render(self, camera: Camera) -> RenderResult:
+    def render(self, camera: Camera, alpha: bool = False) -> RenderResult:
         """Render a full image.
 
         Args:
             camera: the view and the image size.
+            alpha: return RGBA ``[H, W, 4]``, colour not premultiplied, instead of RGB over the background.
 
         Returns:
-            The image ``[H, W, 3]`` (CPU, float32) and work counts.
+            The image ``[H, W, 3]`` (or ``[H, W, 4]``; CPU, float32) and work counts.
         """
         pixels = torch.arange(camera.width * camera.height, device=self.device)
-        colors, stats = self.render_pixels(camera, pixels)
-        return RenderResult(colors.view(camera.height, camera.width, 3).cpu(), stats)
+        colors, stats = self.render_pixels(camera, pixels, alpha)
+        return RenderResult(colors.view(camera.height, camera.width, colors.shape[1]).cpu(), stats)
 
-    def render_pixels(self, camera: Camera, pixels: torch.Tensor) -> tuple[torch.Tensor, RenderStatistics]:
+    def render_pixels(
+        self, camera: Camera, pixels: torch.Tensor, alpha: bool = False
+    ) -> tuple[torch.Tensor, RenderStatistics]:
         """Render some pixels of a camera's image.
 
         Args:
             camera: the view.
             pixels: ``[N]`` int64 linear pixel indices (``row * width + column``).
+            alpha: RGBA (see :meth:`render_rays`).
 
         Returns:
-            ``([N, 3] colours on the renderer's device, work counts)``.
+            ``([N, 3] colours (``[N, 4]`` with alpha) on the renderer's device, work counts)``.
         """
         pixels = pixels.to(self.device)
         chunk = self.rays_per_chunk
-        out = torch.empty((pixels.numel(), 3), dtype=torch.float32, device=self.device)
+        out = torch.empty((pixels.numel(), 4 if alpha else 3), dtype=torch.float32, device=self.device)
         stats = RenderStatistics()
         for start in range(0, pixels.numel(), chunk):
             ids = pixels[start : start + chunk]
             origins, directions = camera.rays(ids, self.device)
-            colors, chunk_stats = self.render_rays(origins, directions, ids)
+            colors, chunk_stats = self.render_rays(origins, directions, ids, alpha)
             out[start : start + chunk] = colors
             stats.add(chunk_stats)
         return out, stats
-
-    def render_progressive(self, camera: Camera, strides: tuple[int, ...] = (8, 4, 2, 1)):
-        """Coarse-to-fine rendering; see :func:`apmgsrn.render.progressive.render_progressive`.
-
-        Args:
-            camera: the view and image size.
-            strides: lattice strides of the passes, decreasing to 1.
-
-        Returns:
-            An iterator of ``ProgressiveImage``, the last one the full image.
-        """
-        from apmgsrn.render.progressive import render_progressive
-
-        return render_progressive(self, camera, strides)
 
     @property
     def rays_per_chunk(self) -> int:
@@ -270,7 +270,8 @@ class VolumeRenderer:
         return max(1, self.config.batch_size // 16)
 
     def render_rays(
-        self, origins: torch.Tensor, directions: torch.Tensor, ray_ids: torch.Tensor | None = None
+        self, origins: torch.Tensor, directions: torch.Tensor, ray_ids: torch.Tensor | None = None,
+        alpha: bool = False,
     ) -> tuple[torch.Tensor, RenderStatistics]:
         """Composite arbitrary rays (world space), in chunks of :attr:`rays_per_chunk`.
 
@@ -278,175 +279,85 @@ class VolumeRenderer:
             origins: ``[R, 3]`` ray origins.
             directions: ``[R, 3]`` unit directions.
             ray_ids: ``[R]`` int64 ids that seed the jitter (default ``0..R-1``).
+            alpha: return ``[R, 4]`` RGBA: the accumulated colour divided by the ray's opacity (straight, not
+                premultiplied; 0 where nothing was hit) and the opacity ``1 - T``; no background.
 
         Returns:
-            ``([R, 3] colours, background included, work counts)``.
+            ``([R, 3] colours, background included (or ``[R, 4]`` RGBA), work counts)``.
         """
         self.ensure_bounds()
         origins = origins.to(self.device, torch.float32)
         directions = directions.to(self.device, torch.float32)
         if ray_ids is None:
             ray_ids = torch.arange(origins.shape[0], device=self.device)
+        ray_ids = ray_ids.to(self.device)
         chunk = self.rays_per_chunk
-        out = torch.empty((origins.shape[0], 3), dtype=torch.float32, device=self.device)
+        out = torch.empty((origins.shape[0], 4 if alpha else 3), dtype=torch.float32, device=self.device)
         stats = RenderStatistics()
+        background = torch.tensor(self.config.background, dtype=torch.float32, device=self.device)
         with torch.inference_mode():
             for start in range(0, origins.shape[0], chunk):
                 end = start + chunk
-                colors, chunk_stats = self._march(origins[start:end], directions[start:end], ray_ids[start:end])
-                out[start:end] = colors
+                color, transmittance, chunk_stats = self._march(origins[start:end], directions[start:end],
+                                                                ray_ids[start:end])
+                if alpha:
+                    opacity = 1.0 - transmittance
+                    straight = torch.where(opacity[:, None] > 0, color / opacity.clamp(min=1e-12)[:, None], 0.0)
+                    out[start:end] = torch.cat([straight.clamp(0.0, 1.0), opacity[:, None]], 1)
+                else:
+                    out[start:end] = color + transmittance[:, None] * background  # C + T * background
                 stats.add(chunk_stats)
         return out, stats
 
     def _march(
-        self, origins: torch.Tensor, directions: torch.Tensor, pixels: torch.Tensor
-    ) -> tuple[torch.Tensor, RenderStatistics]:
-        """March a chunk of rays. Args: origins, directions ``[R, 3]``; pixels ``[R]``. Returns: ``[R, 3]``."""
+        self, origins: torch.Tensor, directions: torch.Tensor, ray_ids: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, RenderStatistics]:
+        """March a chunk of rays. Args: origins, directions ``[R, 3]``; ray_ids ``[R]``. Returns: the accumulated
+        (premultiplied) colour ``[R, 3]``, the transmittance left ``[R]`` and the work counts."""
         config = self.config
-        device = self.device
-        rays = origins.shape[0]
-        extent = torch.tensor(self.extent, dtype=torch.float32, device=device)
-        step = self.step
-        t_near, t_far = _intersect_box(origins, directions, -extent, extent)
-        t_near = t_near.clamp(min=0.0)
-        length = (t_far - t_near).clamp(min=0.0)  # [R]
-        if config.jitter:
-            offset = _pixel_jitter(pixels, config.seed)
-        else:
-            offset = torch.full((rays,), 0.5, device=device)
-        count = torch.ceil(length / step - offset).clamp(min=0).to(torch.int64)  # samples of each ray
-        first = torch.zeros_like(count)
-        last = count.clone()
-        occupancy_flat = None
-        if self._occupancy is not None:
-            occupancy_flat = self._occupancy.reshape(-1)
-            if self._occupied_box is None:  # nothing visible at all
-                last = first.clone()
-            else:
-                # Start and stop each ray at the box around the visible cells; one sample of slack either
-                # side, and the per-sample cell test below decides the rest.
-                low, high = (b * extent for b in self._occupied_box)
-                t_in, t_out = _intersect_box(origins, directions, low, high)
-                hits = t_out > t_in
-                first_in = torch.floor((t_in - t_near) / step - offset).to(torch.int64) - 1
-                last_in = torch.ceil((t_out - t_near) / step - offset).to(torch.int64) + 1
-                first = torch.where(hits, first_in.clamp(min=0), count).clamp(max=count)
-                last = torch.where(hits, torch.minimum(last_in, count), count).clamp(min=first)
-        stats = RenderStatistics(rays=rays, samples_in_box=int(count.sum()))
-        color = torch.zeros((rays, 3), dtype=torch.float32, device=device)
-        transmittance = torch.ones(rays, dtype=torch.float32, device=device)
-
-        # Rays in field coordinates ([-1, 1]^3) and in macro-cell coordinates ([0, G] per axis).
-        field_origin = origins / extent
-        field_direction = directions / extent
-        cells_zyx = self.bounds.cells if self.bounds is not None else (1, 1, 1)
-        cell_scale = 0.5 * torch.tensor(cells_zyx[::-1], dtype=torch.float32, device=device)  # (x, y, z)
-        cell_origin = (field_origin + 1.0) * cell_scale
-        cell_direction = field_direction * cell_scale
-        cell_max = torch.tensor(cells_zyx[::-1], dtype=torch.float32, device=device) - 1.0
-        cell_stride = torch.tensor([1, cells_zyx[2], cells_zyx[2] * cells_zyx[1]], device=device)
-
-        # Ray ids still marching, and where each stands.
-        active = (first < last).nonzero().squeeze(1)
-        cursor = first
-        eps = config.early_termination
-        half_step = 0.5 * step
+        extent = torch.tensor(self.extent, dtype=torch.float32, device=self.device)
+        offsets = sample_offsets(ray_ids, config.jitter, config.seed)
+        samples = RaySamples.through_box(origins, directions, extent, self.step, offsets)
+        occupancy = self.occupancy
+        if occupancy is not None:
+            box = None if occupancy.box is None else (occupancy.box[0] * extent, occupancy.box[1] * extent)
+            samples = samples.within(origins, directions, box)
+        stats = RenderStatistics(rays=origins.shape[0], samples_in_box=int(samples.count.sum()))
+        compositor = FrontToBack(origins.shape[0], self.device, config.early_termination)
+        # Rays in field coordinates ([-1, 1]^3), and in macro-cell units for the skipping test.
+        field_origins = origins / extent
+        field_directions = directions / extent
+        if occupancy is not None:
+            cell_origins, cell_directions = occupancy.cell_rays(field_origins, field_directions)
+        active = (samples.first < samples.last).nonzero().squeeze(1)  # rays still marching
+        cursor = samples.first.clone()  # next sample of each ray
         while active.numel() > 0:
             live = active.numel()
             k = max(1, min(64, config.batch_size // live))
-            steps = torch.arange(k, device=device)  # [K]
             ray_cursor = cursor[active]
-            index = ray_cursor[:, None] + steps  # [A, K] sample index along each ray
-            ray_near = t_near[active, None]
-            t = ray_near + (index.to(torch.float32) + offset[active, None]) * step  # [A, K]
-            valid = index < last[active, None]
-            if occupancy_flat is not None:
-                cell = cell_origin[active, None, :] + t[..., None] * cell_direction[active, None, :]  # [A, K, 3]
-                cell = torch.minimum(cell.clamp_(min=0.0), cell_max).to(torch.int64)  # floor: all >= 0
-                valid &= occupancy_flat[(cell * cell_stride).sum(dim=-1)]
-            # Segment of the ray each sample stands for, clipped to the box (see the module notes).
-            seg_low = torch.where(index == 0, ray_near, t - half_step)
-            seg_high = torch.where(index == count[active, None] - 1, t_far[active, None], t + half_step)
-            exponent = (seg_high - seg_low).clamp_(min=0.0) * (1.0 / self.reference_step)  # [A, K]
-            points = field_origin[active, None, :] + t[..., None] * field_direction[active, None, :]  # [A, K, 3]
+            index = ray_cursor[:, None] + torch.arange(k, device=self.device)  # [A, K] sample index along each ray
+            t = samples.positions(active, index)  # [A, K]
+            valid = index < samples.last[active, None]
+            if occupancy is not None:
+                valid &= occupancy.visible(cell_origins[active], cell_directions[active], t)
+            exponent = samples.segment_lengths(active, index, t) * (1.0 / self.reference_step)  # [A, K]
+            points = field_origins[active, None, :] + t[..., None] * field_directions[active, None, :]  # [A, K, 3]
             chosen = valid.view(-1).nonzero().squeeze(1)  # [S] samples that need the field
             selected = chosen.numel()
             if selected == 0:
-                alpha = torch.zeros((live, k), device=device)
-                sample_rgb = None
+                ray_t = compositor.add(active, torch.zeros((live, k), device=self.device), None)
             elif selected == live * k:  # every sample counts: no gathers
-                values = self._evaluate(points.view(-1, 3))
-                sample_rgb, opacity = self.table.lookup(values)
-                alpha = (1.0 - torch.pow(1.0 - opacity.view(live, k), exponent))
+                colors, opacity = self.table.lookup(evaluate_field(self.field, points.view(-1, 3), config.batch_size))
+                ray_t = compositor.add(active, corrected_alpha(opacity.view(live, k), exponent), colors)
             else:
-                values = self._evaluate(points.view(-1, 3)[chosen])
-                sample_rgb, opacity = self.table.lookup(values)
-                alpha = torch.zeros(live * k, device=device)
-                alpha[chosen] = 1.0 - torch.pow(1.0 - opacity, exponent.view(-1)[chosen])
-                alpha = alpha.view(live, k)
+                values = evaluate_field(self.field, points.view(-1, 3)[chosen], config.batch_size)
+                colors, opacity = self.table.lookup(values)
+                alpha = torch.zeros(live * k, device=self.device)
+                alpha[chosen] = corrected_alpha(opacity, exponent.view(-1)[chosen])
+                ray_t = compositor.add(active, alpha.view(live, k), colors, chosen)
             stats.field_evaluations += selected
-            ray_t = transmittance[active]
-            after = ray_t[:, None] * torch.cumprod(1.0 - alpha, dim=1)  # [A, K] T after each sample
-            before = torch.cat([ray_t[:, None], after[:, :-1]], dim=1)  # [A, K] T before each sample
-            keep = before >= eps  # early termination: later samples contribute nothing
-            weight = before * alpha * keep  # [A, K]
-            if sample_rgb is not None and selected == live * k:
-                color[active] += (weight[..., None] * sample_rgb.view(live, k, 3)).sum(dim=1)
-            elif sample_rgb is not None:
-                color.index_add_(0, active[chosen // k], weight.view(-1)[chosen, None] * sample_rgb)
-            # The ray's transmittance stops at its termination point (monotone: the smallest kept value).
-            ray_t = torch.where(keep, after, torch.full_like(after, math.inf)).amin(dim=1)
-            transmittance[active] = ray_t
             ray_cursor = ray_cursor + k
             cursor[active] = ray_cursor
-            still = (ray_cursor < last[active]) & (ray_t >= eps) & (ray_t > 0)
+            still = (ray_cursor < samples.last[active]) & (ray_t >= config.early_termination) & (ray_t > 0)
             active = active[still]
-        background = torch.tensor(config.background, dtype=torch.float32, device=device)
-        return color + transmittance[:, None] * background, stats
-
-    def _evaluate(self, points: torch.Tensor) -> torch.Tensor:
-        """Field values at ``[S, 3]`` points in batches of at most ``batch_size``; returns ``[S]`` float32."""
-        size = self.config.batch_size
-        if points.shape[0] <= size:
-            return self.field(points).reshape(-1).to(torch.float32)
-        out = torch.empty(points.shape[0], dtype=torch.float32, device=points.device)
-        for start in range(0, points.shape[0], size):
-            out[start : start + size] = self.field(points[start : start + size]).reshape(-1)
-        return out
-
-
-def _intersect_box(
-    origins: torch.Tensor, directions: torch.Tensor, low: torch.Tensor, high: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Slab-method ray/box intersection. Returns ``(t_enter [R], t_exit [R])``; a miss has exit < enter."""
-    # Division by a zero component gives +-inf, which the min/max below handle (a parallel ray inside the
-    # slab keeps (-inf, inf); outside it gets an empty interval).
-    inverse = 1.0 / directions
-    t0 = (low - origins) * inverse  # [R, 3]
-    t1 = (high - origins) * inverse
-    t_small = torch.minimum(t0, t1).nan_to_num(nan=-math.inf)
-    t_large = torch.maximum(t0, t1).nan_to_num(nan=math.inf)
-    return t_small.amax(dim=1), t_large.amin(dim=1)
-
-
-def _pixel_jitter(pixels: torch.Tensor, seed: int) -> torch.Tensor:
-    """A fixed pseudo-random offset in [0, 1) per pixel index (integer hash), independent of render order."""
-    mask = 0xFFFFFFFF
-    h = (pixels.to(torch.int64) * 0x27D4EB2D + (seed * 0x165667B1 + 0x3C6EF372)) & mask
-    h = h ^ (h >> 15)
-    h = (h * 0x2C1B3C6D) & mask
-    h = h ^ (h >> 12)
-    h = (h * 0x297A2D39) & mask
-    h = h ^ (h >> 15)
-    return (h >> 8).to(torch.float32) / float(1 << 24)  # 24 bits: exact in float32, never reaches 1
-
-
-def _field_device(field: Field) -> torch.device:
-    device = getattr(field, "device", None)
-    if isinstance(device, (torch.device, str)):
-        return torch.device(device)
-    parameters = getattr(field, "parameters", None)
-    if callable(parameters):
-        for parameter in parameters():
-            return parameter.device
-    return torch.device("cpu")
+        return compositor.color, compositor.transmittance, stats

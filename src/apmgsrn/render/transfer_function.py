@@ -19,21 +19,16 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
+from apmgsrn.errors import ApmgsrnError
 from apmgsrn.render.color_spaces import SUPPORTED_COLOR_SPACES, interpolate_colors
 
-_SPACE_ALIASES = {
-    "rgb": "RGB",
-    "lab": "Lab",
-    "cielab": "Lab",
-    "lab/ciede2000": "Lab",  # approximated by plain Lab interpolation
-    "diverging": "Diverging",
-    "hsv": "HSV",
-    "step": "Step",
-}
+_SPACE_ALIASES = {name.lower(): name for name in SUPPORTED_COLOR_SPACES} | {"cielab": "Lab"}
 
 
 def normalize_color_space(name: str) -> str:
-    """Canonical spelling of a colour-space name (ParaView's ``ColorSpace``), case-insensitive.
+    """Canonical spelling of a colour-space name, case-insensitive (for names typed in code or a CLI).
+
+    Preset files are read by ParaView's stricter rules instead (see ``paraview.py``).
 
     Args:
         name: e.g. ``"RGB"``, ``"lab"``, ``"Diverging"``.
@@ -46,20 +41,95 @@ def normalize_color_space(name: str) -> str:
     """
     key = name.strip().lower()
     if key not in _SPACE_ALIASES:
-        raise ValueError(
-            f"unknown colour space {name!r}: use one of {', '.join(SUPPORTED_COLOR_SPACES)}"
-        )
+        raise ValueError(f"unknown colour space {name!r}: use one of {', '.join(SUPPORTED_COLOR_SPACES)}")
     return _SPACE_ALIASES[key]
+
+
+def rescale_positions(
+    xs: np.ndarray, value_min: float, value_max: float, from_log: bool = False, to_log: bool = False
+) -> np.ndarray:
+    """Node positions stretched onto ``[value_min, value_max]`` the way ParaView does it.
+
+    ParaView normalises the nodes to [0, 1] by their own span (in log10 when ``from_log`` and the span is
+    positive; a span of exactly [0, 1] is left as it is), then maps [0, 1] onto the new range (in log10
+    when ``to_log``). The arithmetic is ParaView's, so node positions agree with its own to the last bit
+    and a value exactly on a node gets the same side of it.
+
+    Args:
+        xs: ``[P]`` sorted node positions, ``P >= 2``, not all equal.
+        value_min, value_max: the new range, ``value_min < value_max``.
+        from_log: the nodes are spaced in log10 (a preset's ``UseLogScale``).
+        to_log: space them in log10 over the new range (a log-scale colour map).
+
+    Returns:
+        ``[P]`` new positions.
+
+    Raises:
+        ApmgsrnError: ``to_log`` with a range that is not positive.
+    """
+    xs = np.asarray(xs, dtype=np.float64)
+    if from_log and not (xs[0] > 0 and xs[-1] > 0):
+        from_log = False  # ParaView: "range not valid for log", taken as linear
+    t = np.log10(xs) if from_log else xs.copy()
+    if not (t[0] == 0.0 and t[-1] == 1.0):
+        t = (t - t[0]) / (t[-1] - t[0])
+    if not to_log:
+        return t * (value_max - value_min) + value_min
+    if not (value_min > 0 and value_max > 0):
+        raise ApmgsrnError(
+            f"value range {value_min:g}..{value_max:g} is not positive, but this transfer function uses a log "
+            "scale; give a positive range (value_range=(MIN, MAX)) or a linear preset", arguments=("value_range",)
+        )
+    low, high = math.log10(value_min), math.log10(value_max)
+    return np.power(10.0, t * (high - low) + low)
+
+
+def _segments(xs: np.ndarray, values: np.ndarray, log_scale: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where each value falls among sorted nodes, by VTK's rules.
+
+    A value at or below the first node takes the first node, one above the last the last; any other
+    value lies in the segment ending at the first node at or above it, so a value exactly on a node (or
+    on the first of several nodes at one position) belongs to the segment below. With a log scale (and
+    positive nodes) the position within the segment is measured in log10, as VTK does.
+
+    Args:
+        xs: ``[P]`` sorted node positions, ``P >= 2``.
+        values: ``[N]`` finite values.
+        log_scale: measure positions in log10.
+
+    Returns:
+        ``upper [N]`` index of the first node at or above each value (0: at or below the first node,
+        ``P``: above the last), ``inside [N]`` whether a value is strictly inside the nodes' span or on a
+        node after the first, and ``t [N]`` its position in its segment (0..1; 0 where not inside).
+    """
+    upper = np.searchsorted(xs, values, side="left")
+    inside = (upper > 0) & (upper < len(xs))
+    k = np.clip(upper, 1, len(xs) - 1)
+    x0, x1 = xs[k - 1], xs[k]  # x0 < x1 wherever inside
+    v = values
+    if log_scale and xs[0] > 0:  # every node positive, and so every value inside a segment
+        v, x0, x1 = np.log10(np.where(inside, values, 1.0)), np.log10(x0), np.log10(x1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(inside, (v - x0) / np.where(inside, x1 - x0, 1.0), 0.0)
+    return upper, inside, t
 
 
 @dataclass(frozen=True)
 class ColorMap:
-    """Colour nodes ``(x, r, g, b)`` (x ascending, colours sRGB in [0, 1]) and how to blend between them."""
+    """Colour nodes ``(x, r, g, b)`` (x ascending, colours sRGB in [0, 1]) and how to blend between them.
+
+    Several nodes may share a position (a sharp change): they keep their given order, the first one
+    colouring the value itself and the segment below, the last one the segment above. ``hsv_wrap`` makes
+    the HSV space take the short way round the hue circle; ``log_scale`` measures positions between
+    nodes in log10 (ParaView's "use log scale when mapping data to colours").
+    """
 
     points: tuple[tuple[float, float, float, float], ...]
     color_space: str = "RGB"
     name: str = "custom"
     nan_color: tuple[float, float, float] = (1.0, 1.0, 0.0)
+    hsv_wrap: bool = False
+    log_scale: bool = False
 
     def __post_init__(self) -> None:
         if len(self.points) == 0:
@@ -74,7 +144,9 @@ class ColorMap:
         return float(self.points[0][0]), float(self.points[-1][0])
 
     def evaluate(self, values: np.ndarray) -> np.ndarray:
-        """Colours at values (clamped to the end nodes beyond the span).
+        """Colours at values, as ParaView's lookup table gives them (VTK's ``GetTable``).
+
+        Values beyond the span take the end nodes' colours; NaN takes ``nan_color``.
 
         Args:
             values: ``[N]`` values in the map's units.
@@ -82,20 +154,59 @@ class ColorMap:
         Returns:
             ``[N, 3]`` sRGB in [0, 1], float64.
         """
-        values = np.asarray(values, dtype=np.float64)
+        values = np.asarray(values, dtype=np.float64).reshape(-1)
         nodes = np.asarray(self.points, dtype=np.float64)  # [P, 4]
-        if len(nodes) == 1:
-            return np.repeat(nodes[:1, 1:], len(values), axis=0)
-        segment, t = _locate(nodes[:, 0], values)
-        out = np.empty((len(values), 3))
-        for k in np.unique(segment):
-            mask = segment == k
-            out[mask] = interpolate_colors(nodes[k, 1:], nodes[k + 1, 1:], t[mask], self.color_space)
-        return np.clip(out, 0.0, 1.0)
+        out = np.repeat(nodes[:1, 1:], len(values), axis=0)  # [N, 3]; also the answer for a single node
+        nan = np.isnan(values)
+        out[nan] = self.nan_color
+        if len(nodes) > 1:
+            finite = np.flatnonzero(~nan)
+            upper, inside, t = _segments(nodes[:, 0], values[finite], self.log_scale)
+            out[finite[upper >= len(nodes)]] = nodes[-1, 1:]
+            k = upper[inside]
+            out[finite[inside]] = interpolate_colors(
+                nodes[k - 1, 1:], nodes[k, 1:], t[inside], self.color_space, self.hsv_wrap
+            )
+        return out
 
-    def mapped(self, old: tuple[float, float], new: tuple[float, float]) -> "ColorMap":
-        """The same map with its node positions moved linearly from range ``old`` to range ``new``."""
-        return replace(self, points=tuple((_remap(p[0], old, new), *p[1:]) for p in self.points))
+    def rescaled(self, value_min: float, value_max: float) -> "ColorMap":
+        """The same map stretched over ``[value_min, value_max]`` as ParaView's "rescale" does it.
+
+        Nodes are normalised by their own span and spread over the new range (in log10 with
+        ``log_scale``). A range equal to the span leaves the map as it is; a single node becomes two, one
+        at each end.
+        """
+        return replace(self, points=_rescaled_nodes(self.points, value_min, value_max, self.log_scale))
+
+
+def stretch_nodes(
+    points: tuple, value_min: float, value_max: float, from_log: bool = False, to_log: bool = False
+) -> tuple:
+    """Nodes (position first) spread over ``[value_min, value_max]`` with :func:`rescale_positions`.
+
+    A single node becomes two, one at each end, as in ParaView.
+
+    Raises:
+        ApmgsrnError: several nodes all at one position (nothing to stretch), or see :func:`rescale_positions`.
+    """
+    if len(points) == 1:
+        ends = rescale_positions([0.0, 1.0], value_min, value_max, to_log=to_log)
+        return tuple((float(x), *points[0][1:]) for x in ends)
+    xs = np.array([p[0] for p in points], dtype=np.float64)
+    if not xs[-1] > xs[0]:
+        raise ApmgsrnError(
+            f"all {len(points)} nodes sit at {xs[0]:g}, so they cannot be stretched over a range; "
+            "give nodes at two or more positions"
+        )
+    moved = rescale_positions(xs, value_min, value_max, from_log, to_log)
+    return tuple((float(x), *p[1:]) for x, p in zip(moved, points))
+
+
+def _rescaled_nodes(points: tuple, value_min: float, value_max: float, log_scale: bool) -> tuple:
+    """ParaView's "rescale" of a function: untouched when already on the range, else :func:`stretch_nodes`."""
+    if len(points) > 1 and points[0][0] == value_min and points[-1][0] == value_max:
+        return points
+    return stretch_nodes(points, value_min, value_max, log_scale, log_scale)
 
 
 @dataclass(frozen=True)
@@ -104,9 +215,11 @@ class OpacityMap:
 
     Between two nodes the curve follows VTK's piecewise function: ``midpoint`` (0..1) is where the curve
     reaches half way, ``sharpness`` 0 is linear and 1 a step. With the defaults 0.5 / 0 it is linear.
+    ``log_scale`` measures positions in log10, as a ParaView opacity function with ``UseLogScale`` does.
     """
 
     points: tuple[tuple[float, float, float, float], ...]
+    log_scale: bool = False
 
     def __post_init__(self) -> None:
         if len(self.points) == 0:
@@ -118,7 +231,9 @@ class OpacityMap:
             sharp = float(p[3]) if len(p) > 3 else 0.0
             if not 0.0 <= a <= 1.0:
                 raise ValueError(f"opacity {a} is outside [0, 1]")
-            clean.append((x, a, min(max(mid, 1e-5), 1.0 - 1e-5), min(max(sharp, 0.0), 1.0)))
+            if not (0.0 <= mid <= 1.0 and 0.0 <= sharp <= 1.0):
+                raise ValueError(f"midpoint {mid} and sharpness {sharp} must lie in [0, 1]")
+            clean.append((x, a, mid, sharp))
         if any(b[0] < a[0] for a, b in zip(clean, clean[1:])):
             raise ValueError("opacity points must be sorted by value")
         object.__setattr__(self, "points", tuple(clean))
@@ -128,7 +243,7 @@ class OpacityMap:
         return float(self.points[0][0]), float(self.points[-1][0])
 
     def evaluate(self, values: np.ndarray) -> np.ndarray:
-        """Opacity at values (clamped to the end nodes beyond the span).
+        """Opacity at values (the end nodes' beyond the span; NaN gives NaN, the caller decides).
 
         Args:
             values: ``[N]`` values in the map's units.
@@ -136,39 +251,42 @@ class OpacityMap:
         Returns:
             ``[N]`` opacities in [0, 1], float64.
         """
-        values = np.asarray(values, dtype=np.float64)
+        values = np.asarray(values, dtype=np.float64).reshape(-1)
         nodes = np.asarray(self.points, dtype=np.float64)  # [P, 4]
+        out = np.full(len(values), nodes[0, 1])
+        out[np.isnan(values)] = np.nan
         if len(nodes) == 1:
-            return np.full(len(values), nodes[0, 1])
-        segment, s = _locate(nodes[:, 0], values)
-        y0, y1 = nodes[segment, 1], nodes[segment + 1, 1]
-        mid, sharp = nodes[segment, 2], nodes[segment, 3]
-        # Move the half-way point to `mid` (VTK's vtkPiecewiseFunction convention).
+            return out
+        finite = np.flatnonzero(~np.isnan(values))
+        upper, inside, s = _segments(nodes[:, 0], values[finite], self.log_scale)
+        out[finite[upper >= len(nodes)]] = nodes[-1, 1]
+        k = upper[inside]
+        s = s[inside]
+        y0, y1 = nodes[k - 1, 1], nodes[k, 1]
+        # The segment's shape comes from its lower node; VTK keeps the midpoint off the very ends.
+        mid = np.clip(nodes[k - 1, 2], 1e-5, 1.0 - 1e-5)
+        sharp = nodes[k - 1, 3]
         s = np.where(s < mid, 0.5 * s / mid, 0.5 + 0.5 * (s - mid) / (1.0 - mid))
         linear = (1.0 - s) * y0 + s * y1
         step = np.where(s < 0.5, y0, y1)
         # Sharpness in (0, 1): squeeze s towards the ends, then a Hermite blend whose end slopes shrink
-        # with the sharpness; the curve stays monotone between the two node values.
+        # with the sharpness.
         power = 1.0 + 10.0 * sharp
         squeezed = np.where(
             s < 0.5,
             0.5 * np.power(np.clip(2.0 * s, 0.0, None), power),
-            1.0 - 0.5 * np.power(np.clip(2.0 * (1.0 - s), 0.0, None), power),
+            np.where(s > 0.5, 1.0 - 0.5 * np.power(np.clip(2.0 * (1.0 - s), 0.0, None), power), s),
         )
         ss, sss = squeezed**2, squeezed**3
-        h1 = 2 * sss - 3 * ss + 1
-        h2 = -2 * sss + 3 * ss
-        h3 = sss - 2 * ss + squeezed
-        h4 = sss - ss
         tangent = (1.0 - sharp) * (y1 - y0)
-        hermite = h1 * y0 + h2 * y1 + (h3 + h4) * tangent
-        hermite = np.clip(hermite, np.minimum(y0, y1), np.maximum(y0, y1))
-        out = np.where(sharp < 0.01, linear, np.where(sharp > 0.99, step, hermite))
+        hermite = (2 * sss - 3 * ss + 1) * y0 + (-2 * sss + 3 * ss) * y1 + (2 * sss - 3 * ss + squeezed) * tangent
+        hermite = np.clip(hermite, np.minimum(y0, y1), np.maximum(y0, y1))  # VTK keeps it between the nodes
+        out[finite[inside]] = np.where(sharp > 0.99, step, np.where(sharp < 0.01, linear, hermite))
         return np.clip(out, 0.0, 1.0)
 
-    def mapped(self, old: tuple[float, float], new: tuple[float, float]) -> "OpacityMap":
-        """The same map with its node positions moved linearly from range ``old`` to range ``new``."""
-        return OpacityMap(tuple((_remap(p[0], old, new), *p[1:]) for p in self.points))
+    def rescaled(self, value_min: float, value_max: float) -> "OpacityMap":
+        """The same map stretched over ``[value_min, value_max]`` by its own span, as ParaView does."""
+        return replace(self, points=_rescaled_nodes(self.points, value_min, value_max, self.log_scale))
 
 
 @dataclass(frozen=True)
@@ -189,19 +307,23 @@ class TransferFunction:
         return self.color_map.span
 
     def rescaled(self, value_min: float, value_max: float) -> "TransferFunction":
-        """Stretch colour and opacity nodes together so the colour map spans ``[value_min, value_max]``.
+        """Stretch colour and opacity nodes over ``[value_min, value_max]`` (ParaView's "rescale").
+
+        As in ParaView, each map is stretched by its own span, so both end up spanning the new range.
 
         Args:
             value_min, value_max: the new range in data units (``value_max > value_min``).
 
         Returns:
-            A new transfer function (ParaView's "rescale to data range").
+            A new transfer function.
         """
         if not (math.isfinite(value_min) and math.isfinite(value_max)) or value_max <= value_min:
             raise ValueError(f"invalid value range {value_min}, {value_max}: need MIN < MAX")
-        old = self.value_range
-        new = (float(value_min), float(value_max))
-        return replace(self, color_map=self.color_map.mapped(old, new), opacity_map=self.opacity_map.mapped(old, new))
+        return replace(
+            self,
+            color_map=self.color_map.rescaled(value_min, value_max),
+            opacity_map=self.opacity_map.rescaled(value_min, value_max),
+        )
 
     def with_opacity(self, opacity_map: OpacityMap) -> "TransferFunction":
         """The same colours with another opacity map (its nodes in data units)."""
@@ -230,10 +352,12 @@ def opacity_from_normalized(
 
 @dataclass
 class TransferTable:
-    """A transfer function baked for the renderer: ``size`` entries evenly over ``[value_min, value_max]``.
+    """A transfer function baked for the renderer: ``size`` entries over ``[value_min, value_max]``.
 
-    Values are mapped to a fractional entry index and the table interpolated linearly between entries;
-    outside the range the end entries hold (clamping, as ParaView does).
+    Entries are evenly spaced in value, or in log10 of the value for a log-scale colour map over a positive
+    range (so every decade gets its share). Values are mapped to a fractional entry index and the table
+    interpolated linearly between entries; outside the range the end entries hold (clamping, as ParaView
+    does).
     """
 
     colors: torch.Tensor  # [T, 3]
@@ -243,6 +367,7 @@ class TransferTable:
     nan_color: torch.Tensor  # [3]
     nan_opacity: float
     _nonzero_prefix: torch.Tensor  # [T + 1] count of entries with opacity > 0 before each index
+    log_scale: bool = False
 
     def __post_init__(self) -> None:
         # Colour and opacity side by side, so a lookup gathers one row per neighbouring entry.
@@ -261,7 +386,9 @@ class TransferTable:
         hi = max(tf.color_map.span[1], tf.opacity_map.span[1])
         if hi <= lo:  # a single value: any width works, the map is constant on both sides
             hi = lo + 1.0
-        xs = np.linspace(lo, hi, size)
+        log_scale = tf.color_map.log_scale and lo > 0
+        xs = np.logspace(math.log10(lo), math.log10(hi), size) if log_scale else np.linspace(lo, hi, size)
+        xs[0], xs[-1] = lo, hi  # exactly the ends, whatever the rounding of logspace
         colors = torch.tensor(tf.color_map.evaluate(xs), dtype=torch.float32, device=device)
         opacity = torch.tensor(tf.opacity_map.evaluate(xs), dtype=torch.float32, device=device)
         prefix = torch.zeros(size + 1, dtype=torch.int64, device=device)
@@ -274,6 +401,7 @@ class TransferTable:
             nan_color=torch.tensor(tf.color_map.nan_color, dtype=torch.float32, device=device),
             nan_opacity=float(tf.nan_opacity),
             _nonzero_prefix=prefix,
+            log_scale=log_scale,
         )
 
     @property
@@ -282,6 +410,12 @@ class TransferTable:
 
     def entry_position(self, values: torch.Tensor) -> torch.Tensor:
         """Fractional table index of each value, clamped to ``[0, size - 1]`` (NaN stays NaN)."""
+        if self.log_scale:
+            # Values at or below 0 clamp to the first entry, as VTK's log lookup does; NaN stays NaN.
+            low = math.log10(self.value_min)
+            scale = (self.size - 1) / (math.log10(self.value_max) - low)
+            tiny = torch.finfo(values.dtype).tiny
+            return ((torch.log10(values.clamp_min(tiny)) - low) * scale).clamp(0.0, self.size - 1)
         scale = (self.size - 1) / (self.value_max - self.value_min)
         return ((values - self.value_min) * scale).clamp(0.0, self.size - 1)
 
@@ -326,19 +460,3 @@ class TransferTable:
         if self.nan_opacity > 0:
             visible |= torch.isnan(low) | torch.isnan(high)
         return visible
-
-
-def _locate(xs: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Segment index ``[N]`` and position in it ``[N]`` (0..1) of each value among sorted nodes ``xs``."""
-    clamped = np.clip(values, xs[0], xs[-1])
-    segment = np.clip(np.searchsorted(xs, clamped, side="right") - 1, 0, len(xs) - 2)
-    x0, x1 = xs[segment], xs[segment + 1]
-    width = x1 - x0
-    t = np.where(width > 0, (clamped - x0) / np.where(width > 0, width, 1.0), 1.0)
-    return segment, np.clip(t, 0.0, 1.0)
-
-
-def _remap(x: float, old: tuple[float, float], new: tuple[float, float]) -> float:
-    if old[1] == old[0]:
-        return new[0] if x <= old[0] else new[1]
-    return new[0] + (float(x) - old[0]) * (new[1] - new[0]) / (old[1] - old[0])

@@ -1,73 +1,286 @@
-"""Fit one model to one volume: prepare the data, train, save the model file (the ``train`` command)."""
+"""The fitting pipeline: prepare the values, build the field, train it, measure it, save it.
+
+Every fit goes through here: ``apmgsrn train`` (:func:`fit_volume`), each brick of a brick model
+(:mod:`apmgsrn.decomposition.brick_training`) and the replay behind the grid animation
+(:func:`train_prepared` with a callback). The steps take an array and plain metadata, not a volume
+object, so data that is not one volume (a time series) can be prepared its own way and fitted the same.
+
+1. :func:`prepare_values`: finite check, value transform, scaling to ``[0, 1]``, onto the device.
+2. :func:`train_prepared`: build the field from its config and seed, train it (resuming from a
+   checkpoint when one is there) with callbacks; a constant volume needs no training.
+3. :func:`fit`: the above, then the PSNR and largest error against the truth, the training summary and
+   the model file (atomic), and the checkpoint removed.
+"""
 
 from __future__ import annotations
 
-import os
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from apmgsrn.data import Volume
+from apmgsrn.data.fingerprint import volume_fingerprint
+from apmgsrn.device import keep_large_allocations_cached
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.inference.evaluate import Evaluation, evaluate
+from apmgsrn.io import SourceInfo, save_field
+from apmgsrn.io.container import check_replaceable
+from apmgsrn.io.field_file import FIELD_KIND
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.models.value_transform import ValueTransform, fit_value_transform
-from apmgsrn.training.checkpoint import save_field
-from apmgsrn.training.trainer import Trainer, TrainConfig
+from apmgsrn.training.callbacks import TrainingProgress
+from apmgsrn.training.checkpoint import checkpoint_path_for
+from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, TrainingState
 
 
 @dataclass(frozen=True)
-class PreparedVolume:
-    """A volume ready for training: values scaled to ``[0, 1]`` in fitted units, on the device."""
+class PreparedValues:
+    """Values ready for training, and what maps the network's output back to data units.
 
-    values: torch.Tensor  # [D, H, W] float32 in [0, 1]
-    data: np.ndarray  # [D, H, W] float32 in data units (for the final PSNR)
+    Attributes:
+        values: ``[D, H, W]`` float32 in ``[0, 1]`` (fitted units scaled by their range), on the device.
+        transform: the value transform, fitted on the data.
+        fit_min, fit_max: value range in fitted units (after the transform).
+        value_min, value_max: value range in data units.
+    """
+
+    values: torch.Tensor
     transform: ValueTransform
     fit_min: float
     fit_max: float
     value_min: float
     value_max: float
 
+    @property
+    def constant(self) -> bool:
+        """Every value is the same: the output scaling alone reproduces it exactly."""
+        return not self.fit_max - self.fit_min > 0
 
-def prepare_volume(volume, transform: str, log_offset: float, device: torch.device) -> PreparedVolume:
-    """Read, check, transform and scale a volume for training.
+
+def prepare_values(
+    data: np.ndarray, transform: str, log_offset: float, where: str, device: torch.device
+) -> PreparedValues:
+    """Check, transform and scale values for training (``data`` itself is left as it is).
+
+    Args:
+        data: ``[D, H, W]`` float32 values in data units.
+        transform: value transform kind (``none``, ``log10``, ``zscore``), fitted on ``data``.
+        log_offset: offset for ``log10``.
+        where: the data's file (and region), for error messages.
+        device: training device.
 
     Raises:
-        ApmgsrnError: non-finite values (without a fill value) or a transform the data does not allow.
+        ApmgsrnError: NaN or Inf values, or a transform the values do not allow.
     """
-    from apmgsrn.data import check_finite
-
-    check_finite(volume)
-    data = volume.to_numpy()
+    finite = int(np.count_nonzero(np.isfinite(data)))
+    if finite < data.size:
+        raise ApmgsrnError(
+            f"{where}: {data.size - finite} of {data.size} voxels are NaN or Inf; "
+            "pass fill_nonfinite=VALUE to replace them (e.g. fill_nonfinite=0)", arguments=("fill_nonfinite",),
+        )
     value_min, value_max = float(data.min()), float(data.max())
-    value_transform = fit_value_transform(transform, [data], value_min, log_offset, str(volume.path))
+    value_transform = fit_value_transform(transform, [data], value_min, log_offset, where)
     fitted = value_transform.apply(data)
     fit_min, fit_max = float(fitted.min()), float(fitted.max())
     span = fit_max - fit_min
+    # In place where the transform already made a copy: one extra volume-sized array at most.
+    scaled = np.array(fitted, dtype=np.float32) if fitted is data else np.ascontiguousarray(fitted, np.float32)
+    scaled -= np.float32(fit_min)
     # A constant volume has no range: fit zeros, and the output scaling returns the constant exactly.
-    scaled = (fitted - fit_min) / (span if span > 0 else 1.0)
-    values = torch.from_numpy(np.ascontiguousarray(scaled, dtype=np.float32)).to(device)
-    return PreparedVolume(values, data, value_transform, fit_min, fit_max, value_min, value_max)
+    scaled /= np.float32(span if span > 0 else 1.0)
+    values = torch.from_numpy(scaled).to(device)  # [D, H, W] in [0, 1]
+    return PreparedValues(values, value_transform, fit_min, fit_max, value_min, value_max)
 
 
-def checkpoint_path_for(model_path: Path) -> Path:
-    return Path(str(model_path) + ".ckpt")
+def check_output(out: Path, resume: bool) -> None:
+    """Refuse, before any work, an output whose folder is missing, a file there that is not an older model,
+    or a leftover checkpoint that ``resume`` does not take.
+
+    Raises:
+        ApmgsrnError: the folder does not exist, ``out`` is a file a model may not replace, or an
+            interrupted run's checkpoint is there.
+    """
+    out = Path(out)
+    check_replaceable(out, FIELD_KIND)
+    if not out.absolute().parent.is_dir():
+        raise ApmgsrnError(f"{out}: output folder {out.parent} does not exist; create it or pass another out=",
+                           arguments=("out",))
+    checkpoint = checkpoint_path_for(out)
+    if checkpoint.exists() and not resume:
+        raise ApmgsrnError(
+            f"{checkpoint}: an interrupted run left this checkpoint; pass resume=True to continue it, "
+            "or delete it to start over", arguments=("resume",),
+        )
+
+
+@dataclass(frozen=True)
+class TrainedField:
+    """A field after :func:`train_prepared`.
+
+    Attributes:
+        field: the trained field, in eval mode.
+        state: the trainer's final state (iterations, time, history); a fresh one for a constant volume.
+        resumed_from: iteration the run resumed at from a checkpoint (0: fresh).
+    """
+
+    field: NeuralField
+    state: TrainingState
+    resumed_from: int
+
+
+def train_prepared(
+    prepared: PreparedValues,
+    field_config: FieldConfig,
+    train_config: TrainConfig,
+    volume_shape: tuple[int, int, int],
+    checkpoint: Path | None = None,
+    fingerprint: dict | None = None,
+    callbacks: Sequence[TrainingCallback] = (),
+) -> TrainedField:
+    """Build a field (initialised from ``train_config.seed``) and train it on prepared values.
+
+    Args:
+        prepared: the values and their scaling.
+        field_config: the model to build.
+        train_config: how to train.
+        volume_shape: ``(D, H, W)`` of the data, saved with the field.
+        checkpoint: periodic training checkpoints go here; one already there is resumed (None: none).
+        fingerprint: what a resumed checkpoint must match (data and model).
+        callbacks: called around every iteration.
+    """
+    device = prepared.values.device
+    if device.type == "cpu":
+        keep_large_allocations_cached()
+    field = NeuralField(
+        field_config,
+        fit_min=prepared.fit_min,
+        fit_max=prepared.fit_max,
+        value_min=prepared.value_min,
+        value_max=prepared.value_max,
+        transform=prepared.transform,
+        volume_shape=volume_shape,
+        generator=torch.Generator().manual_seed(train_config.seed),
+    ).to(device)
+    if prepared.constant:
+        # Empty space (a constant brick) is exact without training: the output scaling returns the
+        # constant whatever the network says.
+        return TrainedField(field.eval(), TrainingState(), 0)
+    trainer = Trainer(field, prepared.values, train_config, checkpoint, fingerprint, callbacks)
+    if checkpoint is not None and Path(checkpoint).exists():
+        trainer.load_checkpoint(checkpoint)
+    resumed_from = trainer.state.iteration
+    return TrainedField(field, trainer.run(), resumed_from)
 
 
 @dataclass(frozen=True)
 class FitResult:
+    """What :func:`fit` made.
+
+    Attributes:
+        field: the trained field.
+        model_path: its model file.
+        model_bytes: the file's size.
+        seconds: training time (a resumed run counts its earlier part too).
+        iterations: iterations run (fewer than the budget after an early stop; 0 for a constant volume).
+        frozen_at: iteration where the grids stopped moving.
+        stopped_early: training ended before the budget (early stop, or a constant volume).
+        resumed_from: iteration the run resumed at (0: fresh).
+        evaluation: PSNR and largest error against the truth, data units.
+    """
+
     field: NeuralField
     model_path: Path
     model_bytes: int
     seconds: float
     iterations: int
     frozen_at: int | None
-    psnr: float
+    stopped_early: bool
+    resumed_from: int
+    evaluation: Evaluation
+
+    @property
+    def psnr(self) -> float:
+        return self.evaluation.psnr
+
+    @property
+    def max_abs_error(self) -> float:
+        return self.evaluation.max_abs_error
+
+
+def fit(
+    prepared: PreparedValues,
+    truth: np.ndarray,
+    field_config: FieldConfig,
+    train_config: TrainConfig,
+    out: Path,
+    source: SourceInfo,
+    fingerprint: dict,
+    resume: bool = False,
+    callbacks: Sequence[TrainingCallback] = (),
+    psnr_voxels: int | None = None,
+    summary_extra: dict | None = None,
+) -> FitResult:
+    """Train a field on prepared values, measure it against the truth and save it to ``out``.
+
+    Checkpoints go to ``out.ckpt`` on the way and are removed once the model file is written.
+
+    Args:
+        prepared: the values and their scaling (:func:`prepare_values`).
+        truth: ``[D, H, W]`` the same values in data units, for the final PSNR and largest error.
+        field_config: the model to build.
+        train_config: how to train.
+        out: model file to write (atomically).
+        source: description of the data, saved in the file.
+        fingerprint: what a resumed checkpoint must match.
+        resume: continue from ``out.ckpt`` if it exists (else a leftover checkpoint is refused).
+        callbacks: called around every iteration (e.g. :class:`~apmgsrn.training.callbacks.TrainingProgress`).
+        psnr_voxels: measure on a regular subset of about this many voxels (None: every voxel).
+        summary_extra: more entries of the training summary (e.g. the brick's box).
+    """
+    out = Path(out)
+    check_output(out, resume)
+    checkpoint = checkpoint_path_for(out)
+    trained = train_prepared(prepared, field_config, train_config, tuple(truth.shape), checkpoint, fingerprint,
+                             callbacks)
+    evaluation = evaluate(trained.field, truth, max_voxels=psnr_voxels)
+    state = trained.state
+    summary = {
+        "iterations": state.iteration,
+        "batch_size": train_config.batch_size,
+        "seconds": round(state.elapsed, 3),
+        "frozen_at": state.frozen_at,
+        "stopped_early": state.iteration < train_config.iterations,
+        "final_reconstruction_loss": state.history["reconstruction"][-1] if state.history["reconstruction"] else None,
+        "final_density_loss": _last_finite(state.history["density"]),
+        "psnr": evaluation.psnr,
+        "max_abs_error": evaluation.max_abs_error,
+        "device": str(prepared.values.device),
+        "config": asdict(train_config),
+        "history": state.history,
+        **(summary_extra or {}),
+    }
+    save_field(out, trained.field, source, summary)
+    if checkpoint.exists():
+        checkpoint.unlink()
+    return FitResult(
+        field=trained.field,
+        model_path=out,
+        model_bytes=out.stat().st_size,
+        seconds=state.elapsed,
+        iterations=state.iteration,
+        frozen_at=state.frozen_at,
+        stopped_early=summary["stopped_early"],
+        resumed_from=trained.resumed_from,
+        evaluation=evaluation,
+    )
 
 
 def fit_volume(
-    volume,
+    volume: Volume,
     field_config: FieldConfig,
     train_config: TrainConfig,
     out: Path,
@@ -77,10 +290,10 @@ def fit_volume(
     resume: bool = False,
     progress: bool = True,
 ) -> FitResult:
-    """Train a model on ``volume`` and save it to ``out`` (checkpointing to ``out.ckpt`` on the way).
+    """Train a model on a whole volume and save it to ``out`` (the ``train`` command).
 
     Args:
-        volume: a :class:`apmgsrn.data.Volume`.
+        volume: the data.
         field_config: the model to build.
         train_config: how to train.
         out: model file to write (atomically).
@@ -88,60 +301,18 @@ def fit_volume(
         transform: value transform (``none``, ``log10``, ``zscore``).
         log_offset: offset for ``log10``.
         resume: continue from ``out.ckpt`` if it exists.
-        progress: progress bar when attached to a terminal.
+        progress: show training progress (see :mod:`apmgsrn.progress`).
     """
-    from apmgsrn.device import keep_large_allocations_cached
-    from apmgsrn.inference.evaluate import evaluate_tensor
-
-    out = Path(out)
-    if not out.absolute().parent.is_dir():
-        raise ApmgsrnError(f"{out}: output folder {out.parent} does not exist; create it or choose another --out")
-    checkpoint = checkpoint_path_for(out)
-    if checkpoint.exists() and not resume:
-        raise ApmgsrnError(
-            f"{checkpoint}: an interrupted run left this checkpoint; pass --resume to continue it, "
-            "or delete it to start over"
-        )
-    if device.type == "cpu":
-        keep_large_allocations_cached()
-    prepared = prepare_volume(volume, transform, log_offset, device)
-    generator = torch.Generator().manual_seed(train_config.seed)
-    field = NeuralField(
-        field_config,
-        fit_min=prepared.fit_min,
-        fit_max=prepared.fit_max,
-        value_min=prepared.value_min,
-        value_max=prepared.value_max,
-        transform=prepared.transform,
-        volume_shape=volume.shape,
-        generator=generator,
-    ).to(device)
-    source = {
-        "path": os.path.basename(str(volume.path)),
-        "variable": volume.variable,
-        "description": volume.describe(),
-    }
-    fingerprint = {"source": source, "shape": list(volume.shape), "field": field_config.to_dict(),
+    check_output(out, resume)  # before reading what may be a large volume
+    data = volume.to_numpy()  # [D, H, W] float32, data units
+    prepared = prepare_values(data, transform, log_offset, str(volume.path), device)
+    source = SourceInfo.of_volume(volume)
+    # A resume must continue on the same data: the file's real path (any link to it will do) and a hash of a
+    # sample of its values, not its name.
+    fingerprint = {"data": volume_fingerprint(volume), "field": field_config.to_dict(),
                    "transform": asdict(prepared.transform)}
-    trainer = Trainer(field, prepared.values, train_config, checkpoint, fingerprint, progress)
-    state = trainer.run(resume=resume)
-    psnr = evaluate_tensor(field, torch.from_numpy(prepared.data))
-    training = {
-        "iterations": state.iteration,
-        "batch_size": train_config.batch_size,
-        "seconds": round(state.elapsed, 3),
-        "frozen_at": state.frozen_at,
-        "final_reconstruction_loss": state.history["reconstruction"][-1] if state.history["reconstruction"] else None,
-        "final_density_loss": _last_finite(state.history["density"]),
-        "psnr": psnr,
-        "device": str(device),
-        "config": asdict(train_config),
-        "history": state.history,
-    }
-    save_field(out, field, training=training, source=source)
-    if checkpoint.exists():
-        checkpoint.unlink()
-    return FitResult(field, out, out.stat().st_size, state.elapsed, state.iteration, state.frozen_at, psnr)
+    return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
+               callbacks=[TrainingProgress(enabled=progress)])
 
 
 def _last_finite(values: list[float]) -> float | None:

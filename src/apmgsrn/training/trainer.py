@@ -4,23 +4,35 @@ a learning rate that follows the iteration budget, atomic checkpoints and exact 
 from __future__ import annotations
 
 import functools
+import json
 import math
-import sys
+import signal
+import threading
 import time
-from collections import deque
-from dataclasses import asdict, dataclass, field
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
+from torch import nn
 
-from apmgsrn.errors import ApmgsrnError
+from apmgsrn.arguments import MAX_BATCH_SIZE, check_choice, check_int, check_number, check_optional_int
+from apmgsrn.choices import DECODER_PRECISIONS, DENSITY_NORMALIZATIONS, LR_SCHEDULES
+from apmgsrn.errors import ApmgsrnError, InvalidArgument
+from apmgsrn.io.container import load_tensors, read_header, save_tensors
+from apmgsrn.io.description import DescriptionError
+from apmgsrn.models.encoders.base import Encoder
 from apmgsrn.models.field import NeuralField
 from apmgsrn.ops.trilinear import sample_volume
+from apmgsrn.training.checkpoint import (
+    CHECKPOINT_KIND,
+    TrainingState,
+    check_tensors,
+    optimizer_layout,
+    state_from_json,
+)
 from apmgsrn.training.losses import feature_density_loss
-
-LR_SCHEDULES = ("cosine", "constant", "plateau", "steps")
-DENSITY_NORMALIZATIONS = ("mass", "batch")
-DECODER_PRECISIONS = ("auto", "float32", "bfloat16")
 
 
 @dataclass(frozen=True)
@@ -79,19 +91,32 @@ class TrainConfig:
     decoder_precision: str = "auto"
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "betas", tuple(self.betas))
+        """Refuse every value the loop cannot run with (:class:`~apmgsrn.errors.InvalidArgument`)."""
+        check_int("iterations", self.iterations, 1)
+        check_int("batch_size", self.batch_size, 1, MAX_BATCH_SIZE)
+        check_number("lr", self.lr, 0.0)  # 0 is allowed: a frozen network (or grid maps) is a valid experiment
+        check_number("transform_lr", self.transform_lr, 0.0)
+        if not isinstance(self.betas, (tuple, list)) or len(self.betas) != 2:
+            raise InvalidArgument(f"betas={self.betas!r}: must be two numbers in [0, 1)", arguments=("betas",))
+        object.__setattr__(self, "betas", tuple(check_number("betas", b, 0.0, 1.0, high_open=True)
+                                                for b in self.betas))
         if self.history_every is None:
             object.__setattr__(self, "history_every", max(10, self.iterations // 500))
         if self.density_start is None:
             object.__setattr__(self, "density_start", max(1, round(0.05 * self.iterations)))
-        if self.iterations < 1 or self.batch_size < 1:
-            raise ValueError("iterations and batch size must be positive")
-        if self.lr_schedule not in LR_SCHEDULES:
-            raise ValueError(f"lr schedule must be one of {LR_SCHEDULES}")
-        if self.density_normalization not in DENSITY_NORMALIZATIONS:
-            raise ValueError(f"density normalization must be one of {DENSITY_NORMALIZATIONS}")
-        if self.decoder_precision not in DECODER_PRECISIONS:
-            raise ValueError(f"decoder precision must be one of {DECODER_PRECISIONS}")
+        check_int("density_start", self.density_start, 0)
+        check_int("density_window", self.density_window, 1)
+        check_number("density_tolerance", self.density_tolerance, 0.0, 1.0)
+        check_number("freeze_fraction", self.freeze_fraction, 0.0, 1.0)
+        check_int("density_power", self.density_power, 1, 64)
+        check_choice("density_normalization", self.density_normalization, DENSITY_NORMALIZATIONS)
+        check_choice("lr_schedule", self.lr_schedule, LR_SCHEDULES)
+        check_number("final_lr_fraction", self.final_lr_fraction, 0.0, 1.0)
+        check_int("seed", self.seed, 0, 2**63 - 1)
+        check_int("checkpoint_every", self.checkpoint_every, 1)
+        check_int("history_every", self.history_every, 1)
+        check_optional_int("stop_after_lr_cuts", self.stop_after_lr_cuts, 1)
+        check_choice("decoder_precision", self.decoder_precision, DECODER_PRECISIONS)
 
 
 def decoder_hidden_dtype(precision: str, device: torch.device) -> torch.dtype | None:
@@ -130,21 +155,28 @@ class TrainingInterrupted(Exception):
         self.checkpoint = checkpoint
 
 
-@dataclass
-class TrainingState:
-    """Everything besides tensors that a resumed run needs (saved as JSON in the checkpoint)."""
+class StepLosses(NamedTuple):
+    """Losses of one iteration, detached 0-d tensors on the training device (reading one syncs a GPU)."""
 
-    iteration: int = 0
-    frozen_at: int | None = None
-    elapsed: float = 0.0
-    density_losses: list[float] = field(default_factory=list)  # the last two windows, for freezing
-    density_steps: int = 0
-    plateau_best: float = math.inf
-    plateau_since: int = 0
-    lr_scale: float = 1.0
-    history: dict[str, list[float]] = field(
-        default_factory=lambda: {"iteration": [], "reconstruction": [], "density": [], "lr": []}
-    )
+    reconstruction: torch.Tensor
+    density: torch.Tensor | None  # None once the grids stopped moving (or before they start)
+
+
+class TrainingCallback:
+    """Hooks of the training loop; subclass and override what you need (each does nothing by default).
+
+    The loop calls :meth:`on_start` before the first iteration (after a resume: at the resumed one),
+    :meth:`after_step` after every iteration, and :meth:`on_end` when the loop stops for any reason.
+    """
+
+    def on_start(self, trainer: Trainer) -> None:
+        """Training is about to start at ``trainer.state.iteration``."""
+
+    def after_step(self, trainer: Trainer, iteration: int, losses: StepLosses) -> None:
+        """Iteration ``iteration`` (counted from 1) is done: the parameters are updated."""
+
+    def on_end(self, trainer: Trainer) -> None:
+        """The loop stopped: budget spent, early stop, Ctrl-C or an error."""
 
 
 class Trainer:
@@ -156,7 +188,7 @@ class Trainer:
         config: how to train.
         checkpoint_path: where periodic training checkpoints go (None: no checkpoints).
         fingerprint: description of the run that a resumed checkpoint must match.
-        progress: show a progress bar (only when stderr is a terminal).
+        callbacks: called around every iteration (progress display, grid recording, ...).
     """
 
     def __init__(
@@ -166,7 +198,7 @@ class Trainer:
         config: TrainConfig,
         checkpoint_path: Path | None = None,
         fingerprint: dict | None = None,
-        progress: bool = True,
+        callbacks: Sequence[TrainingCallback] = (),
     ):
         self.field = field
         self.volume = volume
@@ -174,9 +206,9 @@ class Trainer:
         self.device = volume.device
         self.checkpoint_path = Path(checkpoint_path) if checkpoint_path else None
         self.fingerprint = fingerprint or {}
-        self.progress = progress and sys.stderr.isatty()
+        self.callbacks = tuple(callbacks)
         encoder = field.encoder
-        transform_params = list(encoder.transform_parameters()) if hasattr(encoder, "transform_parameters") else []
+        transform_params = list(encoder.transform_parameters())
         transform_ids = {id(p) for p in transform_params}
         network_params = [p for p in field.parameters() if id(p) not in transform_ids]
         self.network_optimizer = torch.optim.Adam(
@@ -197,8 +229,7 @@ class Trainer:
         # Encoders that start from the data (hybrid: adaptive grids on the volume's detail) do it here, the
         # one place every training path (single file, bricks) goes through; a resumed run then loads its
         # checkpoint over it.
-        if hasattr(encoder, "initialize_from_volume"):
-            encoder.initialize_from_volume(volume)
+        encoder.initialize_from_volume(volume)
 
     # ----------------------------------------------------------------------------- schedule
     def learning_rate(self, iteration: int) -> float:
@@ -227,16 +258,16 @@ class Trainer:
         return int(self.config.iterations * self.config.freeze_fraction)
 
     # ----------------------------------------------------------------------------- one step
-    def step(self) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def step(self) -> StepLosses:
         """One iteration: reconstruction step, then (while the grids move) the density step.
 
         Returns:
-            (reconstruction loss, density loss or None) as detached 0-d tensors in fitted ``[0, 1]``
-            units; they stay on the device so that a GPU step never waits for the host.
+            The losses in fitted ``[0, 1]`` units; they stay on the device so that a GPU step never
+            waits for the host.
         """
         cfg, st = self.config, self.state
         for group in self.network_optimizer.param_groups:
-            group["lr"] = self.learning_rate(st.iteration) * group.get("lr_scale", 1.0)
+            group["lr"] = self.learning_rate(st.iteration) * group.get("lr_multiplier", 1.0)
         points = torch.rand(cfg.batch_size, 3, generator=self.generator, device=self.device) * 2 - 1
         target = sample_volume(self.volume, points)  # [B]
 
@@ -263,7 +294,7 @@ class Trainer:
             density_loss.backward()
             self.transform_optimizer.step()
             density_value = density_loss.detach()
-        return reconstruction.detach(), density_value
+        return StepLosses(reconstruction.detach(), density_value)
 
     def _update_freeze(self, density: torch.Tensor | None) -> None:
         """Early stop of grid motion: freeze once the windowed mean fails to fall by the tolerance.
@@ -317,63 +348,49 @@ class Trainer:
         return cuts is not None and self.state.lr_scale < 10.0 ** (0.5 - cuts)
 
     # ----------------------------------------------------------------------------- loop
-    def run(self, resume: bool = False) -> TrainingState:
-        """Train to ``config.iterations``; resume from the checkpoint if asked and present.
+    def run(self) -> TrainingState:
+        """Train from ``state.iteration`` (0, or where :meth:`load_checkpoint` left it) to the budget.
 
         Raises:
             TrainingInterrupted: on Ctrl-C, after saving a checkpoint.
         """
-        if resume and self.checkpoint_path and self.checkpoint_path.exists():
-            self.load_checkpoint(self.checkpoint_path)
         cfg, st = self.config, self.state
         self.field.train()
-        bar = None
-        if self.progress:
-            from tqdm import tqdm
-
-            bar = tqdm(total=cfg.iterations, initial=st.iteration, unit="it", dynamic_ncols=True, leave=True)
-        recent: deque[float] = deque(maxlen=5)
         start = time.perf_counter() - st.elapsed
         stop = _StopRequest() if self.checkpoint_path is not None else None
+        for callback in self.callbacks:
+            callback.on_start(self)
         try:
             while st.iteration < cfg.iterations and not self.stopped_early():
                 if stop is not None and stop.requested:
                     # Ctrl-C lands between iterations, so the checkpoint is an exact state to resume.
                     self.save_checkpoint(self.checkpoint_path)
                     raise TrainingInterrupted(st.iteration, self.checkpoint_path)
-                reconstruction, density = self.step()
-                self._update_freeze(density)
+                losses = self.step()
+                self._update_freeze(losses.density)
                 if st.iteration % cfg.history_every == 0:
-                    loss = float(reconstruction)  # one host sync per recorded point
+                    loss = float(losses.reconstruction)  # one host sync per recorded point
                     if not math.isfinite(loss):
                         raise ApmgsrnError(
                             f"training diverged at iteration {st.iteration} (loss {loss}); "
-                            "lower --lr or check the data"
+                            "lower lr= or check the data", arguments=("lr",),
                         )
-                    recent.append(loss)
                     self._update_plateau(loss)
                     st.history["iteration"].append(st.iteration)
                     st.history["reconstruction"].append(loss)
-                    st.history["density"].append(float(density) if density is not None else float("nan"))
-                    st.history["lr"].append(self.learning_rate(st.iteration))
+                    st.history["density"].append(float(losses.density) if losses.density is not None else float("nan"))
+                    st.history["lr"].append(self.learning_rate(st.iteration))  # the base rate, before multipliers
                 st.iteration += 1
                 st.elapsed = time.perf_counter() - start
-                if bar is not None:
-                    bar.update(1)
-                    if st.iteration % 10 == 0:
-                        mse = sum(recent) / len(recent)
-                        bar.set_postfix(
-                            loss=f"{mse:.2e}",
-                            psnr=f"{-10 * math.log10(max(mse, 1e-30)):.2f}dB",
-                            grids=self.grid_status(),
-                        )
+                for callback in self.callbacks:
+                    callback.after_step(self, st.iteration, losses)
                 if self.checkpoint_path and st.iteration % cfg.checkpoint_every == 0 and st.iteration < cfg.iterations:
                     self.save_checkpoint(self.checkpoint_path)
         finally:
             if stop is not None:
                 stop.restore()
-            if bar is not None:
-                bar.close()
+            for callback in self.callbacks:
+                callback.on_end(self)
         self.field.eval()
         return st
 
@@ -386,8 +403,6 @@ class Trainer:
     # ----------------------------------------------------------------------------- checkpoints
     def save_checkpoint(self, path: Path) -> None:
         """Write model, optimiser moments and RNG state atomically (safetensors + JSON, no pickle)."""
-        from apmgsrn.training.checkpoint import save_tensors
-
         self._flush_density()
         tensors = {f"model.{k}": v for k, v in self.field.state_dict().items()}
         optimizers = {"network": self.network_optimizer, "transform": self.transform_optimizer}
@@ -405,65 +420,87 @@ class Trainer:
             "fingerprint": self.fingerprint,
             "config": asdict(self.config),
             "state": asdict(self.state),
-            "param_groups": groups,
+            "param_groups": groups,  # informative: a resume takes the groups from its own config
         }
-        save_tensors(path, tensors, "training-state", description)
+        save_tensors(path, tensors, CHECKPOINT_KIND, description, what="training checkpoint")
 
     def load_checkpoint(self, path: Path) -> None:
-        """Restore a checkpoint written by :meth:`save_checkpoint` for the same run."""
-        from apmgsrn.training.checkpoint import load_tensors, read_header
+        """Restore a checkpoint written by :meth:`save_checkpoint` for the same run.
 
+        Everything is checked before anything is loaded: the run's fingerprint (data and model) and
+        config, the loop state field by field, and every tensor's name, shape and dtype.
+
+        Raises:
+            ApmgsrnError: not a checkpoint, another run's, or damaged (one line naming the file).
+        """
         header = read_header(path)
-        if header["kind"] != "training-state":
-            raise ApmgsrnError(f"{path}: not a training checkpoint; remove it or pass another --out")
-        description = header["description"]
-        if description.get("fingerprint") != _jsonable(self.fingerprint) or description.get("config") != _jsonable(
+        if header.kind != CHECKPOINT_KIND:
+            raise ApmgsrnError(f"{path}: not a training checkpoint; remove it or pass another out=", arguments=("out",))
+        description = header.description
+        if description.get("fingerprint") != as_json(self.fingerprint) or description.get("config") != as_json(
             asdict(self.config)
         ):
             raise ApmgsrnError(
-                f"{path}: checkpoint was made with other data or settings; rerun with the same options, "
-                "or delete it to start over"
+                f"{path}: checkpoint was made with other data or settings; rerun with the same data file and "
+                "options, or delete it to start over"
             )
-        tensors = load_tensors(path)
-        self.field.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
         optimizers = {"network": self.network_optimizer, "transform": self.transform_optimizer}
+        try:
+            state = state_from_json(description.get("state"), self.config.iterations)
+            # Adam has moments once it stepped: the network from the first iteration, the grid maps from
+            # the first density step.
+            stepped = {"network": state.iteration > 0, "transform": state.density_steps > 0}
+            expected = {f"model.{k}": (tuple(v.shape), v.dtype) for k, v in self.field.state_dict().items()}
+            expected["generator"] = (tuple(self.generator.get_state().shape), torch.uint8)
+            for name, optimizer in optimizers.items():
+                if optimizer is not None:
+                    expected |= optimizer_layout(name, optimizer, stepped[name])
+            tensors = load_tensors(path)
+            check_tensors(tensors, expected)
+        except DescriptionError as exc:
+            raise ApmgsrnError(f"{path}: training checkpoint is damaged ({exc}); delete it to start over") from None
+        self.field.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
         for name, optimizer in optimizers.items():
             if optimizer is None:
                 continue
-            state: dict = {}
+            moments: dict = {}
             prefix = f"optim.{name}."
             for key, value in tensors.items():
                 if key.startswith(prefix):
                     index, entry = key[len(prefix) :].split(".", 1)
-                    state.setdefault(int(index), {})[entry] = value.to(self.device) if entry != "step" else value
-            optimizer.load_state_dict({"state": state, "param_groups": description["param_groups"][name]})
+                    moments.setdefault(int(index), {})[entry] = value.to(self.device) if entry != "step" else value
+            optimizer.load_state_dict({"state": moments, "param_groups": optimizer.state_dict()["param_groups"]})
         self.generator.set_state(tensors["generator"])
-        self.state = TrainingState(**description["state"])
+        self.state = state
         if self.state.frozen_at is not None:
             for p in self.field.encoder.transform_parameters():
                 p.requires_grad_(False)
 
 
-def _learning_rate_groups(encoder, parameters: list) -> list:
-    """Optimiser parameter groups: one per learning-rate multiplier the encoder asks for
-    (``learning_rate_scales()``, per-component learning rates; the group's ``lr_scale``), or the plain
-    parameter list when it asks for none."""
-    scales_of = encoder.learning_rate_scales() if hasattr(encoder, "learning_rate_scales") else {}
-    if not scales_of:
+def _learning_rate_groups(encoder: Encoder, parameters: list[nn.Parameter]) -> list:
+    """Optimiser parameter groups, one per learning-rate multiplier the encoder asks for.
+
+    Args:
+        encoder: the field's encoder (:meth:`Encoder.learning_rate_multipliers`).
+        parameters: the parameters the network optimiser updates.
+
+    Returns:
+        The plain parameter list when the encoder asks for no multiplier, else groups whose
+        ``lr_multiplier`` scales the scheduled rate in every step.
+    """
+    multiplier_of = encoder.learning_rate_multipliers()
+    if not multiplier_of:
         return parameters
     groups: dict[float, list] = {}
     for p in parameters:
-        groups.setdefault(float(scales_of.get(p, 1.0)), []).append(p)
-    return [{"params": params, "lr_scale": scale} for scale, params in groups.items()]
+        groups.setdefault(float(multiplier_of.get(p, 1.0)), []).append(p)
+    return [{"params": params, "lr_multiplier": multiplier} for multiplier, params in groups.items()]
 
 
 class _StopRequest:
     """Turns Ctrl-C (SIGINT) into a flag the loop reads between iterations (main thread only)."""
 
     def __init__(self) -> None:
-        import signal
-        import threading
-
         self.requested = False
         self._previous = None
         if threading.current_thread() is threading.main_thread():
@@ -473,14 +510,10 @@ class _StopRequest:
         self.requested = True
 
     def restore(self) -> None:
-        import signal
-
         if self._previous is not None:
             signal.signal(signal.SIGINT, self._previous)
 
 
-def _jsonable(value):
-    """The value as it reads back from JSON (tuples become lists)."""
-    import json
-
+def as_json(value):
+    """The value as it reads back from JSON (tuples become lists): what a saved description compares to."""
     return json.loads(json.dumps(value))

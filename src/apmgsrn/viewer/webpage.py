@@ -114,8 +114,10 @@ VIEWER_SCRIPT = r"""
     const file = event.target.files && event.target.files[0];
     if (!file) { return; }
     const limit = (window.trame.state.get("upload_limit") || 1048576);
+    // upload_error is the page's own (never sent): the server would refuse the message anyway.
+    window.trame.state.set("upload_error", "");
     if (file.size > limit) {
-      window.trame.state.set("error_message",
+      window.trame.state.set("upload_error",
         file.name + ": " + file.size + " bytes is over the upload limit of " + limit + " bytes");
       return;
     }

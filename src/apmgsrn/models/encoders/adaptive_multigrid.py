@@ -7,9 +7,12 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from apmgsrn.models.encoders.base import Encoder
 from apmgsrn.ops.multigrid import feature_density, feature_mass, multigrid_features
 
 GRID_INITS = ("default", "large", "small")
+#: Sanity bounds of a config (a model file claiming more is refused before anything is allocated).
+MAX_GRIDS, MAX_FEATURES, MAX_RESOLUTION = 4096, 1024, 4096
 
 
 @dataclass(frozen=True)
@@ -33,13 +36,31 @@ class AdaptiveMultiGridConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "resolution", tuple(int(r) for r in self.resolution))
-        if self.grids < 1 or self.features < 1 or min(self.resolution) < 2 or len(self.resolution) != 3:
-            raise ValueError(f"invalid multi-grid size: {self}")
+        if (
+            not 1 <= self.grids <= MAX_GRIDS
+            or not 1 <= self.features <= MAX_FEATURES
+            or len(self.resolution) != 3
+            or not 2 <= min(self.resolution) <= max(self.resolution) <= MAX_RESOLUTION
+        ):
+            raise ValueError(
+                f"invalid multi-grid size: {self} (1..{MAX_GRIDS} grids, 1..{MAX_FEATURES} features, "
+                f"resolution 2..{MAX_RESOLUTION})"
+            )
         if self.init not in GRID_INITS:
             raise ValueError(f"grid init must be one of {GRID_INITS}, not {self.init!r}")
 
+    @property
+    def out_features(self) -> int:
+        """Width of the encoding: ``M * C``."""
+        return self.grids * self.features
 
-class AdaptiveMultiGridEncoder(nn.Module):
+    def parameter_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Shape of every stored parameter (checked against a model file before anything is built)."""
+        m, c = self.grids, self.features
+        return {"grids": (m, c, *self.resolution), "matrices": (m, 3, 3), "translations": (m, 3)}
+
+
+class AdaptiveMultiGridEncoder(Encoder):
     """Encodes points ``[N, 3]`` to ``[N, M * C]`` features (grid-major concatenation).
 
     Parameters: ``grids`` ``[M, C, D, H, W]`` (reconstruction loss), ``matrices`` ``[M, 3, 3]`` and
@@ -50,12 +71,11 @@ class AdaptiveMultiGridEncoder(nn.Module):
     def __init__(self, config: AdaptiveMultiGridConfig, generator: torch.Generator | None = None):
         super().__init__()
         self.config = config
-        m, c = config.grids, config.features
-        d, h, w = config.resolution
-        self.out_features = m * c
-        self.grids = nn.Parameter(torch.empty(m, c, d, h, w))
-        self.matrices = nn.Parameter(torch.empty(m, 3, 3))
-        self.translations = nn.Parameter(torch.empty(m, 3))
+        self.out_features = config.out_features
+        shapes = config.parameter_shapes()
+        self.grids = nn.Parameter(torch.empty(shapes["grids"]))
+        self.matrices = nn.Parameter(torch.empty(shapes["matrices"]))
+        self.translations = nn.Parameter(torch.empty(shapes["translations"]))
         self.reset_parameters(generator)
 
     @torch.no_grad()
@@ -103,6 +123,13 @@ class AdaptiveMultiGridEncoder(nn.Module):
     def feature_parameters(self) -> list[nn.Parameter]:
         """The parameters the reconstruction loss moves."""
         return [self.grids]
+
+    def check_parameters(self) -> str | None:
+        """NaN/Inf parameters, or a singular placement matrix (its inverse places the grid in the domain)."""
+        problem = super().check_parameters()
+        if problem is None and not bool((torch.linalg.det(self.matrices.detach().double()).abs() > 1e-12).all()):
+            problem = "a grid's placement matrix is singular"
+        return problem
 
     @torch.no_grad()
     def grid_boxes(self) -> torch.Tensor:

@@ -8,7 +8,12 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from apmgsrn.models.encoders.base import Encoder
 from apmgsrn.ops.multigrid import multigrid_features
+
+#: Sanity bounds of a config (a model file claiming more is refused before anything is allocated);
+#: beyond 2^24 pi a Fourier term aliases at float32 precision anyway.
+MAX_FEATURES, MAX_RESOLUTION, MAX_FREQUENCIES = 1024, 4096, 24
 
 
 @dataclass(frozen=True)
@@ -30,11 +35,28 @@ class DenseGridConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "resolution", tuple(int(r) for r in self.resolution))
-        if self.features < 1 or len(self.resolution) != 3 or min(self.resolution) < 2 or self.frequencies < 0:
-            raise ValueError(f"invalid dense-grid size: {self}")
+        if (
+            not 1 <= self.features <= MAX_FEATURES
+            or len(self.resolution) != 3
+            or not 2 <= min(self.resolution) <= max(self.resolution) <= MAX_RESOLUTION
+            or not 0 <= self.frequencies <= MAX_FREQUENCIES
+        ):
+            raise ValueError(
+                f"invalid dense-grid size: {self} (1..{MAX_FEATURES} features, resolution 2..{MAX_RESOLUTION}, "
+                f"0..{MAX_FREQUENCIES} frequencies)"
+            )
+
+    @property
+    def out_features(self) -> int:
+        """Width of the encoding: ``C + 6 K``."""
+        return self.features + 6 * self.frequencies
+
+    def parameter_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Shape of every stored parameter (checked against a model file before anything is built)."""
+        return {"grid": (1, self.features, *self.resolution)}
 
 
-class DenseGridEncoder(nn.Module):
+class DenseGridEncoder(Encoder):
     """Encodes points ``[N, 3]`` to ``[N, C + 6 K]``: grid features, then ``sin``, then ``cos`` terms.
 
     Parameter: ``grid`` ``[1, C, D, H, W]``, initialised ``U(-1e-4, 1e-4)`` like the other encoders.
@@ -47,9 +69,8 @@ class DenseGridEncoder(nn.Module):
     def __init__(self, config: DenseGridConfig, generator: torch.Generator | None = None):
         super().__init__()
         self.config = config
-        d, h, w = config.resolution
-        self.out_features = config.features + 6 * config.frequencies
-        self.grid = nn.Parameter(torch.empty(1, config.features, d, h, w))
+        self.out_features = config.out_features
+        self.grid = nn.Parameter(torch.empty(config.parameter_shapes()["grid"]))
         # Angular frequencies 2^k pi, k = 0..K-1: the lowest spans the domain once.
         frequencies = math.pi * 2.0 ** torch.arange(config.frequencies, dtype=torch.float32)
         self.register_buffer("frequencies", frequencies, persistent=False)

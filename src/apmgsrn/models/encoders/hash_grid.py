@@ -25,10 +25,15 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from apmgsrn.models.encoders.base import Encoder
+
 HASH_BACKENDS = ("torch", "tcnn", "auto")
 
 # Spatial-hash primes (Teschner et al. 2003, as used by Instant-NGP); the first is 1 for cache coherence.
 _PRIMES = (1, 2654435761, 805459861)
+
+#: Sanity bounds of a config (a model file claiming more is refused before anything is allocated).
+MAX_LEVELS, MAX_FEATURES, MAX_RESOLUTION = 64, 64, 1 << 20
 
 
 
@@ -55,10 +60,17 @@ class HashGridConfig:
     backend: str = "torch"
 
     def __post_init__(self) -> None:
-        if self.levels < 1 or self.features < 1 or not 1 <= self.log2_table_size <= 30:
-            raise ValueError(f"invalid hash-grid size: {self}")
-        if self.base_resolution < 2 or self.finest_resolution < self.base_resolution:
-            raise ValueError(f"hash-grid resolutions must satisfy 2 <= base <= finest: {self}")
+        if (
+            not 1 <= self.levels <= MAX_LEVELS
+            or not 1 <= self.features <= MAX_FEATURES
+            or not 1 <= self.log2_table_size <= 30
+        ):
+            raise ValueError(
+                f"invalid hash-grid size: {self} (1..{MAX_LEVELS} levels, 1..{MAX_FEATURES} features, "
+                "log2 table size 1..30)"
+            )
+        if not 2 <= self.base_resolution <= self.finest_resolution <= MAX_RESOLUTION:
+            raise ValueError(f"hash-grid resolutions must satisfy 2 <= base <= finest <= {MAX_RESOLUTION}: {self}")
         if self.backend not in HASH_BACKENDS:
             raise ValueError(f"hash-grid backend must be one of {HASH_BACKENDS}, not {self.backend!r}")
 
@@ -82,6 +94,15 @@ class HashGridConfig:
         """Vertices per axis ``N_l`` of every level."""
         return [math.ceil(scale) + 1 for scale in self.level_scales()]
 
+    @property
+    def out_features(self) -> int:
+        """Width of the encoding: ``L * F``."""
+        return self.levels * self.features
+
+    def parameter_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Shape of every stored parameter (checked against a model file before anything is built)."""
+        return {"table": (sum(self.level_table_sizes()), self.features)}
+
     def level_table_sizes(self) -> list[int]:
         """Table entries per level: ``2^T``, or the (8-aligned) dense vertex count where that is smaller."""
         sizes = []
@@ -102,7 +123,7 @@ def tcnn_available() -> bool:
     return True
 
 
-class HashGridEncoder(nn.Module):
+class HashGridEncoder(Encoder):
     """Encodes points ``[N, 3]`` in ``[-1, 1]^3`` to ``[N, levels * features]`` (level-major).
 
     Parameter: ``table`` ``[E, F]``, the tables of all levels stacked (``E = sum_l table size_l``),
@@ -112,12 +133,12 @@ class HashGridEncoder(nn.Module):
     def __init__(self, config: HashGridConfig, generator: torch.Generator | None = None):
         super().__init__()
         self.config = config
-        self.out_features = config.levels * config.features
+        self.out_features = config.out_features
         sizes = config.level_table_sizes()
         offsets = [0]
         for size in sizes[:-1]:
             offsets.append(offsets[-1] + size)
-        self.table = nn.Parameter(torch.empty(sum(sizes), config.features))
+        self.table = nn.Parameter(torch.empty(config.parameter_shapes()["table"]))
         # Per-level constants, as buffers so they follow .to(device); not saved (rebuilt from the config).
         scales = torch.tensor(config.level_scales(), dtype=torch.float32)
         self.register_buffer("level_scales", scales, persistent=False)

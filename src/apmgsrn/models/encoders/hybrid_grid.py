@@ -15,6 +15,10 @@ Two kinds of feature grids, read the same way (:mod:`apmgsrn.ops.level_grids`):
   :meth:`HybridGridEncoder.initialize_from_volume` starts them on the box that holds the volume's
   gradient mass instead of the whole domain.
 
+The layout follows the lattice of the volume the model is fitted to: the config's ``lattice``, which
+:class:`~apmgsrn.models.field.NeuralField` fills in from the volume's shape, so every model file holds it and
+:meth:`HybridGridConfig.parameter_shapes` knows every stored shape before anything is built.
+
 The features of all grids are concatenated (domain levels first, coarse to fine, then the adaptive grids)
 for the shared decoder. The domain levels' table learns ``level_lr_scale`` times faster than the rest
 (per-component learning rates, :meth:`HybridGridEncoder.learning_rate_scales`).
@@ -28,13 +32,16 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from apmgsrn.ops.level_grids import LevelLayout, index_space_maps, level_grid_features
-from apmgsrn.ops.multigrid import feature_density, feature_mass
+from apmgsrn.models.encoders.adaptive_multigrid import AdaptiveMultiGridEncoder
+from apmgsrn.models.encoders.base import Encoder
+from apmgsrn.ops.level_grids import LEVEL_GRID_BACKENDS, index_space_maps, level_grid_features
+from apmgsrn.ops.level_layout import LevelLayout
 
 GRID_INITS = ("volume", "default")
-
-# Lattice assumed when the volume's shape is unknown (an encoder built on its own, outside a field).
-DEFAULT_LATTICE = (256, 256, 256)
+#: Sanity bounds of a config (a model file claiming more is refused before anything is allocated).
+MAX_LEVELS, MAX_FEATURES, MAX_GRIDS, MAX_RESOLUTION, MAX_AXIS = 64, 64, 4096, 4096, 1 << 20
+#: ``lattice`` of a config not yet fitted to a volume.
+NO_LATTICE = (0, 0, 0)
 
 
 @dataclass(frozen=True)
@@ -54,6 +61,8 @@ class HybridGridConfig:
             SPEC initialisation).
         level_lr_scale: learning-rate multiplier of the domain levels.
         grid_lr_scale: learning-rate multiplier of the adaptive grids' features.
+        lattice: ``(D, H, W)`` of the volume the domain levels follow (:data:`NO_LATTICE` until
+            :class:`~apmgsrn.models.field.NeuralField` fits the config to a volume).
         backend: sampling backend of :func:`apmgsrn.ops.level_grids.level_grid_features`.
     """
 
@@ -67,27 +76,61 @@ class HybridGridConfig:
     grid_init: str = "volume"
     level_lr_scale: float = 3.0
     grid_lr_scale: float = 1.0
+    lattice: tuple[int, int, int] = NO_LATTICE
     backend: str = "auto"
 
     def __post_init__(self) -> None:
-        if self.levels < 0 or self.grids < 0 or self.levels + self.grids < 1:
-            raise ValueError(f"hybrid grid needs at least one level or grid: {self}")
-        if self.levels and (self.features < 1 or not 1 <= self.log2_table_size <= 30 or self.coarsest < 2):
-            raise ValueError(f"invalid hybrid-grid levels: {self}")
-        if self.grids and (self.grid_features < 1 or self.grid_resolution < 2):
-            raise ValueError(f"invalid hybrid-grid adaptive grids: {self}")
+        object.__setattr__(self, "lattice", tuple(self.lattice))
+        if (
+            not 0 <= self.levels <= MAX_LEVELS
+            or not 0 <= self.grids <= MAX_GRIDS
+            or self.levels + self.grids < 1
+            or not 1 <= self.features <= MAX_FEATURES
+            or not 1 <= self.log2_table_size <= 30
+            or not 2 <= self.coarsest <= MAX_AXIS
+            or not 1 <= self.grid_features <= MAX_FEATURES
+            or not 2 <= self.grid_resolution <= MAX_RESOLUTION
+        ):
+            raise ValueError(
+                f"invalid hybrid-grid size: {self} (0..{MAX_LEVELS} levels and 0..{MAX_GRIDS} grids, not both 0; "
+                f"1..{MAX_FEATURES} features; log2 table size 1..30; coarsest 2..{MAX_AXIS}; grid resolution "
+                f"2..{MAX_RESOLUTION})"
+            )
+        if len(self.lattice) != 3 or not (
+            self.lattice == NO_LATTICE or all(isinstance(n, int) and 1 <= n <= MAX_AXIS for n in self.lattice)
+        ):
+            raise ValueError(f"hybrid-grid lattice must be 3 sizes in 1..{MAX_AXIS}, not {self.lattice}")
         if self.grid_init not in GRID_INITS:
             raise ValueError(f"grid init must be one of {GRID_INITS}, not {self.grid_init!r}")
-        if self.level_lr_scale <= 0 or self.grid_lr_scale <= 0:
-            raise ValueError(f"learning-rate scales must be positive: {self}")
+        if not (0 < self.level_lr_scale <= 1000 and 0 < self.grid_lr_scale <= 1000):
+            raise ValueError(f"learning-rate scales must be in (0, 1000]: {self}")
+        if self.backend not in LEVEL_GRID_BACKENDS:
+            raise ValueError(f"hybrid-grid backend must be one of {LEVEL_GRID_BACKENDS}, not {self.backend!r}")
 
-    def level_resolutions(self, volume_shape: tuple[int, int, int]) -> list[tuple[int, int, int]]:
-        """Vertices ``(R_x, R_y, R_z)`` of every domain level, coarse to fine, for a ``(D, H, W)`` volume.
+    @property
+    def out_features(self) -> int:
+        """Width of the encoding: ``L F + M C``."""
+        return self.levels * self.features + self.grids * self.grid_features
+
+    def parameter_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Shape of every stored parameter (checked against a model file before anything is built)."""
+        layout = self.layout()
+        level_floats = sum(s * f for s, f in zip(layout.sizes[: self.levels], layout.features))
+        m, r, c = self.grids, self.grid_resolution, self.grid_features
+        return {"level_table": (level_floats,), "grids": (m, r, r, r, c), "matrices": (m, 3, 3), "translations": (m, 3)}
+
+    def level_resolutions(self) -> list[tuple[int, int, int]]:
+        """Vertices ``(R_x, R_y, R_z)`` of every domain level, coarse to fine.
 
         Level ``l`` keeps a fraction ``s_l`` of the voxel lattice's cells on every axis: ``s`` runs
         geometrically from ``(coarsest - 1) / (longest - 1)`` to 1 (the lattice itself).
+
+        Raises:
+            ValueError: the config has no lattice yet.
         """
-        dims = [max(2, int(n)) for n in reversed(volume_shape)] if min(volume_shape) > 0 else list(DEFAULT_LATTICE)
+        if self.lattice == NO_LATTICE:
+            raise ValueError("hybrid-grid config has no lattice: build the model through NeuralField(volume_shape=)")
+        dims = [max(2, n) for n in reversed(self.lattice)]  # x, y, z vertices
         longest = max(dims)
         coarse = min(1.0, (self.coarsest - 1) / (longest - 1))
         out = []
@@ -96,11 +139,11 @@ class HybridGridConfig:
             out.append(tuple(max(2, round((n - 1) * s) + 1) for n in dims))
         return out
 
-    def layout(self, volume_shape: tuple[int, int, int]) -> LevelLayout:
+    def layout(self) -> LevelLayout:
         """Where every level and grid lives in the flat feature table (domain levels first)."""
         cap = 2**self.log2_table_size
         resolutions, features, hashed, sizes = [], [], [], []
-        for res in self.level_resolutions(volume_shape):
+        for res in self.level_resolutions():
             vertices = math.prod(res)
             resolutions.append(res)
             features.append(self.features)
@@ -115,7 +158,7 @@ class HybridGridConfig:
         return LevelLayout(tuple(resolutions), tuple(features), tuple(hashed), tuple(sizes))
 
 
-class HybridGridEncoder(nn.Module):
+class HybridGridEncoder(Encoder):
     """Encodes points ``[N, 3]`` to ``[N, L F + M C]`` (domain levels, then adaptive grids).
 
     Parameters: ``level_table`` (flat, every domain level), ``grids`` ``[M, R, R, R, C]`` (z, y, x, then the
@@ -123,29 +166,20 @@ class HybridGridEncoder(nn.Module):
     ``translations`` ``[M, 3]`` (the maps ``G_i(p) = A_i p + t_i`` into each grid's ``[-1, 1]^3``, moved by the
     feature-density loss only). All start ``U(-1e-4, 1e-4)`` like the other encoders' features.
 
-    The layout depends on the volume's shape (``volume_shape``, saved in every model file), so a model
-    rebuilt from its file has exactly the trained parameters.
+    The layout follows ``config.lattice`` (saved in every model file), so a model rebuilt from its file
+    has exactly the trained parameters.
     """
 
-    follows_volume_shape = True  # NeuralField passes ``volume_shape``
-
-    def __init__(
-        self,
-        config: HybridGridConfig,
-        generator: torch.Generator | None = None,
-        volume_shape: tuple[int, int, int] = (0, 0, 0),
-    ):
+    def __init__(self, config: HybridGridConfig, generator: torch.Generator | None = None):
         super().__init__()
         self.config = config
-        self.volume_shape = tuple(int(n) for n in volume_shape)
-        self.layout = config.layout(self.volume_shape)
-        self.out_features = self.layout.out_features
-        level_floats = sum(s * f for s, f in zip(self.layout.sizes[: config.levels], self.layout.features))
-        m, r, c = config.grids, config.grid_resolution, config.grid_features
-        self.level_table = nn.Parameter(torch.empty(level_floats))
-        self.grids = nn.Parameter(torch.empty(m, r, r, r, c))
-        self.matrices = nn.Parameter(torch.empty(m, 3, 3))
-        self.translations = nn.Parameter(torch.empty(m, 3))
+        self.layout = config.layout()
+        self.out_features = config.out_features
+        shapes = config.parameter_shapes()
+        self.level_table = nn.Parameter(torch.empty(shapes["level_table"]))
+        self.grids = nn.Parameter(torch.empty(shapes["grids"]))
+        self.matrices = nn.Parameter(torch.empty(shapes["matrices"]))
+        self.translations = nn.Parameter(torch.empty(shapes["translations"]))
         # Domain levels span [-1, 1]^3 with the identity map; constants, rebuilt from the config.
         resolutions = torch.tensor(self.layout.resolutions, dtype=torch.float32)  # [L + M, 3]
         self.register_buffer("resolutions", resolutions, persistent=False)
@@ -223,28 +257,23 @@ class HybridGridEncoder(nn.Module):
         table = torch.cat([self.level_table, self.grids.reshape(-1)])  # the layout's flat table
         return level_grid_features(points, self.maps(detach_transforms), table, self.layout, self.config.backend)
 
-    def feature_density(self, points: torch.Tensor, power: int = 10) -> torch.Tensor:
-        """Feature density of the adaptive grids at ``points`` ``[N, 3]`` -> ``[N]`` (SPEC section 3)."""
-        return feature_density(points, self.matrices, self.translations, power)
-
-    def mean_feature_density(self, power: int = 10) -> float:
-        """Mean density over the domain if every adaptive grid lay inside it."""
-        return self.config.grids * feature_mass(power) / 8.0
+    # The adaptive grids are APMGSRN's (same parameters, same maps): their feature density (SPEC section 3),
+    # its mean over the domain and the grids' boxes are computed the same way.
+    feature_density = AdaptiveMultiGridEncoder.feature_density
+    mean_feature_density = AdaptiveMultiGridEncoder.mean_feature_density
+    grid_boxes = AdaptiveMultiGridEncoder.grid_boxes
 
     def transform_parameters(self) -> list[nn.Parameter]:
         """The parameters the density loss moves (none without adaptive grids)."""
         return [self.matrices, self.translations] if self.config.grids else []
 
-    def learning_rate_scales(self) -> dict[nn.Parameter, float]:
-        """Learning-rate multipliers of this encoder's feature parameters (the rest learn at 1x)."""
+    def learning_rate_multipliers(self) -> dict[nn.Parameter, float]:
+        """Learning-rate multipliers of the domain levels' table and the adaptive grids' features."""
         return {self.level_table: self.config.level_lr_scale, self.grids: self.config.grid_lr_scale}
 
-    @torch.no_grad()
-    def grid_boxes(self) -> torch.Tensor:
-        """Corners of every adaptive grid in global coordinates ``[M, 8, 3]`` (for pictures and ``info``)."""
-        corners = torch.tensor(
-            [[x, y, z] for z in (-1.0, 1.0) for y in (-1.0, 1.0) for x in (-1.0, 1.0)]
-        )  # [8, 3] local
-        inverse = torch.linalg.inv(self.matrices.detach().cpu().double())  # [M, 3, 3]
-        shifted = corners.double()[None] - self.translations.detach().cpu().double()[:, None, :]  # [M, 8, 3]
-        return torch.matmul(shifted, inverse.transpose(1, 2)).float()  # [M, 8, 3]
+    def check_parameters(self) -> str | None:
+        """NaN/Inf parameters, or a singular placement matrix (its inverse places the grid in the domain)."""
+        problem = super().check_parameters()
+        if problem is None and not bool((torch.linalg.det(self.matrices.detach().double()).abs() > 1e-12).all()):
+            problem = "a grid's placement matrix is singular"
+        return problem

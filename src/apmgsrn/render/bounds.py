@@ -1,11 +1,12 @@
-"""Empty-space skipping: value bounds per macro cell, classified against the opacity map.
+"""Where rays can meet something: the box, and the macro cells a transfer function may show.
 
-The box ``[-1, 1]^3`` is cut into ``Gz x Gy x Gx`` macro cells. :class:`ValueBounds` holds, per cell, a
-lower and upper bound of every value the field can take inside it. Given a transfer table, a cell is
-*transparent* when the opacity is zero over its whole ``[low, high]`` interval; the renderer then drops
-every sample that falls in it without evaluating the field. Bounds are computed once per field; the
-classification (:meth:`ValueBounds.occupancy`) is cheap and is redone whenever the transfer function
-changes.
+Rays are clipped to boxes with the slab method (:func:`intersect_box`). For empty-space skipping the box
+``[-1, 1]^3`` is cut into ``Gz x Gy x Gx`` macro cells. :class:`ValueBounds` holds, per cell, a lower and
+upper bound of every value the field can take inside it. Given a transfer table, a cell is *transparent*
+when the opacity is zero over its whole ``[low, high]`` interval; :class:`Occupancy` holds that
+classification and the box around the visible cells, and the renderer drops every sample in a transparent
+cell without evaluating the field. Bounds are computed once per field; the classification is cheap and is
+redone whenever the transfer function changes.
 
 Two sources of bounds:
 
@@ -20,15 +21,36 @@ Two sources of bounds:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 import torch.nn.functional as F
 
+from apmgsrn.render.field import Field
 from apmgsrn.render.transfer_function import TransferTable
 
-Field = Callable[[torch.Tensor], torch.Tensor]
+
+def intersect_box(
+    origins: torch.Tensor, directions: torch.Tensor, low: torch.Tensor, high: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Slab-method ray/box intersection.
+
+    Args:
+        origins, directions: ``[R, 3]`` rays.
+        low, high: ``[3]`` box corners.
+
+    Returns:
+        ``(t_enter [R], t_exit [R])``; a miss has exit < enter.
+    """
+    # Division by a zero component gives +-inf, which the min/max below handle (a parallel ray inside the
+    # slab keeps (-inf, inf); outside it gets an empty interval).
+    inverse = 1.0 / directions
+    t0 = (low - origins) * inverse  # [R, 3]
+    t1 = (high - origins) * inverse
+    t_small = torch.minimum(t0, t1).nan_to_num(nan=-math.inf)
+    t_large = torch.maximum(t0, t1).nan_to_num(nan=math.inf)
+    return t_small.amax(dim=1), t_large.amin(dim=1)
 
 
 @dataclass
@@ -114,7 +136,7 @@ class ValueBounds:
             guard = torch.maximum(guard, F.max_pool3d(step, kernel, stride)[0, 0])
         return cls(low=(low - guard).contiguous(), high=(high + guard).contiguous(), exact=False)
 
-    def occupancy(self, table: TransferTable) -> torch.Tensor:
+    def visible_cells(self, table: TransferTable) -> torch.Tensor:
         """Which cells may be visible under a transfer table.
 
         Args:
@@ -143,6 +165,60 @@ def occupied_box(occupancy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] |
     first = index.amin(0).flip(0).to(torch.float32)  # (x, y, z)
     last = index.amax(0).flip(0).to(torch.float32) + 1.0
     return -1.0 + 2.0 * first / counts, -1.0 + 2.0 * last / counts
+
+
+class Occupancy:
+    """The macro cells a transfer table may show, the box around them, and the per-sample cell test.
+
+    Attributes:
+        cells: ``[Gz, Gy, Gx]`` bool, False where the opacity is zero for every value the cell can hold.
+        box: ``(low [3], high [3])`` around the visible cells in field coordinates ``(x, y, z)``, or None
+            when no cell is visible.
+    """
+
+    def __init__(self, bounds: ValueBounds, table: TransferTable) -> None:
+        """Args:
+        bounds: the field's value bounds.
+        table: the baked transfer function, on the bounds' device.
+        """
+        self.cells = bounds.visible_cells(table)
+        self.box = occupied_box(self.cells)
+        counts = self.cells.shape[::-1]  # (Gx, Gy, Gz)
+        device = self.cells.device
+        self._scale = 0.5 * torch.tensor(counts, dtype=torch.float32, device=device)  # field -> cell units
+        self._last = torch.tensor(counts, dtype=torch.float32, device=device) - 1.0
+        self._stride = torch.tensor([1, counts[0], counts[0] * counts[1]], device=device)  # flat (z, y, x) index
+        self._flat = self.cells.reshape(-1)
+
+    @property
+    def visible_fraction(self) -> float:
+        """Fraction of the cells the transfer table may show."""
+        return float(self.cells.float().mean())
+
+    def cell_rays(self, origins: torch.Tensor, directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rays in macro-cell units (``[0, G]`` per axis) from rays in field coordinates.
+
+        Args:
+            origins, directions: ``[R, 3]`` in field coordinates (``[-1, 1]^3`` is the box).
+
+        Returns:
+            ``(origins [R, 3], directions [R, 3])`` in cell units, so a sample's cell is the floor of its position.
+        """
+        return (origins + 1.0) * self._scale, directions * self._scale
+
+    def visible(self, cell_origins: torch.Tensor, cell_directions: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """Whether samples lie in cells the transfer table may show.
+
+        Args:
+            cell_origins, cell_directions: ``[A, 3]`` rays from :meth:`cell_rays`.
+            t: ``[A, K]`` ray parameters of the samples.
+
+        Returns:
+            ``[A, K]`` bool.
+        """
+        cell = cell_origins[:, None, :] + t[..., None] * cell_directions[:, None, :]  # [A, K, 3]
+        cell = torch.minimum(cell.clamp_(min=0.0), self._last).to(torch.int64)  # floor: all >= 0
+        return self._flat[(cell * self._stride).sum(dim=-1)]
 
 
 def _voxel_ranges(n: int, cells: int) -> list[tuple[int, int]]:

@@ -1,0 +1,56 @@
+"""The names a user chooses from (model kinds, size presets, schedules, value transforms, ...), one list each.
+
+The library validates against these lists and the command line offers them, so both always agree. The
+module imports nothing (no torch, no numpy): ``apmgsrn --help`` lists the choices without loading the
+library behind them.
+"""
+
+#: Model kinds (SPEC sections 2 and 5): keys of :data:`apmgsrn.models.registry.ENCODERS`.
+#: ``apmgsrn`` (the paper's) is the default everywhere; ``hybrid`` is the research model of docs/models.md.
+MODEL_KINDS = ("apmgsrn", "fvsrn", "ngp", "hybrid")
+
+#: Size presets of every model kind (:data:`apmgsrn.models.registry.PRESETS`).
+SIZE_PRESETS = ("small", "medium", "large")
+
+#: How an APMGSRN model places its grids at the start. The encoder
+#: (:mod:`apmgsrn.models.encoders.adaptive_multigrid`) holds the same tuple; a test keeps them equal.
+GRID_INITS = ("default", "large", "small")
+
+#: Multi-grid sampling kernels (:mod:`apmgsrn.ops.multigrid`); ``"auto"`` picks the fastest usable one.
+MULTIGRID_BACKENDS = ("torch", "cpu", "triton")
+
+#: Multi-level grid sampling kernels (:mod:`apmgsrn.ops.level_grids`) of the hybrid model.
+LEVEL_GRID_BACKENDS = ("torch", "cpu")
+
+#: Kernel backends each model kind accepts. The hash grid's list is also the encoder's
+#: (:mod:`apmgsrn.models.encoders.hash_grid`); a test keeps them equal.
+BACKENDS = {
+    "apmgsrn": ("auto", *MULTIGRID_BACKENDS),
+    "fvsrn": ("auto", *MULTIGRID_BACKENDS),
+    "ngp": ("torch", "tcnn", "auto"),
+    "hybrid": ("auto", *LEVEL_GRID_BACKENDS),
+}
+
+#: Value transforms applied before fitting (:mod:`apmgsrn.models.value_transform`).
+VALUE_TRANSFORMS = ("none", "log10", "zscore")
+
+#: Learning-rate schedules of the trainer (:class:`apmgsrn.training.trainer.TrainConfig`).
+LR_SCHEDULES = ("cosine", "constant", "plateau", "steps")
+
+#: Normalisations of the feature density loss (:class:`apmgsrn.training.trainer.TrainConfig`).
+DENSITY_NORMALIZATIONS = ("mass", "batch")
+
+#: Precisions of the decoder's hidden layers in training (:class:`apmgsrn.training.trainer.TrainConfig`).
+DECODER_PRECISIONS = ("auto", "float32", "bfloat16")
+
+#: How a ParaView preset's node positions are read (:func:`apmgsrn.render.paraview.apply_preset`).
+PRESET_UNITS = ("normalized", "data")
+
+#: Lossy compressors of ``bench compress`` (:data:`apmgsrn.bench.compressors.COMPRESSORS`).
+COMPRESSORS = ("sz3", "zfp")
+
+#: Units of a decode region (:class:`apmgsrn.data.grid.Region`): voxel indices or the source's coordinates.
+REGION_UNITS = ("index", "coordinates")
+
+#: Formats of ``apmgsrn export``.
+EXPORT_FORMATS = ("onnx",)

@@ -1,0 +1,110 @@
+"""The model and training options of ``train`` (single models and bricks alike) and the configs they make."""
+
+from __future__ import annotations
+
+import argparse
+
+from apmgsrn.choices import (
+    BACKENDS,
+    DECODER_PRECISIONS,
+    DENSITY_NORMALIZATIONS,
+    GRID_INITS,
+    LR_SCHEDULES,
+    MODEL_KINDS,
+    SIZE_PRESETS,
+)
+from apmgsrn.cli.common import parse_triple
+from apmgsrn.errors import ApmgsrnError
+
+
+def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``model`` and ``training`` option groups."""
+    backends = tuple(dict.fromkeys(name for names in BACKENDS.values() for name in names))
+    model = parser.add_argument_group("model")
+    model.add_argument("--model", choices=MODEL_KINDS, default="apmgsrn",
+                       help="default apmgsrn (the paper's); hybrid is a research model (docs/models.md)")
+    model.add_argument("--preset", choices=SIZE_PRESETS, default="small")
+    model.add_argument("--grids", type=int, help="number of grids M")
+    model.add_argument("--features", type=int, help="features per grid C (per level for ngp and hybrid)")
+    model.add_argument("--resolution", help="grid resolution R or D,H,W")
+    model.add_argument("--hidden-layers", type=int, help="decoder hidden layers (default 2)")
+    model.add_argument("--width", type=int, help="decoder width (default 64)")
+    model.add_argument("--grid-init", choices=GRID_INITS, help="grid initialisation")
+    model.add_argument("--backend", choices=backends,
+                       help="kernel backend: " + "; ".join(f"{kind}: {', '.join(names)}"
+                                                           for kind, names in BACKENDS.items())
+                       + " (default: the first; auto picks the fastest usable one, tcnn is tiny-cuda-nn on a GPU)")
+    model.add_argument("--levels", type=int, help="ngp, hybrid: resolution levels L")
+    model.add_argument("--log2-table-size", type=int, help="ngp, hybrid: log2 of the hash table entries per level T")
+    model.add_argument("--base-resolution", type=int, help="ngp: coarsest level resolution")
+    model.add_argument("--finest-resolution", type=int, help="ngp: finest level resolution")
+    model.add_argument("--frequencies", type=int, help="fvsrn: Fourier frequencies (default 6)")
+    training = parser.add_argument_group("training")
+    training.add_argument("--iterations", type=int, help="default: 3000 on CPU, 50000 on GPU")
+    training.add_argument("--batch-size", type=int, help="points per iteration (default: 32768 CPU, 100000 GPU)")
+    training.add_argument("--lr", type=float, default=0.01)
+    training.add_argument("--transform-lr", type=float, default=0.001, help="learning rate of the grid transforms")
+    training.add_argument("--lr-schedule", choices=LR_SCHEDULES,
+                          help="cosine: anneal after the grids stop (default for every model, bricks too); "
+                               "constant; plateau (paper; a brick ends after the third cut); "
+                               "steps: x0.33 at 40/60/80%% (NGP/fVSRN reference code)")
+    training.add_argument("--density-start", type=int,
+                          help="iteration where the grids start moving (default: 5%% of the budget; paper 500)")
+    training.add_argument("--freeze-fraction", type=float, default=0.5,
+                          help="grids stop moving by this fraction of the budget (default 0.5; paper 0.8)")
+    training.add_argument("--density-normalization", choices=DENSITY_NORMALIZATIONS, default="mass",
+                          help="mass (default): share of all grid features; batch: the paper's rho / sum rho")
+    training.add_argument("--decoder-precision", choices=DECODER_PRECISIONS, default="auto",
+                          help="decoder hidden layers while training: auto (default: bfloat16 on CPUs with "
+                               "native bfloat16, else float32), float32, bfloat16")
+    training.add_argument("--seed", type=int, default=0)
+    training.add_argument("--checkpoint-every", type=int, default=250)
+    training.add_argument("--resume", action="store_true",
+                          help="continue an interrupted run from MODEL.ckpt (only with the same data file, "
+                               "unchanged, and the same options)")
+
+
+def build_configs(args: argparse.Namespace, device):
+    """(FieldConfig, TrainConfig) from the command line, presets overridden by explicit flags.
+
+    Raises:
+        ApmgsrnError: an option out of range (the configs refuse it), or an invalid model size.
+    """
+    from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
+    from apmgsrn.training.trainer import TrainConfig, default_budget
+
+    iterations, batch_size = default_budget(device)
+    overrides = {
+        "grids": args.grids,
+        "features": args.features,
+        "resolution": parse_triple(args.resolution, "--resolution") if args.resolution else None,
+        "init": args.grid_init,
+        "backend": args.backend,
+        "hidden_layers": args.hidden_layers,
+        "width": args.width,
+        "levels": args.levels,
+        "log2_table_size": args.log2_table_size,
+        "base_resolution": args.base_resolution,
+        "finest_resolution": args.finest_resolution,
+        "frequencies": args.frequencies,
+    }
+    try:
+        field_config = preset_config(args.model, args.preset, **overrides)
+        train_config = TrainConfig(
+            iterations=iterations if args.iterations is None else args.iterations,
+            batch_size=batch_size if args.batch_size is None else args.batch_size,
+            lr=args.lr,
+            transform_lr=args.transform_lr,
+            lr_schedule=args.lr_schedule or DEFAULT_LR_SCHEDULES.get(args.model, "cosine"),
+            density_start=args.density_start,
+            freeze_fraction=args.freeze_fraction,
+            density_normalization=args.density_normalization,
+            decoder_precision=args.decoder_precision,
+            seed=args.seed,
+            checkpoint_every=args.checkpoint_every,
+        )
+    except ApmgsrnError:
+        raise  # names the option already (translated by the command line)
+    except (TypeError, ValueError) as exc:
+        raise ApmgsrnError(f"invalid model or training options: {exc}") from None
+    return field_config, train_config

@@ -1,0 +1,101 @@
+"""Library argument names -> command-line options: how an error's advice reaches a CLI user.
+
+The library names its own arguments in errors (``pass fill_nonfinite=VALUE``), which is right for a
+Python caller; the command line says the same with its options (``pass --fill-nonfinite VALUE``). This
+table is the one place that knows both names.
+"""
+
+from __future__ import annotations
+
+import re
+
+from apmgsrn.errors import ApmgsrnError
+
+#: library argument -> the option that sets it (every option named here exists in some subcommand).
+FLAGS = {
+    # data
+    "variable": "--variable",
+    "time": "--time",
+    "shape": "--shape",
+    "dtype": "--dtype",
+    "fill_nonfinite": "--fill-nonfinite",
+    # decoding and export
+    "region": "--region",
+    "region_units": "--region-units",
+    "format": "--format",
+    # fitting
+    "out": "--out",
+    "resume": "--resume",
+    "transform": "--transform",
+    "log_offset": "--log-offset",
+    "backend": "--backend",
+    "grids": "--grids",
+    "features": "--features",
+    "resolution": "--resolution",
+    "init": "--grid-init",
+    "hidden_layers": "--hidden-layers",
+    "levels": "--levels",
+    "log2_table_size": "--log2-table-size",
+    "base_resolution": "--base-resolution",
+    "finest_resolution": "--finest-resolution",
+    "frequencies": "--frequencies",
+    "iterations": "--iterations",
+    "batch_size": "--batch-size",
+    "lr": "--lr",
+    "transform_lr": "--transform-lr",
+    "lr_schedule": "--lr-schedule",
+    "density_start": "--density-start",
+    "freeze_fraction": "--freeze-fraction",
+    "density_normalization": "--density-normalization",
+    "decoder_precision": "--decoder-precision",
+    "seed": "--seed",
+    "checkpoint_every": "--checkpoint-every",
+    "device": "--device",
+    # bricks
+    "bricks": "--bricks",
+    "ghost_cells": "--ghost-cells",
+    "workers": "--workers",
+    "scheduler": "--scheduler",
+    "retries": "--retries",
+    # rendering
+    "width": "--width",
+    "height": "--height",
+    "azimuth": "--azimuth",
+    "elevation": "--elevation",
+    "distance": "--distance",
+    "fov": "--fov",
+    "samples_per_ray": "--spp",
+    "reference_samples": "--reference-samples",
+    "early_termination": "--early-termination",
+    "macro_cells": "--macro-cells",
+    "background": "--background",
+    "value_range": "--range",
+    "units": "--preset-units",
+    "frames": "--frames",
+    "fps": "--fps",
+    # benchmarks and pictures
+    "models": "--models",
+    "sizes": "--sizes",
+    "compressors": "--compressors",
+    "seeds": "--seeds",
+    "bounds": "--bounds",
+    "query_points": "--query-points",
+    "every": "--every",
+}
+
+
+def cli_message(error: ApmgsrnError) -> str:
+    """The error's message with the library arguments it names written as options.
+
+    ``name=True`` and a bare ``name=`` (before a space or the end) become the flag alone (``resume=True`` ->
+    ``--resume``); ``name=VALUE`` becomes ``--flag VALUE``. Only the names the error lists in ``arguments`` are rewritten, so a file name or a
+    stored value that happens to contain ``name=`` is left as it is.
+    """
+    message = str(error)
+    for name in getattr(error, "arguments", ()):
+        flag = FLAGS.get(name)
+        if flag is None:
+            continue
+        message = re.sub(rf"(?<![\w-]){re.escape(name)}=(True\b|(?=[\s,;:)]|$))", flag, message)
+        message = re.sub(rf"(?<![\w-]){re.escape(name)}=", f"{flag} ", message)
+    return message

@@ -1,0 +1,27 @@
+"""Model files: the single-file and brick-folder formats, validation before allocation, atomic writes,
+typed model descriptions and the loader registry.
+
+Layer: above :mod:`apmgsrn.models` (it builds fields from files), below :mod:`apmgsrn.training` (which
+saves through it); it imports no training, decomposition, render or CLI code.
+"""
+
+from apmgsrn.atomic import atomic_write, atomic_write_text, check_output_path
+from apmgsrn.io.description import BrickEntry, BrickLayout, ModelDescription, SourceInfo
+from apmgsrn.io.field_file import load_field, save_field
+from apmgsrn.io.registry import LoadedModel, model_kind, open_model, register_loader
+
+__all__ = [
+    "BrickEntry",
+    "BrickLayout",
+    "LoadedModel",
+    "ModelDescription",
+    "SourceInfo",
+    "atomic_write",
+    "atomic_write_text",
+    "check_output_path",
+    "load_field",
+    "model_kind",
+    "open_model",
+    "register_loader",
+    "save_field",
+]

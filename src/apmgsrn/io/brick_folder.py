@@ -1,0 +1,224 @@
+"""The brick-model folder: ``manifest.json`` plus one single-field model file per brick.
+
+::
+
+    MODEL_DIR/
+      manifest.json                  format, brick grid, ghost cells, blend, settings, per-brick figures
+      brick_000_000_000.apmgsrn      a single-field model file (see field_file) per brick
+      brick_001_000_000.apmgsrn
+      brick_001_000_000.apmgsrn.ckpt training checkpoint of a brick in progress (removed when it is done)
+
+The manifest is plain JSON checked field by field, and every brick file is a checked single-field file, so
+loading never runs code from the folder. The manifest is written atomically at the start of training
+(``complete: false``) and again at the end; each brick file is written atomically by the job that trained it,
+so a crash at any moment leaves only whole files.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from collections.abc import Iterable
+from pathlib import Path
+
+from apmgsrn.errors import ApmgsrnError
+from apmgsrn.atomic import atomic_write_text
+from apmgsrn.io.container import FORMAT, FORMAT_VERSION, parse_json, read_header
+from apmgsrn.io.description import (
+    BrickEntry,
+    BrickLayout,
+    DescriptionError,
+    SourceInfo,
+    require_dict,
+    require_int,
+    require_ints,
+)
+from apmgsrn.io.field_file import FIELD_KIND, MAX_VOLUME_AXIS
+
+BRICKS_KIND = "bricks"
+MANIFEST_NAME = "manifest.json"
+BRICK_SUFFIX = ".apmgsrn"
+MAX_MANIFEST_BYTES = 64 * 1024 * 1024
+#: Brick grids beyond this many bricks are refused (a hostile manifest could ask for billions of modules).
+MAX_BRICKS = 1_000_000
+_BRICK_NAME = re.compile(r"^brick_\d{3,7}_\d{3,7}_\d{3,7}$")
+
+
+def brick_file_name(name: str) -> str:
+    """File name of a brick's model inside the model folder."""
+    return name + BRICK_SUFFIX
+
+
+def manifest_path(directory: str | os.PathLike) -> Path:
+    return Path(directory) / MANIFEST_NAME
+
+
+def is_brick_folder(path: str | os.PathLike) -> bool:
+    """True if ``path`` is a folder holding a brick-model manifest (not validated)."""
+    return Path(path).is_dir() and manifest_path(path).is_file()
+
+
+def new_manifest(volume_shape: tuple[int, int, int], counts: tuple[int, int, int], ghost_cells: int, blend: bool,
+                 bricks: Iterable, settings: dict, source: SourceInfo) -> dict:
+    """The manifest of a brick model before any brick is trained.
+
+    Args:
+        volume_shape: ``(D, H, W)``.
+        counts: bricks along x, y, z.
+        ghost_cells: ghost cells of the plan.
+        blend: blend neighbouring bricks at inference.
+        bricks: the plan's bricks (objects with ``name``, ``index``, ``position``, ``start``, ``stop``).
+        settings: everything that decides the bricks' models (a rerun must match it).
+        source: where the data came from.
+    """
+    return {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "kind": BRICKS_KIND,
+        "complete": False,
+        "volume_shape": list(volume_shape),
+        "grid": list(counts),
+        "ghost_cells": ghost_cells,
+        "blend": blend,
+        "settings": settings,
+        "source": source.to_dict(),
+        "value_range": None,
+        "bricks": [
+            {"index": b.index, "name": b.name, "file": brick_file_name(b.name), "position": list(b.position),
+             "start": list(b.start), "stop": list(b.stop)}
+            for b in bricks
+        ],
+    }
+
+
+def write_manifest(directory: str | os.PathLike, manifest: dict) -> None:
+    """Write ``manifest.json`` atomically."""
+    text = json.dumps(manifest, indent=1, allow_nan=True)
+    atomic_write_text(manifest_path(directory), text, "brick manifest")
+
+
+def read_manifest(directory: str | os.PathLike) -> dict:
+    """Read and check a brick model folder's manifest (JSON only; nothing in it is executed).
+
+    Returns:
+        The manifest as a dict, every field the product reads checked for type and range.
+
+    Raises:
+        ApmgsrnError: no manifest, not ours, corrupt, inconsistent or from a newer format version.
+    """
+    directory = Path(directory)
+    path = manifest_path(directory)
+    if not directory.is_dir():
+        raise ApmgsrnError(f"{directory}: no such brick model folder")
+    if not path.is_file():
+        raise ApmgsrnError(
+            f"{directory}: folder has no {MANIFEST_NAME}, so it is not a brick model; pass a model file or a "
+            "folder written by a brick training run"
+        )
+    not_ours = f"{path}: not an apmgsrn brick model manifest (corrupt or another format); re-train the model"
+    try:
+        if path.stat().st_size > MAX_MANIFEST_BYTES:
+            raise ApmgsrnError(not_ours)
+        text = path.read_bytes()
+    except OSError as exc:
+        raise ApmgsrnError(f"{path}: cannot read ({exc.strerror})") from None
+    manifest = parse_json(text, not_ours)
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT or manifest.get("kind") != BRICKS_KIND:
+        raise ApmgsrnError(not_ours)
+    version = manifest.get("format_version")
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise ApmgsrnError(not_ours)
+    if version > FORMAT_VERSION:
+        raise ApmgsrnError(
+            f"{path}: written by a newer apmgsrn (model format {version}, this one reads up to {FORMAT_VERSION}); "
+            "upgrade apmgsrn to load it"
+        )
+    try:
+        _check_manifest(manifest)
+    except DescriptionError as exc:
+        raise ApmgsrnError(f"{path}: brick manifest is inconsistent ({exc}); re-train the model") from None
+    return manifest
+
+
+def _check_manifest(manifest: dict) -> None:
+    volume_shape = require_ints(manifest.get("volume_shape"), "volume_shape", 3, 2, MAX_VOLUME_AXIS)
+    grid = require_ints(manifest.get("grid"), "grid", 3, 1, MAX_BRICKS)
+    require_int(manifest.get("ghost_cells"), "ghost_cells", 0, MAX_VOLUME_AXIS)
+    for flag in ("blend", "complete"):
+        if not isinstance(manifest.get(flag), bool):
+            raise DescriptionError(f"{flag} is not true or false")
+    for key in ("settings", "training"):
+        if manifest.get(key) is not None:
+            require_dict(manifest[key], key)
+    SourceInfo.from_dict(manifest.get("source", {})).check_shape(volume_shape)
+    value_range = manifest.get("value_range")
+    if value_range is not None and not (
+        isinstance(value_range, list) and len(value_range) == 2
+        and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value_range)
+    ):
+        raise DescriptionError("value_range is not two numbers")
+    bricks = manifest.get("bricks")
+    count = grid[0] * grid[1] * grid[2]
+    if count > MAX_BRICKS or not isinstance(bricks, list) or len(bricks) != count:
+        raise DescriptionError(f"brick list does not match the {grid[0]}x{grid[1]}x{grid[2]} grid")
+    for index, entry in enumerate(bricks):
+        _brick_entry(entry, index)
+
+
+def _brick_entry(entry, index: int) -> BrickEntry:
+    where = f"bricks[{index}]"
+    entry = require_dict(entry, where)
+    name = entry.get("name")
+    # Names and file names follow one pattern: no path separators, no way out of the folder.
+    if not isinstance(name, str) or not _BRICK_NAME.match(name) or entry.get("file") != brick_file_name(name):
+        raise DescriptionError(f"{where} has an invalid name or file")
+    if require_int(entry.get("index"), f"{where}.index") != index:
+        raise DescriptionError(f"{where}.index is not {index}")
+    summary = entry.get("summary", {})
+    return BrickEntry(
+        name=name,
+        index=index,
+        position=require_ints(entry.get("position"), f"{where}.position", 3, 0, MAX_BRICKS),
+        start=require_ints(entry.get("start"), f"{where}.start", 3, 0, MAX_VOLUME_AXIS),
+        stop=require_ints(entry.get("stop"), f"{where}.stop", 3, 1, MAX_VOLUME_AXIS),
+        file=entry["file"],
+        summary=require_dict(summary, f"{where}.summary"),
+    )
+
+
+def brick_layout(manifest: dict) -> BrickLayout:
+    """The typed brick grid of a manifest that :func:`read_manifest` accepted."""
+    return BrickLayout(
+        counts=tuple(manifest["grid"]),
+        ghost_cells=manifest["ghost_cells"],
+        blend=manifest["blend"],
+        entries=tuple(_brick_entry(entry, i) for i, entry in enumerate(manifest["bricks"])),
+    )
+
+
+def brick_file_ready(path: str | os.PathLike) -> bool:
+    """Whether a brick's model file exists as a readable single-field file (a symbolic link never is)."""
+    path = Path(path)
+    try:
+        return not path.is_symlink() and read_header(path).kind == FIELD_KIND
+    except ApmgsrnError:
+        return False
+
+
+def brick_summary_from_file(path: str | os.PathLike) -> dict:
+    """Per-brick figures stored in a brick's model file (for bricks trained by an earlier run)."""
+    description = read_header(path).description
+    training = description.get("training", {})
+    training = training if isinstance(training, dict) else {}
+    return {
+        "psnr": training.get("psnr"),
+        "max_abs_error": training.get("max_abs_error"),
+        "seconds": training.get("seconds"),
+        "iterations": training.get("iterations"),
+        "stopped_early": training.get("stopped_early"),
+        "value_min": description.get("value_min"),
+        "value_max": description.get("value_max"),
+        "bytes": Path(path).stat().st_size,
+        "device": training.get("device"),
+    }

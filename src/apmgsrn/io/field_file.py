@@ -1,0 +1,181 @@
+"""The single-field model file: one network, its value scaling and transform, and how it was trained.
+
+Layout (a :mod:`~apmgsrn.io.container` file of kind ``field``): the tensors are the field's ``state_dict``;
+the description holds ``field`` (the :class:`~apmgsrn.models.registry.FieldConfig`), ``fit_min``/``fit_max``
+(output scaling, fitted units), ``value_min``/``value_max`` (data units), ``transform`` (the value
+transform), ``volume_shape`` (D, H, W), ``source`` and ``training`` (the summary).
+
+Loading checks the description and compares every declared tensor with the shapes the config implies
+*before* a module is built, so a file cannot make the loader allocate more than it really stores; it
+refuses non-finite weights and singular grid maps (a model that would decode to NaN).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from apmgsrn.errors import ApmgsrnError
+from apmgsrn.io.container import Header, load_tensors, read_header, save_tensors
+from apmgsrn.io.description import (
+    DescriptionError,
+    ModelDescription,
+    SourceInfo,
+    inconsistent,
+    require_dict,
+    require_ints,
+    require_number,
+    training_summary,
+)
+from apmgsrn.models.field import NeuralField
+from apmgsrn.models.registry import FieldConfig
+from apmgsrn.models.value_transform import TRANSFORMS, ValueTransform
+
+FIELD_KIND = "field"
+#: Largest volume a model may describe, per axis (larger shapes are refused as corrupt).
+MAX_VOLUME_AXIS = 1 << 24
+
+
+@dataclass(frozen=True)
+class FieldDescription:
+    """The parsed description of a single-field file (what the loader builds the field from)."""
+
+    config: FieldConfig
+    fit_range: tuple[float, float]
+    value_range: tuple[float, float]
+    transform: ValueTransform
+    volume_shape: tuple[int, int, int]
+    source: SourceInfo
+    training: dict
+
+
+def save_field(path: str | os.PathLike, field: NeuralField, source: SourceInfo, training: dict) -> int:
+    """Save a field with everything needed to rebuild it, atomically.
+
+    Args:
+        path: the model file.
+        field: the trained field.
+        source: where the data came from.
+        training: the training summary (JSON-able).
+
+    Returns:
+        Bytes written.
+    """
+    description = {
+        "field": field.config.to_dict(),
+        "fit_min": field.fit_min,
+        "fit_max": field.fit_max,
+        "value_min": field.value_min,
+        "value_max": field.value_max,
+        "transform": dataclasses.asdict(field.transform),
+        "volume_shape": list(field.volume_shape),
+        "source": source.to_dict(),
+        "training": training,
+    }
+    return save_tensors(path, dict(field.state_dict()), FIELD_KIND, description)
+
+
+def parse_field_description(description: dict) -> FieldDescription:
+    """Check a ``field`` file's description, field by field.
+
+    Raises:
+        DescriptionError, ValueError: a missing, mistyped or out-of-range entry.
+    """
+    config = FieldConfig.from_dict(description.get("field"))
+    fit_range = (require_number(description.get("fit_min"), "fit_min"),
+                 require_number(description.get("fit_max"), "fit_max"))
+    value_range = (require_number(description.get("value_min"), "value_min"),
+                   require_number(description.get("value_max"), "value_max"))
+    if fit_range[0] > fit_range[1] or value_range[0] > value_range[1]:
+        raise DescriptionError("value range has min > max")
+    transform = require_dict(description.get("transform"), "transform")
+    if transform.get("kind") not in TRANSFORMS or set(transform) - {"kind", "offset", "mean", "std"}:
+        raise DescriptionError("transform is not a known value transform")
+    numbers = {k: require_number(v, f"transform.{k}") for k, v in transform.items() if k != "kind"}
+    volume_shape = require_ints(description.get("volume_shape"), "volume_shape", 3, 1, MAX_VOLUME_AXIS)
+    source = SourceInfo.from_dict(description.get("source", {}))
+    source.check_shape(volume_shape)
+    return FieldDescription(
+        config=config,
+        fit_range=fit_range,
+        value_range=value_range,
+        transform=ValueTransform(transform["kind"], **numbers),
+        volume_shape=volume_shape,
+        source=source,
+        training=training_summary(description.get("training", {})),
+    )
+
+
+def _check_declared_tensors(header: Header, config: FieldConfig) -> None:
+    """The file must store exactly the float32 parameters the config implies, no more, no fewer."""
+    expected = config.parameter_shapes()
+    declared = {name: entry.shape for name, entry in header.tensors.items()}
+    if declared != expected:
+        missing = sorted(set(expected) - set(declared))
+        extra = sorted(set(declared) - set(expected))
+        wrong = sorted(k for k in set(expected) & set(declared) if expected[k] != declared[k])
+        detail = (f"missing {missing[:3]}" if missing else f"unexpected {extra[:3]}" if extra
+                  else f"{wrong[0]} is {list(declared[wrong[0]])}, the config says {list(expected[wrong[0]])}")
+        raise DescriptionError(f"stored tensors do not match the model config: {detail}")
+    if any(entry.dtype != "F32" for entry in header.tensors.values()):
+        raise DescriptionError("stored tensors are not float32")
+
+
+def load_field(path: str | os.PathLike, device: torch.device | str = "cpu",
+               header: Header | None = None) -> tuple[NeuralField, ModelDescription]:
+    """Load a single-field model file.
+
+    Args:
+        path: the file.
+        device: where to put the field.
+        header: its header if already read.
+
+    Returns:
+        The field (eval mode) and its description.
+
+    Raises:
+        ApmgsrnError: unreadable, foreign, newer, inconsistent or hostile file.
+    """
+    path = Path(path)
+    header = header or read_header(path)
+    if header.kind != FIELD_KIND:
+        raise ApmgsrnError(f"{path}: is a {header.kind or 'unknown'} file, not a single model; pass a model file")
+    try:
+        parsed = parse_field_description(header.description)
+        _check_declared_tensors(header, parsed.config)
+    except (DescriptionError, ValueError, TypeError) as exc:
+        raise inconsistent(path, exc) from None
+    tensors = load_tensors(path)
+    try:
+        field = NeuralField(
+            parsed.config,
+            fit_min=parsed.fit_range[0],
+            fit_max=parsed.fit_range[1],
+            value_min=parsed.value_range[0],
+            value_max=parsed.value_range[1],
+            transform=parsed.transform,
+            volume_shape=parsed.volume_shape,
+        )
+        field.load_state_dict(tensors, strict=True)
+        problem = field.check_parameters()
+        if problem is not None:
+            raise DescriptionError(problem)
+    except (DescriptionError, ValueError, RuntimeError) as exc:
+        raise inconsistent(path, exc) from None
+    description = ModelDescription(
+        kind=FIELD_KIND,
+        config=parsed.config,
+        volume_shape=parsed.volume_shape,
+        value_range=parsed.value_range,
+        transform=parsed.transform.kind,
+        source=parsed.source,
+        training=parsed.training,
+        parameters=field.parameter_count(),
+        file_bytes=path.stat().st_size,
+        format_version=header.version,
+    )
+    return field.to(device).eval(), description

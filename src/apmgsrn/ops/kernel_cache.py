@@ -1,0 +1,136 @@
+"""Build C kernels with the system compiler and cache them, trusting only files this user controls.
+
+A shared library runs code when it is loaded, so a cached kernel is loaded only from a folder chain that
+belongs to the current user and that nobody else can write (checked on every path component from the
+cache root down, and on the file itself). When the cache cannot be used (read-only or full ``$HOME``, an
+unwritable ``APMGSRN_CACHE``, a folder another user could write), the kernel is built into a fresh private
+temporary folder (``mkdtemp``: mode 0700, unpredictable name) for this process alone: never into, or from,
+a predictable shared path such as ``/tmp/apmgsrn-kernels-<uid>``.
+"""
+
+from __future__ import annotations
+
+import atexit
+import hashlib
+import os
+import platform
+import shutil
+import stat
+import subprocess
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+
+def cache_dir() -> Path:
+    """Folder of built kernels: ``$APMGSRN_CACHE/kernels``, default ``~/.cache/apmgsrn/kernels``."""
+    root = os.environ.get("APMGSRN_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "apmgsrn")
+    return Path(root) / "kernels"
+
+
+def cpu_signature() -> str:
+    """What ``-march=native`` machine code depends on: the CPU's model and flags."""
+    try:
+        lines = [ln for ln in Path("/proc/cpuinfo").read_text().splitlines()
+                 if ln.startswith(("model name", "flags"))][:2]
+        return "\n".join(lines)
+    except OSError:
+        return platform.processor() or platform.machine()
+
+
+def kernel_key(*parts: str) -> str:
+    """A short hash naming a kernel build (source, flags, compiler, CPU)."""
+    return hashlib.sha256("\0".join(parts).encode()).hexdigest()[:16]
+
+
+def is_private(path: Path) -> bool:
+    """True when ``path`` is owned by this user and writable by nobody else (no group/other write bit).
+
+    Symbolic links are judged by what they point to only if the link itself is also ours.
+    """
+    if not hasattr(os, "getuid"):
+        return True  # no POSIX ownership to check (not a platform this kernel builds on)
+    try:
+        info = path.lstat()
+    except OSError:
+        return False
+    if info.st_uid != os.getuid() or info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+        return False
+    if stat.S_ISLNK(info.st_mode):
+        return is_private(path.resolve())
+    return True
+
+
+def trusted_folder(folder: Path) -> bool:
+    """Whether every component from ``folder`` up to the first one not created for the cache is private.
+
+    The folder itself and its parents up to (not including) the user's home or the ``APMGSRN_CACHE`` root's
+    parent must be private; a world-writable parent with the sticky bit (``/tmp``) is fine above that.
+    """
+    folder = folder.absolute()
+    if not folder.is_dir() or not is_private(folder):
+        return False
+    for parent in folder.parents:
+        try:
+            info = parent.lstat()
+        except OSError:
+            return False
+        writable_by_others = info.st_mode & (stat.S_IWGRP | stat.S_IWOTH)
+        if writable_by_others and not info.st_mode & stat.S_ISVTX:
+            return False  # someone else could swap a folder on the way in
+        if info.st_uid not in (0, os.getuid()):
+            return False
+    return True
+
+
+def _make_private_folder(folder: Path) -> None:
+    folder.mkdir(parents=True, exist_ok=True, mode=0o700)
+
+
+def _compile(folder: Path, name: str, compiler: str, source: str, common_flags: Sequence[str],
+             flag_sets: Sequence[Sequence[str]]) -> Path:
+    """Compile ``source`` into ``folder / name``, trying the flag sets in order (atomic rename)."""
+    errors = []
+    with tempfile.TemporaryDirectory(dir=folder) as tmp:
+        src = Path(tmp) / "kernel.c"
+        src.write_text(source)
+        out = Path(tmp) / name
+        for extra in flag_sets:
+            proc = subprocess.run([compiler, *common_flags, *extra, str(src), "-o", str(out), "-lm"],
+                                  capture_output=True, text=True, timeout=300)
+            if proc.returncode == 0:
+                os.chmod(out, 0o700)
+                target = folder / name
+                os.replace(out, target)  # a concurrent process sees no file or a complete one
+                return target
+            errors.append(f"{' '.join(extra) or 'plain'}: {proc.stderr.strip()[-800:]}")
+    raise RuntimeError(f"{compiler} could not build the kernel:\n" + "\n".join(errors))
+
+
+def build_library(name: str, compiler: str, source: str, common_flags: Sequence[str],
+                  flag_sets: Sequence[Sequence[str]]) -> Path:
+    """The path of a loadable kernel library: the cached one if it is trusted, else a fresh build.
+
+    Args:
+        name: file name (include a :func:`kernel_key` so that another source or CPU gets another file).
+        compiler: the C compiler.
+        source: C source.
+        common_flags: flags of every attempt.
+        flag_sets: extra flags, tried in order until one compiles.
+
+    Raises:
+        RuntimeError: the compiler failed with every flag set.
+    """
+    folder = cache_dir()
+    try:
+        _make_private_folder(folder)
+        if trusted_folder(folder):
+            target = folder / name
+            if target.exists() and is_private(target):
+                return target
+            return _compile(folder, name, compiler, source, common_flags, flag_sets)
+    except OSError:
+        pass  # read-only or full cache: build for this process below
+    private = Path(tempfile.mkdtemp(prefix="apmgsrn-kernel-"))  # 0700, unpredictable
+    atexit.register(shutil.rmtree, private, ignore_errors=True)  # loaded libraries stay mapped until exit
+    return _compile(private, name, compiler, source, common_flags, flag_sets)
