@@ -9,6 +9,10 @@ library behind them.
 #: ``apmgsrn`` (the paper's) is the default everywhere; ``hybrid`` is the research model of docs/models.md.
 MODEL_KINDS = ("apmgsrn", "fvsrn", "ngp", "hybrid")
 
+#: The paper's model and its two baselines: what ``bench quality`` and ``bench compress`` run unless given
+#: ``--models`` (the tables of docs/results.md).
+PAPER_MODELS = ("apmgsrn", "fvsrn", "ngp")
+
 #: Size presets of every model kind (:data:`apmgsrn.models.registry.PRESETS`).
 SIZE_PRESETS = ("small", "medium", "large")
 

@@ -17,7 +17,7 @@ from apmgsrn.arguments import MAX_BATCH_SIZE, check_choice, check_int, check_num
 from apmgsrn.atomic import atomic_write_text
 from apmgsrn.bench.datasets import DataSpec, open_spec
 from apmgsrn.bench.results import QualityRow, append_row, read_rows
-from apmgsrn.choices import LR_SCHEDULES, MODEL_KINDS, SIZE_PRESETS, VALUE_TRANSFORMS
+from apmgsrn.choices import LR_SCHEDULES, MODEL_KINDS, PAPER_MODELS, SIZE_PRESETS, VALUE_TRANSFORMS
 from apmgsrn.errors import ApmgsrnError
 
 
@@ -36,7 +36,7 @@ class QualityPlan:
     """
 
     datasets: tuple[DataSpec, ...]
-    models: tuple[str, ...] = MODEL_KINDS
+    models: tuple[str, ...] = PAPER_MODELS
     sizes: tuple[str, ...] = ("small", "medium")
     seeds: int = 1
     iterations: int = 2000
