@@ -230,16 +230,6 @@ def test_level_tables_learn_faster_and_grid_maps_only_from_the_density_loss():
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-@pytest.fixture(scope="module")
-def neghip_crop(test_data, tmp_path_factory):
-    """A real 24^3 crop of the neghip protein field, as .npy (small enough for quick CPU runs)."""
-    volume = open_volume(test_data / "neghip_64x64x64_uint8.raw")
-    data = volume.read(slice(20, 44), slice(20, 44), slice(20, 44))
-    path = tmp_path_factory.mktemp("hybrid") / "neghip_crop.npy"
-    np.save(path, data)
-    return path, data
-
-
 def test_hybrid_trains_and_every_command_reads_its_model(neghip_crop, tmp_path, capsys):
     path, data = neghip_crop
     out = tmp_path / "hybrid.apmgsrn"
@@ -265,7 +255,8 @@ def test_hybrid_trains_and_every_command_reads_its_model(neghip_crop, tmp_path, 
     values = np.load(decoded)
     assert values.shape == data.shape
     error = values.astype(np.float64) - data
-    assert 10 * math.log10(float(np.ptp(data)) ** 2 / float(np.mean(error**2))) == pytest.approx(summary["psnr"], abs=0.05)
+    psnr = 10 * math.log10(float(np.ptp(data)) ** 2 / float(np.mean(error**2)))
+    assert psnr == pytest.approx(summary["psnr"], abs=0.05)
     picture = tmp_path / "hybrid.png"
     assert main(["render", str(out), "--out", str(picture), "--width", "40", "--height", "32", "--spp", "16"]) == 0
     assert picture.stat().st_size > 0

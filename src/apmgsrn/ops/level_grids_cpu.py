@@ -221,7 +221,8 @@ def load_library() -> ctypes.CDLL | None:
             if compiler is None:
                 raise RuntimeError(f"C compiler {wanted!r} not found" if wanted else "no C compiler (gcc or cc) on PATH")
             key = kernel_key(C_SOURCE, repr((COMMON_FLAGS, FLAG_SETS)), compiler, cpu_signature())
-            lib = ctypes.CDLL(str(build_library(f"level_grids_cpu_{key}.so", compiler, C_SOURCE, COMMON_FLAGS, FLAG_SETS)))
+            path = build_library(f"level_grids_cpu_{key}.so", compiler, C_SOURCE, COMMON_FLAGS, FLAG_SETS)
+            lib = ctypes.CDLL(str(path))
             p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
             lib.lg_forward.argtypes = [p, i64, i64, p, p, p, p, p, p, i64, i32]
             lib.lg_backward.argtypes = [p, i64, i64, p, p, p, p, p, i64, p, p, i64, i32]

@@ -379,7 +379,8 @@ class Trainer:
                     st.history["iteration"].append(st.iteration)
                     st.history["reconstruction"].append(loss)
                     st.history["density"].append(float(losses.density) if losses.density is not None else float("nan"))
-                    st.history["lr"].append(self.learning_rate(st.iteration))  # the base rate, before multipliers
+                    group = self.network_optimizer.param_groups[0]
+                    st.history["lr"].append(group["lr"] / group.get("lr_multiplier", 1.0))  # the step's base rate
                 st.iteration += 1
                 st.elapsed = time.perf_counter() - start
                 for callback in self.callbacks:

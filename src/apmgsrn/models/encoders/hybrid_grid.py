@@ -5,7 +5,7 @@ Two kinds of feature grids, read the same way (:mod:`apmgsrn.ops.level_grids`):
 - ``levels`` *domain levels* span the whole volume. They follow its voxel lattice: the finest level has one
   vertex per voxel on every axis (so it can hold the ground truth's trilinear interpolation exactly), the
   coarsest ``coarsest`` vertices on the longest axis, geometric in between, with per-axis vertex counts in
-  the volume's aspect ratio (a 512x64x64 volume gets 8x1 more vertices along x, not a cube). A level is
+  the volume's aspect ratio (a 512x64x64 volume gets 8x more vertices along x than along y and z). A level is
   stored densely when its vertices fit ``2^T`` rows, hashed into ``2^T`` rows otherwise (Instant-NGP's
   hash); the hash table's collisions resolve where the data needs them, which on sparse volumes acts as
   an implicit adaptivity.
@@ -21,7 +21,7 @@ The layout follows the lattice of the volume the model is fitted to: the config'
 
 The features of all grids are concatenated (domain levels first, coarse to fine, then the adaptive grids)
 for the shared decoder. The domain levels' table learns ``level_lr_scale`` times faster than the rest
-(per-component learning rates, :meth:`HybridGridEncoder.learning_rate_scales`).
+(per-component learning rates, :meth:`HybridGridEncoder.learning_rate_multipliers`).
 """
 
 from __future__ import annotations
