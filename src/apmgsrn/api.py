@@ -25,6 +25,7 @@ from apmgsrn.data import ArrayVolume, Volume, open_volume
 from apmgsrn.data.grid import AxisCoordinates, Region, VolumeMetadata, plain_attributes
 from apmgsrn.device import resolve_device
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.export import export_onnx
 from apmgsrn.inference.decode import decode_array, decode_volume
 from apmgsrn.inference.query import query
 from apmgsrn.inference.slabs import QUERY_BATCH
@@ -32,6 +33,14 @@ from apmgsrn.io import ModelDescription, SourceInfo, open_model, save_field
 from apmgsrn.io.container import check_replaceable
 from apmgsrn.io.decode_plan import DecodePlan, plan_decode
 from apmgsrn.io.field_file import FIELD_KIND
+from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
+from apmgsrn.render import Camera, RendererConfig, VolumeRenderer, extent_from_shape, make_transfer_function
+from apmgsrn.render.images import as_uint8
+from apmgsrn.render.raymarch import default_batch_size
+from apmgsrn.training.callbacks import TrainingProgress
+from apmgsrn.training.fit import fit as fit_prepared
+from apmgsrn.training.fit import prepare_values
+from apmgsrn.training.trainer import TrainConfig, default_budget
 
 
 class Model(nn.Module):
@@ -163,8 +172,6 @@ class Model(nn.Module):
 
         See :func:`apmgsrn.export.export_onnx`.
         """
-        from apmgsrn.export import export_onnx
-
         return export_onnx(self.field, path)
 
 
@@ -223,12 +230,6 @@ def fit(
     Raises:
         ApmgsrnError: unreadable data, NaN/Inf voxels without ``fill_nonfinite``, an invalid option.
     """
-    from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
-    from apmgsrn.training.callbacks import TrainingProgress
-    from apmgsrn.training.fit import fit as fit_prepared
-    from apmgsrn.training.fit import prepare_values
-    from apmgsrn.training.trainer import TrainConfig, default_budget
-
     device = _device(device)
     volume = _as_volume(data, variable=variable, time=time, fill_nonfinite=fill_nonfinite)
     train_names = {f.name for f in dataclass_fields(TrainConfig)}
@@ -292,10 +293,6 @@ def render(
     Returns:
         ``[height, width, 4]`` uint8 RGBA (colour not premultiplied; alpha is the ray's opacity).
     """
-    from apmgsrn.render import Camera, RendererConfig, VolumeRenderer, extent_from_shape, make_transfer_function
-    from apmgsrn.render.images import as_uint8
-    from apmgsrn.render.raymarch import default_batch_size
-
     device = model.device
     value_range = tuple(model.description.value_range) if value_range is None else tuple(value_range)
     transfer_function = make_transfer_function(colormap, value_range, opacity=opacity, preset_name=preset_name,
