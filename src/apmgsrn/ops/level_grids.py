@@ -23,6 +23,7 @@ from __future__ import annotations
 import torch
 
 from apmgsrn import choices
+from apmgsrn.ops import level_grids_cpu
 from apmgsrn.ops.level_layout import LevelLayout
 
 # Spatial-hash primes of Instant-NGP (Teschner et al. 2003); the first is 1 for cache coherence.
@@ -154,8 +155,6 @@ def level_grid_features(
         and not (torch.is_grad_enabled() and (points.requires_grad or maps.requires_grad))
     )
     if fusable:
-        from apmgsrn.ops import level_grids_cpu
-
         if level_grids_cpu.is_available():
             return level_grids_cpu.level_grid_features_cpu(points, maps, table, layout)
         if backend == "cpu":
