@@ -6,7 +6,7 @@ real volume, timed separately in the two phases of a protocol run (grids moving:
 frozen ones). Models are timed in alternating rounds so that load from other processes hits all alike.
 
     python benchmarks/bench_hybrid_steps.py --volume ../shared/data/neghip_64x64x64_uint8.raw \
-        --threads 1 --sizes small --steps 100 --rounds 2
+        --threads 1 --sizes small --steps 50 --rounds 2 --skip-reference
 
 The table it prints goes into docs/models.md by hand, with the date and the machine's load.
 """
