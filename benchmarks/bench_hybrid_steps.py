@@ -74,7 +74,7 @@ def main() -> None:
                 phase_times(trainer, 2)  # warm-up (kernel build, allocator)
                 moving = phase_times(trainer, args.steps)
                 trainer.state.frozen_at = trainer.state.iteration
-                for p in field.encoder.transform_parameters():
+                for p in field.encoder.placement_parameters():
                     p.requires_grad_(False)
                 frozen = phase_times(trainer, args.steps)
                 results[label].append((moving, frozen))

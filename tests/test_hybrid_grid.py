@@ -222,9 +222,9 @@ def test_level_tables_learn_faster_and_grid_maps_only_from_the_density_loss():
     assert scales[id(field.encoder.level_table)] == 3.0 and scales[id(field.encoder.grids)] == 1.0
     rates = {g.get("lr_multiplier"): g["lr"] for g in groups}
     assert rates[3.0] == pytest.approx(3 * trainer.learning_rate(0))
-    transform_ids = {id(p) for p in field.encoder.transform_parameters()}
-    assert transform_ids == {id(field.encoder.matrices), id(field.encoder.translations)}
-    assert not transform_ids & set(scales)
+    placement_ids = {id(p) for p in field.encoder.placement_parameters()}
+    assert placement_ids == {id(field.encoder.matrices), id(field.encoder.translations)}
+    assert not placement_ids & set(scales)
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")

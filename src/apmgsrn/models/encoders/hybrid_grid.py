@@ -236,26 +236,26 @@ class HybridGridEncoder(Encoder):
         self.matrices.mul_(scale[None, :, None])
         self.translations.copy_(scale * (self.translations - centre))
 
-    def maps(self, detach_transforms: bool = False) -> torch.Tensor:
+    def maps(self, detach_placement: bool = False) -> torch.Tensor:
         """Index-space maps ``[L + M, 3, 4]`` of every level and grid."""
         if self.config.grids == 0:
             return self.level_maps
         matrices, translations = self.matrices, self.translations
-        if detach_transforms:
+        if detach_placement:
             matrices, translations = matrices.detach(), translations.detach()
         grid_maps = index_space_maps(matrices, translations, self.resolutions[self.config.levels :])  # [M, 3, 4]
         return torch.cat([self.level_maps, grid_maps], dim=0)
 
-    def forward(self, points: torch.Tensor, detach_transforms: bool = False) -> torch.Tensor:
+    def forward(self, points: torch.Tensor, detach_placement: bool = False) -> torch.Tensor:
         """Features at ``points`` ``[N, 3]`` -> ``[N, L F + M C]``.
 
         Args:
             points: global coordinates in ``[-1, 1]^3``.
-            detach_transforms: True on the reconstruction path (SPEC section 4, step 1), so only the
+            detach_placement: True on the reconstruction path (SPEC section 4, step 1), so only the
                 features and the decoder learn from the reconstruction error.
         """
         table = torch.cat([self.level_table, self.grids.reshape(-1)])  # the layout's flat table
-        return level_grid_features(points, self.maps(detach_transforms), table, self.layout, self.config.backend)
+        return level_grid_features(points, self.maps(detach_placement), table, self.layout, self.config.backend)
 
     # The adaptive grids are APMGSRN's (same parameters, same maps): their feature density (SPEC section 3),
     # its mean over the domain and the grids' boxes are computed the same way.
@@ -263,7 +263,7 @@ class HybridGridEncoder(Encoder):
     mean_feature_density = AdaptiveMultiGridEncoder.mean_feature_density
     grid_boxes = AdaptiveMultiGridEncoder.grid_boxes
 
-    def transform_parameters(self) -> list[nn.Parameter]:
+    def placement_parameters(self) -> list[nn.Parameter]:
         """The parameters the density loss moves (none without adaptive grids)."""
         return [self.matrices, self.translations] if self.config.grids else []
 
