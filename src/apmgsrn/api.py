@@ -210,7 +210,7 @@ def fit(
         data: a 3-D numpy array ``[D, H, W]`` (z, y, x; x fastest), an ``xarray.DataArray`` (its name,
             attributes, dimensions and coordinates are kept for decoding) or a volume file path.
         preset: size preset, ``small``, ``medium`` or ``large``.
-        model: model kind, ``apmgsrn``, ``fvsrn`` or ``ngp``.
+        model: model kind: ``apmgsrn`` (the paper's), ``fvsrn``, ``ngp`` or ``hybrid`` (docs/models.md).
         iterations: training iterations (default: 3000 on a CPU, 50000 on a GPU).
         batch_size: points per iteration (default: 32768 on a CPU, 100000 on a GPU).
         device: ``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:I"`` or a torch device.

@@ -19,7 +19,7 @@ from apmgsrn.bench.charts import quality_chart
 from apmgsrn.bench.datasets import DataSpec, open_spec
 from apmgsrn.bench.results import QualityRow, append_row, read_rows
 from apmgsrn.bench.tables import quality_tables
-from apmgsrn.choices import LR_SCHEDULES, MODEL_KINDS, SIZE_PRESETS, VALUE_TRANSFORMS
+from apmgsrn.choices import LR_SCHEDULES, MODEL_KINDS, PAPER_MODELS, SIZE_PRESETS, VALUE_TRANSFORMS
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
 from apmgsrn.training.fit import fit_volume
@@ -41,7 +41,7 @@ class QualityPlan:
     """
 
     datasets: tuple[DataSpec, ...]
-    models: tuple[str, ...] = MODEL_KINDS
+    models: tuple[str, ...] = PAPER_MODELS
     sizes: tuple[str, ...] = ("small", "medium")
     seeds: int = 1
     iterations: int = 2000

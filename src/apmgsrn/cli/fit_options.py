@@ -21,10 +21,11 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``model`` and ``training`` option groups."""
     backends = tuple(dict.fromkeys(name for names in BACKENDS.values() for name in names))
     model = parser.add_argument_group("model")
-    model.add_argument("--model", choices=MODEL_KINDS, default="apmgsrn")
+    model.add_argument("--model", choices=MODEL_KINDS, default="apmgsrn",
+                       help="default apmgsrn (the paper's); hybrid is a research model (docs/models.md)")
     model.add_argument("--preset", choices=SIZE_PRESETS, default="small")
     model.add_argument("--grids", type=int, help="number of grids M")
-    model.add_argument("--features", type=int, help="features per grid C (per level for ngp)")
+    model.add_argument("--features", type=int, help="features per grid C (per level for ngp and hybrid)")
     model.add_argument("--resolution", help="grid resolution R or D,H,W")
     model.add_argument("--hidden-layers", type=int, help="decoder hidden layers (default 2)")
     model.add_argument("--width", type=int, help="decoder width (default 64)")
@@ -33,8 +34,8 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                        help="kernel backend: " + "; ".join(f"{kind}: {', '.join(names)}"
                                                            for kind, names in BACKENDS.items())
                        + " (default: the first; auto picks the fastest usable one, tcnn is tiny-cuda-nn on a GPU)")
-    model.add_argument("--levels", type=int, help="ngp: resolution levels L")
-    model.add_argument("--log2-table-size", type=int, help="ngp: log2 of the hash table entries per level T")
+    model.add_argument("--levels", type=int, help="ngp, hybrid: resolution levels L")
+    model.add_argument("--log2-table-size", type=int, help="ngp, hybrid: log2 of the hash table entries per level T")
     model.add_argument("--base-resolution", type=int, help="ngp: coarsest level resolution")
     model.add_argument("--finest-resolution", type=int, help="ngp: finest level resolution")
     model.add_argument("--frequencies", type=int, help="fvsrn: Fourier frequencies (default 6)")

@@ -15,12 +15,14 @@ from pathlib import Path
 from typing import NamedTuple
 
 import torch
+from torch import nn
 
 from apmgsrn.arguments import MAX_BATCH_SIZE, check_choice, check_int, check_number, check_optional_int
 from apmgsrn.choices import DECODER_PRECISIONS, DENSITY_NORMALIZATIONS, LR_SCHEDULES
 from apmgsrn.errors import ApmgsrnError, InvalidArgument
 from apmgsrn.io.container import load_tensors, read_header, save_tensors
 from apmgsrn.io.description import DescriptionError
+from apmgsrn.models.encoders.base import Encoder
 from apmgsrn.models.field import NeuralField
 from apmgsrn.ops.trilinear import sample_volume
 from apmgsrn.training.checkpoint import (
@@ -219,7 +221,9 @@ class Trainer:
         placement_params = list(encoder.placement_parameters())
         placement_ids = {id(p) for p in placement_params}
         network_params = [p for p in field.parameters() if id(p) not in placement_ids]
-        self.network_optimizer = torch.optim.Adam(network_params, lr=config.lr, betas=config.betas)
+        self.network_optimizer = torch.optim.Adam(
+            _learning_rate_groups(encoder, network_params), lr=config.lr, betas=config.betas
+        )
         self.placement_optimizer = (
             torch.optim.Adam(placement_params, lr=config.placement_lr, betas=config.betas)
             if placement_params
@@ -232,6 +236,10 @@ class Trainer:
         self._pending_density: list[torch.Tensor] = []
         if self.placement_optimizer is None:
             self.state.frozen_at = 0
+        # Encoders that start from the data (hybrid: adaptive grids on the volume's detail) do it here, the
+        # one place every training path (single file, bricks) goes through; a resumed run then loads its
+        # checkpoint over it.
+        encoder.initialize_from_volume(volume)
 
     # ----------------------------------------------------------------------------- schedule
     def learning_rate(self, iteration: int) -> float:
@@ -269,7 +277,7 @@ class Trainer:
         """
         cfg, st = self.config, self.state
         for group in self.network_optimizer.param_groups:
-            group["lr"] = self.learning_rate(st.iteration)
+            group["lr"] = self.learning_rate(st.iteration) * group.get("lr_multiplier", 1.0)
         points = torch.rand(cfg.batch_size, 3, generator=self.generator, device=self.device) * 2 - 1
         target = sample_volume(self.volume, points)  # [B]
 
@@ -381,7 +389,8 @@ class Trainer:
                     st.history["iteration"].append(st.iteration)
                     st.history["reconstruction"].append(loss)
                     st.history["density"].append(float(losses.density) if losses.density is not None else float("nan"))
-                    st.history["lr"].append(self.network_optimizer.param_groups[0]["lr"])
+                    group = self.network_optimizer.param_groups[0]
+                    st.history["lr"].append(group["lr"] / group.get("lr_multiplier", 1.0))  # the step's base rate
                 st.iteration += 1
                 st.elapsed = time.perf_counter() - start
                 for callback in self.callbacks:
@@ -477,6 +486,26 @@ class Trainer:
         if self.state.frozen_at is not None:
             for p in self.field.encoder.placement_parameters():
                 p.requires_grad_(False)
+
+
+def _learning_rate_groups(encoder: Encoder, parameters: list[nn.Parameter]) -> list:
+    """Optimiser parameter groups, one per learning-rate multiplier the encoder asks for.
+
+    Args:
+        encoder: the field's encoder (:meth:`Encoder.learning_rate_multipliers`).
+        parameters: the parameters the network optimiser updates.
+
+    Returns:
+        The plain parameter list when the encoder asks for no multiplier, else groups whose
+        ``lr_multiplier`` scales the scheduled rate in every step.
+    """
+    multiplier_of = encoder.learning_rate_multipliers()
+    if not multiplier_of:
+        return parameters
+    groups: dict[float, list] = {}
+    for p in parameters:
+        groups.setdefault(float(multiplier_of.get(p, 1.0)), []).append(p)
+    return [{"params": params, "lr_multiplier": multiplier} for multiplier, params in groups.items()]
 
 
 def _current_tensor_name(name: str) -> str:

@@ -24,6 +24,13 @@ class Encoder(nn.Module):
         """Corners ``[M, 8, 3]`` of placed grids in global coordinates, or None when nothing is placed."""
         return None
 
+    def learning_rate_multipliers(self) -> dict[nn.Parameter, float]:
+        """Learning-rate multipliers of some parameters (per-component learning rates; the rest learn at 1x)."""
+        return {}
+
+    def initialize_from_volume(self, values: torch.Tensor) -> None:
+        """Start from the training volume ``[D, H, W]`` in ``[0, 1]`` (called once before training; nothing here)."""
+
     def check_parameters(self) -> str | None:
         """Why these parameters cannot be a trained model (NaN/Inf, ...), or None when they can."""
         for name, tensor in self.named_parameters():
