@@ -5,8 +5,11 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+
+from apmgsrn.data import open_volume
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -21,6 +24,16 @@ def test_data() -> Path:
 def hcci_oh() -> Path:
     """The 187^3 HCCI OH field (NetCDF4, variable ``oh``) that the repo ships for its demo, used as is."""
     return REPO / "examples" / "data" / "hcci_oh_187.nc"
+
+
+@pytest.fixture(scope="module")
+def neghip_crop(test_data, tmp_path_factory):
+    """A real 24^3 crop of the neghip protein field, as .npy (small enough for quick CPU runs): (path, data)."""
+    volume = open_volume(test_data / "neghip_64x64x64_uint8.raw")
+    data = volume.read(slice(20, 44), slice(20, 44), slice(20, 44))
+    path = tmp_path_factory.mktemp("neghip") / "neghip_crop.npy"
+    np.save(path, data)
+    return path, data
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,6 @@ import torch.nn.functional as F
 
 import apmgsrn
 from apmgsrn.cli.main import main
-from apmgsrn.data import open_volume
 from apmgsrn.models.encoders.dense_grid import DenseGridConfig, DenseGridEncoder
 from apmgsrn.models.encoders.hash_grid import HashGridConfig, HashGridEncoder, _WeightedGather
 from apmgsrn.models.field import NeuralField
@@ -123,16 +122,6 @@ def test_steps_schedule_cuts_at_40_60_80_percent():
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-
-
-@pytest.fixture(scope="module")
-def neghip_crop(test_data, tmp_path_factory):
-    """A real 24^3 crop of the neghip protein field, as .npy (small enough for quick CPU runs)."""
-    volume = open_volume(test_data / "neghip_64x64x64_uint8.raw")
-    data = volume.read(slice(20, 44), slice(20, 44), slice(20, 44))
-    path = tmp_path_factory.mktemp("baselines") / "neghip_crop.npy"
-    np.save(path, data)
-    return path, data
 
 
 @pytest.mark.parametrize("model", ["fvsrn", "ngp"])

@@ -26,6 +26,7 @@ from apmgsrn.data import ArrayVolume, Volume, open_volume
 from apmgsrn.data.grid import AxisCoordinates, Region, VolumeMetadata, plain_attributes
 from apmgsrn.device import resolve_device
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.export import export_onnx
 from apmgsrn.inference.decode import decode_array, decode_volume
 from apmgsrn.inference.query import query
 from apmgsrn.inference.slabs import QUERY_BATCH
@@ -35,6 +36,14 @@ from apmgsrn.io.decode_plan import DecodePlan, plan_decode
 from apmgsrn.io.description import check_time
 from apmgsrn.io.field_file import FIELD_KIND
 from apmgsrn.io.series_file import SERIES_KIND
+from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
+from apmgsrn.render import Camera, RendererConfig, VolumeRenderer, extent_from_shape, make_transfer_function
+from apmgsrn.render.images import as_uint8
+from apmgsrn.render.raymarch import default_batch_size
+from apmgsrn.training.callbacks import TrainingProgress
+from apmgsrn.training.fit import fit as fit_prepared
+from apmgsrn.training.fit import prepare_values
+from apmgsrn.training.trainer import TrainConfig, default_budget
 
 
 class Model(nn.Module):
@@ -183,8 +192,6 @@ class Model(nn.Module):
 
         See :func:`apmgsrn.export.export_onnx`.
         """
-        from apmgsrn.export import export_onnx
-
         return export_onnx(self.field, path)
 
 
@@ -223,7 +230,7 @@ def fit(
         data: a 3-D numpy array ``[D, H, W]`` (z, y, x; x fastest), an ``xarray.DataArray`` (its name,
             attributes, dimensions and coordinates are kept for decoding) or a volume file path.
         preset: size preset, ``small``, ``medium`` or ``large``.
-        model: model kind, ``apmgsrn``, ``fvsrn`` or ``ngp``.
+        model: model kind: ``apmgsrn`` (the paper's), ``fvsrn``, ``ngp`` or ``hybrid`` (docs/models.md).
         iterations: training iterations (default: 3000 on a CPU, 50000 on a GPU).
         batch_size: points per iteration (default: 32768 on a CPU, 100000 on a GPU).
         device: ``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:I"`` or a torch device.
@@ -243,12 +250,6 @@ def fit(
     Raises:
         ApmgsrnError: unreadable data, NaN/Inf voxels without ``fill_nonfinite``, an invalid option.
     """
-    from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
-    from apmgsrn.training.callbacks import TrainingProgress
-    from apmgsrn.training.fit import fit as fit_prepared
-    from apmgsrn.training.fit import prepare_values
-    from apmgsrn.training.trainer import TrainConfig, default_budget
-
     device = _device(device)
     volume = _as_volume(data, variable=variable, time=time, fill_nonfinite=fill_nonfinite)
     train_names = {f.name for f in dataclass_fields(TrainConfig)}
@@ -312,10 +313,6 @@ def render(
     Returns:
         ``[height, width, 4]`` uint8 RGBA (colour not premultiplied; alpha is the ray's opacity).
     """
-    from apmgsrn.render import Camera, RendererConfig, VolumeRenderer, extent_from_shape, make_transfer_function
-    from apmgsrn.render.images import as_uint8
-    from apmgsrn.render.raymarch import default_batch_size
-
     device = model.device
     value_range = tuple(model.description.value_range) if value_range is None else tuple(value_range)
     transfer_function = make_transfer_function(colormap, value_range, opacity=opacity, preset_name=preset_name,

@@ -6,7 +6,12 @@ library behind them.
 """
 
 #: Model kinds (SPEC sections 2 and 5): keys of :data:`apmgsrn.models.registry.ENCODERS`.
-MODEL_KINDS = ("apmgsrn", "fvsrn", "ngp")
+#: ``apmgsrn`` (the paper's) is the default everywhere; ``hybrid`` is the research model of docs/models.md.
+MODEL_KINDS = ("apmgsrn", "fvsrn", "ngp", "hybrid")
+
+#: The paper's model and its two baselines: what ``bench quality`` and ``bench compress`` run unless given
+#: ``--models`` (the tables of docs/results.md).
+PAPER_MODELS = ("apmgsrn", "fvsrn", "ngp")
 
 #: Size presets of every model kind (:data:`apmgsrn.models.registry.PRESETS`).
 SIZE_PRESETS = ("small", "medium", "large")
@@ -18,12 +23,16 @@ GRID_INITS = ("default", "large", "small")
 #: Multi-grid sampling kernels (:mod:`apmgsrn.ops.multigrid`); ``"auto"`` picks the fastest usable one.
 MULTIGRID_BACKENDS = ("torch", "cpu", "triton")
 
+#: Multi-level grid sampling kernels (:mod:`apmgsrn.ops.level_grids`) of the hybrid model.
+LEVEL_GRID_BACKENDS = ("torch", "cpu")
+
 #: Kernel backends each model kind accepts. The hash grid's list is also the encoder's
 #: (:mod:`apmgsrn.models.encoders.hash_grid`); a test keeps them equal.
 BACKENDS = {
     "apmgsrn": ("auto", *MULTIGRID_BACKENDS),
     "fvsrn": ("auto", *MULTIGRID_BACKENDS),
     "ngp": ("torch", "tcnn", "auto"),
+    "hybrid": ("auto", *LEVEL_GRID_BACKENDS),
 }
 
 #: Value transforms applied before fitting (:mod:`apmgsrn.models.value_transform`).

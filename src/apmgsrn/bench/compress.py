@@ -30,7 +30,7 @@ from apmgsrn.bench.datasets import DataSpec, open_spec
 from apmgsrn.bench.quality import QualityPlan, prepare_folder, run_quality
 from apmgsrn.bench.results import CompressRow, write_rows
 from apmgsrn.bench.tables import compress_table
-from apmgsrn.choices import COMPRESSORS, MODEL_KINDS, SIZE_PRESETS
+from apmgsrn.choices import COMPRESSORS, MODEL_KINDS, PAPER_MODELS, SIZE_PRESETS
 from apmgsrn.inference.decode import decode_array
 from apmgsrn.inference.evaluate import check_volume_shape, compare_arrays
 from apmgsrn.inference.query import query
@@ -55,7 +55,7 @@ class CompressPlan:
     """
 
     dataset: DataSpec
-    models: tuple[str, ...] = MODEL_KINDS
+    models: tuple[str, ...] = PAPER_MODELS
     sizes: tuple[str, ...] = ("small",)
     model_files: tuple[Path, ...] = ()
     compressors: tuple[str, ...] = COMPRESSORS

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from apmgsrn.bench.datasets import parse_data_spec
-from apmgsrn.choices import COMPRESSORS, LR_SCHEDULES, MODEL_KINDS, SIZE_PRESETS, VALUE_TRANSFORMS
+from apmgsrn.choices import COMPRESSORS, LR_SCHEDULES, MODEL_KINDS, PAPER_MODELS, SIZE_PRESETS, VALUE_TRANSFORMS
 from apmgsrn.cli.common import add_device_argument
 from apmgsrn.cli.paths import CommandPaths, Output
 
@@ -31,7 +31,7 @@ def register(subparsers) -> None:
         "CSV are skipped, so the same command extends or resumes a benchmark.",
     )
     quality.add_argument("data", nargs="+", metavar="DATA", help="volume files, as PATH or PATH:VARIABLE")
-    quality.add_argument("--models", nargs="+", choices=MODEL_KINDS, default=list(MODEL_KINDS))
+    quality.add_argument("--models", nargs="+", choices=MODEL_KINDS, default=list(PAPER_MODELS))
     quality.add_argument("--sizes", nargs="+", choices=SIZE_PRESETS, default=["small", "medium"])
     quality.add_argument("--seeds", type=int, default=1, help="seeds 0..K-1 per combination (mean and spread)")
     _add_budget(quality, LR_SCHEDULES, VALUE_TRANSFORMS)
@@ -48,7 +48,7 @@ def register(subparsers) -> None:
         "answer random points; a network evaluates them directly.",
     )
     compress.add_argument("data", metavar="DATA", help="volume file, as PATH or PATH:VARIABLE")
-    compress.add_argument("--models", nargs="+", choices=MODEL_KINDS, default=list(MODEL_KINDS))
+    compress.add_argument("--models", nargs="+", choices=MODEL_KINDS, default=list(PAPER_MODELS))
     compress.add_argument("--sizes", nargs="+", choices=SIZE_PRESETS, default=["small"])
     compress.add_argument("--model-files", nargs="+", default=[], metavar="MODEL",
                           help="use these trained models of DATA instead of training --models")

@@ -21,10 +21,11 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``model`` and ``training`` option groups."""
     backends = tuple(dict.fromkeys(name for names in BACKENDS.values() for name in names))
     model = parser.add_argument_group("model")
-    model.add_argument("--model", choices=MODEL_KINDS, default="apmgsrn")
+    model.add_argument("--model", choices=MODEL_KINDS, default="apmgsrn",
+                       help="default apmgsrn (the paper's); hybrid is a research model (docs/models.md)")
     model.add_argument("--preset", choices=SIZE_PRESETS, default="small")
     model.add_argument("--grids", type=int, help="number of grids M")
-    model.add_argument("--features", type=int, help="features per grid C (per level for ngp)")
+    model.add_argument("--features", type=int, help="features per grid C (per level for ngp and hybrid)")
     model.add_argument("--resolution", help="grid resolution R or D,H,W")
     model.add_argument("--hidden-layers", type=int, help="decoder hidden layers (default 2)")
     model.add_argument("--width", type=int, help="decoder width (default 64)")
@@ -33,8 +34,8 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                        help="kernel backend: " + "; ".join(f"{kind}: {', '.join(names)}"
                                                            for kind, names in BACKENDS.items())
                        + " (default: the first; auto picks the fastest usable one, tcnn is tiny-cuda-nn on a GPU)")
-    model.add_argument("--levels", type=int, help="ngp: resolution levels L")
-    model.add_argument("--log2-table-size", type=int, help="ngp: log2 of the hash table entries per level T")
+    model.add_argument("--levels", type=int, help="ngp, hybrid: resolution levels L")
+    model.add_argument("--log2-table-size", type=int, help="ngp, hybrid: log2 of the hash table entries per level T")
     model.add_argument("--base-resolution", type=int, help="ngp: coarsest level resolution")
     model.add_argument("--finest-resolution", type=int, help="ngp: finest level resolution")
     model.add_argument("--frequencies", type=int, help="fvsrn: Fourier frequencies (default 6)")
@@ -42,7 +43,7 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     training.add_argument("--iterations", type=int, help="default: 3000 on CPU, 50000 on GPU")
     training.add_argument("--batch-size", type=int, help="points per iteration (default: 32768 CPU, 100000 GPU)")
     training.add_argument("--lr", type=float, default=0.01)
-    training.add_argument("--transform-lr", type=float, default=0.001, help="learning rate of the grid transforms")
+    training.add_argument("--placement-lr", type=float, default=0.001, help="learning rate of the grid placements")
     training.add_argument("--lr-schedule", choices=LR_SCHEDULES,
                           help="cosine: anneal after the grids stop (default for every model, bricks too); "
                                "constant; plateau (paper; a brick ends after the third cut); "
@@ -100,7 +101,7 @@ def build_configs(args: argparse.Namespace, device, steps: int | None = None):
             iterations=iterations if args.iterations is None else args.iterations,
             batch_size=batch_size if args.batch_size is None else args.batch_size,
             lr=args.lr,
-            transform_lr=args.transform_lr,
+            placement_lr=args.placement_lr,
             lr_schedule=args.lr_schedule or DEFAULT_LR_SCHEDULES.get(args.model, "cosine"),
             density_start=args.density_start,
             freeze_fraction=args.freeze_fraction,

@@ -42,7 +42,7 @@ FLAGS = {
     "iterations": "--iterations",
     "batch_size": "--batch-size",
     "lr": "--lr",
-    "transform_lr": "--transform-lr",
+    "placement_lr": "--placement-lr",
     "lr_schedule": "--lr-schedule",
     "density_start": "--density-start",
     "freeze_fraction": "--freeze-fraction",

@@ -45,7 +45,7 @@ from apmgsrn.io.series_file import SERIES_KIND
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.models.series_field import SeriesFieldConfig
 from apmgsrn.progress import Progress
-from apmgsrn.training.trainer import TrainConfig, as_json
+from apmgsrn.training.trainer import TrainConfig, as_json, current_names
 
 
 @dataclass(frozen=True)
@@ -168,10 +168,13 @@ def training_settings(volume, plan: BrickPlan, field_config: FieldConfig, train_
 
 def stored_settings(manifest: dict) -> dict:
     """A manifest's settings as this version writes them: the field config read back through
-    :class:`~apmgsrn.models.registry.FieldConfig` and the training config through
-    :class:`~apmgsrn.training.trainer.TrainConfig`, so run-time fields older versions stored (the kernel
-    backend) or lacked (options added since) do not make an unfinished folder look like another run's."""
+    :class:`~apmgsrn.models.registry.FieldConfig`, the training config through
+    :class:`~apmgsrn.training.trainer.TrainConfig` under the names renamed since, so run-time fields older
+    versions stored (the kernel backend), old names and options added since (their defaults) do not make an
+    unfinished folder look like another run's."""
     settings = dict(manifest.get("settings") or {})
+    if "training" in settings:
+        settings["training"] = current_names(settings["training"])
     try:
         field = settings.get("field")
         if isinstance(field, dict) and "series" in field:  # the bricks of a time series

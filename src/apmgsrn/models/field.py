@@ -17,7 +17,7 @@ class NeuralField(nn.Module):
     fitted (transformed) units, then the inverse value transform gives data units.
 
     Attributes:
-        config: what was built.
+        config: what was built (fitted to ``volume_shape``: see :meth:`FieldConfig.fitted_to`).
         fit_min, fit_max: value range in fitted units (after the value transform).
         value_min, value_max: value range of the training data in data units.
         volume_shape: ``(D, H, W)`` of the training volume.
@@ -36,25 +36,24 @@ class NeuralField(nn.Module):
         generator: torch.Generator | None = None,
     ):
         super().__init__()
-        self.config = config
-        encoder_class = ENCODERS[config.model][1]
-        self.encoder = encoder_class(config.encoder, generator=generator)
+        self.volume_shape = tuple(int(s) for s in volume_shape)
+        self.config = config.fitted_to(self.volume_shape)
+        self.encoder = ENCODERS[config.model][1](self.config.encoder, generator=generator)
         self.decoder = Decoder(self.encoder.out_features, config.decoder, generator=generator)
         self.fit_min = float(fit_min)
         self.fit_max = float(fit_max)
         self.value_min = float(fit_min if value_min is None else value_min)
         self.value_max = float(fit_max if value_max is None else value_max)
         self.transform = transform
-        self.volume_shape = tuple(int(s) for s in volume_shape)
 
     def normalized(
-        self, points: torch.Tensor, detach_transforms: bool = False, hidden_dtype: torch.dtype | None = None
+        self, points: torch.Tensor, detach_placement: bool = False, hidden_dtype: torch.dtype | None = None
     ) -> torch.Tensor:
         """Decoder output ``m(y)`` ``[N, 1]`` (about ``[0, 1]``), the quantity the trainer fits.
 
         ``hidden_dtype``: see :meth:`~apmgsrn.models.decoder.Decoder.forward` (training only).
         """
-        return self.decoder(self.encoder(points, detach_transforms=detach_transforms), hidden_dtype)
+        return self.decoder(self.encoder(points, detach_placement=detach_placement), hidden_dtype)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """Values in data units ``[N, 1]`` at ``points`` ``[N, 3]``."""

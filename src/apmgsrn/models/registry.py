@@ -12,12 +12,14 @@ from apmgsrn.models.decoder import DecoderConfig
 from apmgsrn.models.encoders.adaptive_multigrid import AdaptiveMultiGridConfig, AdaptiveMultiGridEncoder
 from apmgsrn.models.encoders.dense_grid import DenseGridConfig, DenseGridEncoder
 from apmgsrn.models.encoders.hash_grid import HashGridConfig, HashGridEncoder
+from apmgsrn.models.encoders.hybrid_grid import NO_LATTICE, HybridGridConfig, HybridGridEncoder
 
 # model name (apmgsrn.choices.MODEL_KINDS, in that order) -> (encoder config class, encoder class)
 ENCODERS: dict[str, tuple[type, type]] = {
     "apmgsrn": (AdaptiveMultiGridConfig, AdaptiveMultiGridEncoder),
     "fvsrn": (DenseGridConfig, DenseGridEncoder),
     "ngp": (HashGridConfig, HashGridEncoder),
+    "hybrid": (HybridGridConfig, HybridGridEncoder),
 }
 
 # model name -> preset name (apmgsrn.choices.SIZE_PRESETS) -> encoder config fields (SPEC section 5, paper Table 1 sizes)
@@ -37,11 +39,24 @@ PRESETS: dict[str, dict[str, dict]] = {
         "medium": dict(levels=18, features=2, log2_table_size=15, base_resolution=16, finest_resolution=512),
         "large": dict(levels=17, features=2, log2_table_size=20, base_resolution=16, finest_resolution=256),
     },
+    # Not the default (docs/models.md): measured on 6 of the 9 shared volumes at small, 1 seed. Each preset
+    # holds at most as many parameters as the smallest baseline of its size on any volume
+    # (tests/test_hybrid_grid.py).
+    "hybrid": {
+        "small": dict(levels=15, features=2, log2_table_size=10, coarsest=8, grids=8, grid_features=1,
+                      grid_resolution=16),
+        "medium": dict(levels=15, features=2, log2_table_size=14, coarsest=16, grids=8, grid_features=2,
+                       grid_resolution=32),
+        "large": dict(levels=15, features=2, log2_table_size=18, coarsest=16, grids=8, grid_features=4,
+                      grid_resolution=64),
+    },
 }
 
 # model name -> default learning-rate schedule of the trainer (see TrainConfig.lr_schedule). Measured under
 # the CPU protocol (docs/baselines.md): the budget-following cosine also suits the baselines.
-DEFAULT_LR_SCHEDULES: dict[str, str] = {"apmgsrn": "cosine", "fvsrn": "cosine", "ngp": "cosine"}
+DEFAULT_LR_SCHEDULES: dict[str, str] = {
+    "apmgsrn": "cosine", "fvsrn": "cosine", "ngp": "cosine", "hybrid": "cosine"
+}
 
 
 #: Config fields that choose how to run, not what to build: never saved, so a model trained with one
@@ -83,6 +98,16 @@ class FieldConfig:
         encoder = _config_fields(config_class, data.get("encoder"), "encoder")
         decoder = _config_fields(DecoderConfig, data.get("decoder"), "decoder")
         return FieldConfig(model, config_class(**encoder), DecoderConfig(**decoder))
+
+    def fitted_to(self, volume_shape: tuple[int, int, int]) -> "FieldConfig":
+        """This config for a field fitted to a ``(D, H, W)`` volume.
+
+        An encoder whose layout follows the volume's voxel lattice (the hybrid's ``lattice``) records the
+        shape here, unless it has one already (a config read from a model file); the others are unchanged.
+        """
+        if getattr(self.encoder, "lattice", None) != NO_LATTICE or min(volume_shape) < 1:
+            return self
+        return dataclasses.replace(self, encoder=dataclasses.replace(self.encoder, lattice=tuple(volume_shape)))
 
     def parameter_shapes(self) -> dict[str, tuple[int, ...]]:
         """Shape of every stored parameter of the field, named as in its ``state_dict``."""

@@ -235,19 +235,19 @@ class SeriesMultiGridEncoder(AdaptiveMultiGridEncoder):
         grids = self.step_grids(steps)  # [1 or 2, M, C, D, H, W]
         return grids[0] if len(grids) == 1 else torch.lerp(grids[0], grids[1], fraction)
 
-    def forward(self, points: torch.Tensor, steps: torch.Tensor, detach_transforms: bool = False) -> torch.Tensor:
+    def forward(self, points: torch.Tensor, steps: torch.Tensor, detach_placement: bool = False) -> torch.Tensor:
         """Features of groups of points, each group at one step.
 
         Args:
             points: ``[G * n, 3]`` global coordinates, group ``g`` in rows ``g n .. (g + 1) n``.
             steps: ``[G]`` step index of each group.
-            detach_transforms: as for :class:`AdaptiveMultiGridEncoder`.
+            detach_placement: as for :class:`AdaptiveMultiGridEncoder`.
 
         Returns:
             ``[G * n, M * C]`` features.
         """
         matrices, translations = self.matrices, self.translations
-        if detach_transforms:
+        if detach_placement:
             matrices, translations = matrices.detach(), translations.detach()
         grids = self.step_grids(steps)  # [G, M, C, D, H, W]
         groups = points.view(len(steps), -1, 3)  # [G, n, 3]
@@ -314,11 +314,11 @@ class SeriesField(nn.Module):
         self,
         points: torch.Tensor,
         steps: torch.Tensor,
-        detach_transforms: bool = False,
+        detach_placement: bool = False,
         hidden_dtype: torch.dtype | None = None,
     ) -> torch.Tensor:
         """Decoder output ``m(y)`` ``[G * n, 1]`` for groups of points at steps ``[G]`` (see the encoder)."""
-        return self.decoder(self.encoder(points, steps, detach_transforms=detach_transforms), hidden_dtype)
+        return self.decoder(self.encoder(points, steps, detach_placement=detach_placement), hidden_dtype)
 
     def _materialise(self, grids: torch.Tensor) -> NeuralField:
         """A single-step field with these feature grids ``[M, C, D, H, W]`` and the shared maps and decoder."""

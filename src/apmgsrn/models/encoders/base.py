@@ -8,21 +8,28 @@ from torch import nn
 
 
 class Encoder(nn.Module):
-    """Base of the encoders: ``forward(points [N, 3], detach_transforms) -> [N, out_features]``.
+    """Base of the encoders: ``forward(points [N, 3], detach_placement) -> [N, out_features]``.
 
-    Encoders whose grids are placed by learned maps (APMGSRN) override :meth:`transform_parameters` and
+    Encoders whose grids are placed by learned maps (APMGSRN) override :meth:`placement_parameters` and
     :meth:`grid_boxes`; the trainer's density step and the pictures of grid placement use them.
     """
 
     out_features: int
 
-    def transform_parameters(self) -> list[nn.Parameter]:
+    def placement_parameters(self) -> list[nn.Parameter]:
         """Parameters moved by the feature-density loss (none: nothing is placed)."""
         return []
 
     def grid_boxes(self) -> torch.Tensor | None:
         """Corners ``[M, 8, 3]`` of placed grids in global coordinates, or None when nothing is placed."""
         return None
+
+    def learning_rate_multipliers(self) -> dict[nn.Parameter, float]:
+        """Learning-rate multipliers of some parameters (per-component learning rates; the rest learn at 1x)."""
+        return {}
+
+    def initialize_from_volume(self, values: torch.Tensor) -> None:
+        """Start from the training volume ``[D, H, W]`` in ``[0, 1]`` (called once before training; nothing here)."""
 
     def check_parameters(self) -> str | None:
         """Why these parameters cannot be a trained model (NaN/Inf, ...), or None when they can."""

@@ -1,0 +1,164 @@
+"""Multi-level grid encoding: many feature grids ("levels"), each dense or hashed, each reached by an affine map.
+
+Level ``l`` is a lattice of ``R_x x R_y x R_z`` vertices holding ``F_l`` features per vertex. A point
+``p`` in ``[-1, 1]^3`` reaches it through an affine map in *index units*, ``f = A'_l p + t'_l`` (vertex
+``(i, j, k)`` sits at ``f = (i, j, k)``), and reads the trilinear interpolation of the 8 vertices
+around ``f``. A vertex outside the lattice contributes zero (zero padding, as in
+:mod:`apmgsrn.ops.multigrid`), so a level placed over part of the domain fades out at its border.
+
+Storage: a level whose ``R_x R_y R_z`` vertices fit its table is *dense* (vertex ``x + R_x (y + R_y z)``);
+a larger one is *hashed* into a power-of-two table with Instant-NGP's spatial hash
+``(x * 1) xor (y * 2654435761) xor (z * 805459861)`` (32-bit), modulo the table size.
+
+All levels share one flat parameter vector ``table``: level ``l`` occupies ``sizes[l] * F_l`` floats from
+``offsets[l]``, vertex-major with its ``F_l`` features adjacent. The encoding concatenates the levels'
+features, level-major, to ``[N, sum_l F_l]``.
+
+This module is the pure-PyTorch reference (differentiable with respect to the table, the maps and the
+points); fused backends must match it in forward and backward.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from apmgsrn import choices
+from apmgsrn.ops import level_grids_cpu
+from apmgsrn.ops.level_layout import LevelLayout
+
+# Spatial-hash primes of Instant-NGP (Teschner et al. 2003); the first is 1 for cache coherence.
+HASH_PRIMES = (1, 2654435761, 805459861)
+
+
+def vertex_rows(
+    vertex: torch.Tensor, resolution: tuple[int, int, int], size: int, hashed: bool
+) -> torch.Tensor:
+    """Table rows of integer vertices ``[..., 3]`` (x, y, z) inside the lattice -> ``[...]`` int64."""
+    x, y, z = vertex.unbind(-1)
+    if hashed:
+        h = (x * HASH_PRIMES[0]) ^ (y * HASH_PRIMES[1]) ^ (z * HASH_PRIMES[2])
+        # int64 products are exact; their low 32 bits are the 32-bit products, and size <= 2^32.
+        return h & (size - 1)
+    return x + resolution[0] * (y + resolution[1] * z)
+
+
+def level_corners(
+    local: torch.Tensor, resolution: tuple[int, int, int], size: int, hashed: bool
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rows and trilinear weights of the 8 vertices around index-space points.
+
+    Args:
+        local: ``[N, 3]`` index-space coordinates ``f`` (x, y, z) of one level.
+        resolution: the level's ``(R_x, R_y, R_z)``.
+        size: its table rows.
+        hashed: its storage.
+
+    Returns:
+        (rows ``[8, N]`` int64, weights ``[8, N]``); corner ``k`` is offset ``(k & 1, k >> 1 & 1, k >> 2)``;
+        a corner outside the lattice has weight 0 and row 0.
+    """
+    lower = torch.floor(local)
+    frac = local - lower  # [N, 3]; differentiable in local
+    base = lower.detach().to(torch.int64)  # [N, 3]
+    limit = torch.tensor(resolution, device=local.device)  # [3]
+    rows, weights = [], []
+    for k in range(8):
+        offset = torch.tensor([k & 1, (k >> 1) & 1, k >> 2], device=local.device)  # [3]
+        vertex = base + offset  # [N, 3]
+        inside = ((vertex >= 0) & (vertex < limit)).all(-1)  # [N]
+        axis_weight = torch.where(offset.bool(), frac, 1 - frac)  # [N, 3]
+        weights.append(axis_weight.prod(-1) * inside)
+        rows.append(torch.where(inside, vertex_rows(vertex.clamp(min=0), resolution, size, hashed), 0))
+    return torch.stack(rows), torch.stack(weights)  # [8, N] each
+
+
+def index_space_maps(matrices: torch.Tensor, translations: torch.Tensor, resolutions: torch.Tensor) -> torch.Tensor:
+    """Fold corner-aligned unnormalisation into maps from ``[-1, 1]^3`` to each level's index units.
+
+    A level spanning local coordinates ``[-1, 1]^3`` (reached by ``A p + t``) has vertex ``i`` of ``R``
+    at local ``-1 + 2 i / (R - 1)``, so its index coordinate is ``(A p + t + 1) (R - 1) / 2``.
+
+    Args:
+        matrices: ``[L, 3, 3]`` the ``A`` of every level (row ``k`` gives local axis ``k`` = x, y, z).
+        translations: ``[L, 3]`` the ``t``.
+        resolutions: ``[L, 3]`` vertices per axis (x, y, z).
+
+    Returns:
+        ``[L, 3, 4]`` maps ``[A' | t']`` with ``f = A' p + t'``.
+    """
+    half = (resolutions.to(matrices.dtype) - 1) / 2  # [L, 3]
+    a = matrices * half[:, :, None]  # [L, 3, 3]
+    t = (translations + 1) * half  # [L, 3]
+    return torch.cat([a, t[:, :, None]], dim=2)  # [L, 3, 4]
+
+
+def level_grid_features_reference(
+    points: torch.Tensor, maps: torch.Tensor, table: torch.Tensor, layout: LevelLayout
+) -> torch.Tensor:
+    """Concatenated features of every level at the points (pure PyTorch, fully differentiable).
+
+    Args:
+        points: ``[N, 3]`` global coordinates ``(x, y, z)``.
+        maps: ``[L, 3, 4]`` index-space maps (see :func:`index_space_maps`).
+        table: ``[T]`` flat parameters (``layout.table_size`` floats).
+        layout: the levels.
+
+    Returns:
+        ``[N, sum_l F_l]`` features, level-major.
+    """
+    out = []
+    for level in range(layout.levels):
+        res, f = layout.resolutions[level], layout.features[level]
+        size, hashed = layout.sizes[level], layout.hashed[level]
+        local = points @ maps[level, :, :3].t() + maps[level, :, 3]  # [N, 3]
+        rows, weights = level_corners(local, res, size, hashed)  # [8, N] each
+        start = layout.offsets[level]
+        values = table[start : start + size * f].view(size, f)  # [size, F]
+        gathered = values[rows]  # [8, N, F]
+        out.append((gathered * weights[:, :, None]).sum(0))  # [N, F]
+    return torch.cat(out, dim=1)  # [N, sum F]
+
+
+LEVEL_GRID_BACKENDS = ("auto", *choices.LEVEL_GRID_BACKENDS)
+
+
+def level_grid_features(
+    points: torch.Tensor, maps: torch.Tensor, table: torch.Tensor, layout: LevelLayout, backend: str = "auto"
+) -> torch.Tensor:
+    """Concatenated level features through the chosen backend.
+
+    The fused CPU kernel (:mod:`apmgsrn.ops.level_grids_cpu`) gives gradients for ``table`` only; when the
+    points or maps require grad, the tensors are not float32 CPU tensors, or the kernel cannot be built,
+    this runs the reference, so autograd stays exact.
+
+    Args:
+        points: ``[N, 3]``.
+        maps: ``[L, 3, 4]`` index-space maps.
+        table: ``[T]`` flat parameters.
+        layout: the levels.
+        backend: ``"auto"`` (the CPU kernel where it applies, else the reference), ``"torch"`` or ``"cpu"``.
+
+    Returns:
+        ``[N, sum_l F_l]`` features, level-major.
+
+    Raises:
+        ValueError: unknown backend.
+        RuntimeError: ``"cpu"`` asked for where it cannot run.
+    """
+    if backend not in LEVEL_GRID_BACKENDS:
+        raise ValueError(f"unknown level-grid backend {backend!r}; use one of {LEVEL_GRID_BACKENDS}")
+    if backend == "torch":
+        return level_grid_features_reference(points, maps, table, layout)
+    fusable = (
+        points.device.type == "cpu"
+        and all(t.dtype == torch.float32 for t in (points, maps, table))
+        and not (torch.is_grad_enabled() and (points.requires_grad or maps.requires_grad))
+    )
+    if fusable:
+        if level_grids_cpu.is_available():
+            return level_grids_cpu.level_grid_features_cpu(points, maps, table, layout)
+        if backend == "cpu":
+            raise RuntimeError(f"level-grid backend 'cpu' cannot run here: {level_grids_cpu.load_error()}")
+    elif backend == "cpu":
+        raise RuntimeError("level-grid backend 'cpu' needs float32 CPU tensors and no gradient for points or maps")
+    return level_grid_features_reference(points, maps, table, layout)

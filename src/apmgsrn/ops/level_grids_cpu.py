@@ -1,0 +1,334 @@
+"""CPU backend of the multi-level grid encoding: one fused C/OpenMP kernel, built once with the system compiler.
+
+Same semantics as :func:`apmgsrn.ops.level_grids.level_grid_features_reference` (zero-padded trilinear
+look-ups, dense or hashed levels, level-major concatenation), with gradients for the table only: the
+maps and points are constants here (the adaptive grids' maps learn from the density loss, which does not
+sample the grids).
+
+Work per point and level: 12 multiply-adds for the map, the 8 corners' rows (dense index or 32-bit hash)
+and weights, then ``F`` gathers of 8 values. Points are processed in tiles of 128 so that every loop runs
+over the tile's points and vectorises (AVX2 gathers with ``-march=native``). The backward scatters with
+trilinear weights into the table; each extra thread scatters into a private copy of the gradient (the
+tables are small: 0.3 MB at the small preset), summed at the end, so there are no atomics.
+
+Built and cached like :mod:`apmgsrn.ops.multigrid_cpu` (same compiler choice and flags, through
+:mod:`apmgsrn.ops.kernel_cache`);
+when it cannot be built the dispatcher falls back to the reference.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import os
+import shutil
+import threading
+
+import torch
+
+from apmgsrn.ops.kernel_cache import build_library, cpu_signature, kernel_key
+from apmgsrn.ops.level_layout import LevelLayout
+from apmgsrn.ops.multigrid_cpu import COMMON_FLAGS, FLAG_SETS
+
+C_SOURCE = r"""
+#include <math.h>
+#include <stddef.h>
+#include <stdint.h>
+#ifdef _OPENMP
+#include <omp.h>
+#else  /* built without OpenMP: one thread, the pragmas are ignored */
+static int omp_get_thread_num(void) { return 0; }
+static int omp_get_num_threads(void) { return 1; }
+#endif
+
+typedef int64_t i64;
+typedef uint32_t u32;
+
+#define TILE 128
+
+typedef struct {
+    float px[TILE], py[TILE], pz[TILE];   /* the tile's points */
+    int off[8][TILE];                     /* corner rows times F (float offsets in the level) */
+    float wt[8][TILE];                    /* corner weights; 0 for corners outside the lattice */
+    float res[TILE];                      /* one gathered feature */
+} Scratch;
+
+/* Level description: index-space map (A' row-major, then t'), vertices per axis, table rows, storage. */
+typedef struct { const float *map; int rx, ry, rz, hashed, features; u32 rows; } Level;
+
+static inline void load_tile(Scratch *s, const float *points, i64 i0, int nt) {
+    const float *p = points + 3 * i0;
+    for (int i = 0; i < nt; ++i) { s->px[i] = p[3 * i]; s->py[i] = p[3 * i + 1]; s->pz[i] = p[3 * i + 2]; }
+}
+
+static inline float clampf(float v, float hi) { return v < 0.0f ? 0.0f : (v > hi ? hi : v); }
+
+/* The 8 corners of every tile point in one level: rows (times F) and trilinear weights. Corners outside
+   the lattice get weight 0 and a clamped, valid row. Branch-free (ternaries) so that gcc vectorises. */
+static inline void corners(Scratch *s, Level lv, int nt) {
+    const float *a = lv.map;
+    const float a0 = a[0], a1 = a[1], a2 = a[2], a3 = a[3], a4 = a[4], a5 = a[5];
+    const float a6 = a[6], a7 = a[7], a8 = a[8], a9 = a[9], a10 = a[10], a11 = a[11];
+    const float rx = (float)lv.rx, ry = (float)lv.ry, rz = (float)lv.rz;
+    const u32 mask = lv.rows - 1u, sy = (u32)lv.rx, sz = (u32)lv.rx * (u32)lv.ry;
+    const int hashed = lv.hashed, f = lv.features;
+    const float *restrict px = s->px, *restrict py = s->py, *restrict pz = s->pz;
+    int *restrict o0 = s->off[0], *restrict o1 = s->off[1], *restrict o2 = s->off[2], *restrict o3 = s->off[3];
+    int *restrict o4 = s->off[4], *restrict o5 = s->off[5], *restrict o6 = s->off[6], *restrict o7 = s->off[7];
+    float *restrict w0 = s->wt[0], *restrict w1 = s->wt[1], *restrict w2 = s->wt[2], *restrict w3 = s->wt[3];
+    float *restrict w4 = s->wt[4], *restrict w5 = s->wt[5], *restrict w6 = s->wt[6], *restrict w7 = s->wt[7];
+    #pragma omp simd
+    for (int k = 0; k < nt; ++k) {
+        const float fx = a0 * px[k] + a1 * py[k] + a2 * pz[k] + a9;
+        const float fy = a3 * px[k] + a4 * py[k] + a5 * pz[k] + a10;
+        const float fz = a6 * px[k] + a7 * py[k] + a8 * pz[k] + a11;
+        const float lx = floorf(fx), ly = floorf(fy), lz = floorf(fz);
+        const float tx = fx - lx, ty = fy - ly, tz = fz - lz;
+        const float wx0 = (lx >= 0.0f && lx < rx) ? 1.0f - tx : 0.0f;
+        const float wx1 = (lx >= -1.0f && lx + 1.0f < rx) ? tx : 0.0f;
+        const float wy0 = (ly >= 0.0f && ly < ry) ? 1.0f - ty : 0.0f;
+        const float wy1 = (ly >= -1.0f && ly + 1.0f < ry) ? ty : 0.0f;
+        const float wz0 = (lz >= 0.0f && lz < rz) ? 1.0f - tz : 0.0f;
+        const float wz1 = (lz >= -1.0f && lz + 1.0f < rz) ? tz : 0.0f;
+        u32 x0 = (u32)clampf(lx, rx - 1.0f), x1 = (u32)clampf(lx + 1.0f, rx - 1.0f);
+        u32 y0 = (u32)clampf(ly, ry - 1.0f), y1 = (u32)clampf(ly + 1.0f, ry - 1.0f);
+        u32 z0 = (u32)clampf(lz, rz - 1.0f), z1 = (u32)clampf(lz + 1.0f, rz - 1.0f);
+        u32 r000, r100, r010, r110, r001, r101, r011, r111;
+        if (hashed) {  /* Instant-NGP: x * 1 xor y * 2654435761 xor z * 805459861, mod 2^T (32-bit) */
+            y0 *= 2654435761u; y1 *= 2654435761u; z0 *= 805459861u; z1 *= 805459861u;
+            r000 = (x0 ^ y0 ^ z0) & mask; r100 = (x1 ^ y0 ^ z0) & mask;
+            r010 = (x0 ^ y1 ^ z0) & mask; r110 = (x1 ^ y1 ^ z0) & mask;
+            r001 = (x0 ^ y0 ^ z1) & mask; r101 = (x1 ^ y0 ^ z1) & mask;
+            r011 = (x0 ^ y1 ^ z1) & mask; r111 = (x1 ^ y1 ^ z1) & mask;
+        } else {       /* dense: x + R_x (y + R_y z) */
+            y0 *= sy; y1 *= sy; z0 *= sz; z1 *= sz;
+            r000 = x0 + y0 + z0; r100 = x1 + y0 + z0; r010 = x0 + y1 + z0; r110 = x1 + y1 + z0;
+            r001 = x0 + y0 + z1; r101 = x1 + y0 + z1; r011 = x0 + y1 + z1; r111 = x1 + y1 + z1;
+        }
+        o0[k] = (int)r000 * f; o1[k] = (int)r100 * f; o2[k] = (int)r010 * f; o3[k] = (int)r110 * f;
+        o4[k] = (int)r001 * f; o5[k] = (int)r101 * f; o6[k] = (int)r011 * f; o7[k] = (int)r111 * f;
+        const float yz00 = wy0 * wz0, yz10 = wy1 * wz0, yz01 = wy0 * wz1, yz11 = wy1 * wz1;
+        w0[k] = wx0 * yz00; w1[k] = wx1 * yz00; w2[k] = wx0 * yz10; w3[k] = wx1 * yz10;
+        w4[k] = wx0 * yz01; w5[k] = wx1 * yz01; w6[k] = wx0 * yz11; w7[k] = wx1 * yz11;
+    }
+}
+
+/* res[k] = sum_j b[off_j[k]] w_j[k] (vectorised gathers). */
+static inline void gather(const float *restrict b, Scratch *s, int nt) {
+    const int *restrict o0 = s->off[0], *restrict o1 = s->off[1], *restrict o2 = s->off[2], *restrict o3 = s->off[3];
+    const int *restrict o4 = s->off[4], *restrict o5 = s->off[5], *restrict o6 = s->off[6], *restrict o7 = s->off[7];
+    const float *restrict w0 = s->wt[0], *restrict w1 = s->wt[1], *restrict w2 = s->wt[2], *restrict w3 = s->wt[3];
+    const float *restrict w4 = s->wt[4], *restrict w5 = s->wt[5], *restrict w6 = s->wt[6], *restrict w7 = s->wt[7];
+    float *restrict res = s->res;
+    #pragma omp simd
+    for (int k = 0; k < nt; ++k) {
+        float acc = b[o0[k]] * w0[k];
+        acc += b[o1[k]] * w1[k]; acc += b[o2[k]] * w2[k]; acc += b[o3[k]] * w3[k];
+        acc += b[o4[k]] * w4[k]; acc += b[o5[k]] * w5[k]; acc += b[o6[k]] * w6[k]; acc += b[o7[k]] * w7[k];
+        res[k] = acc;
+    }
+}
+
+static inline Level level_at(i64 l, const float *maps, const int *meta, const i64 *rows) {
+    const int *m = meta + 6 * l;
+    Level lv = {maps + 12 * l, m[0], m[1], m[2], m[3], m[4], (u32)rows[l]};
+    return lv;
+}
+
+/* out[n, col_l + f] = feature f of level l at point n, for every level.
+   meta: [L, 6] int (R_x, R_y, R_z, hashed, F, first column); rows: [L] table rows;
+   offsets: [L] first float of each level in the table. */
+void lg_forward(const float *points, i64 n, i64 levels, const float *maps, const int *meta, const i64 *rows,
+                const i64 *offsets, const float *table, float *out, i64 columns, int nthreads) {
+    const i64 ntiles = (n + TILE - 1) / TILE;
+    #pragma omp parallel num_threads(nthreads)
+    {
+        Scratch s;
+        /* dynamic: on a shared machine a preempted thread must not hold back a fixed share */
+        #pragma omp for schedule(dynamic, 8)
+        for (i64 t = 0; t < ntiles; ++t) {
+            const i64 i0 = t * TILE;
+            const int nt = (int)(n - i0 < TILE ? n - i0 : TILE);
+            load_tile(&s, points, i0, nt);
+            float *o = out + i0 * columns;
+            for (i64 l = 0; l < levels; ++l) {
+                const Level lv = level_at(l, maps, meta, rows);
+                corners(&s, lv, nt);
+                for (int f = 0; f < lv.features; ++f) {
+                    gather(table + offsets[l] + f, &s, nt);
+                    float *oc = o + meta[6 * l + 5] + f;
+                    for (int k = 0; k < nt; ++k) oc[(i64)k * columns] = s.res[k];
+                }
+            }
+        }
+    }
+}
+
+/* grad_table (zeroed by the caller) += trilinear scatter of grad_out [N, columns].
+   buffers: (nthreads - 1) zeroed copies of the gradient (size floats each), or NULL with one thread. */
+void lg_backward(const float *points, i64 n, i64 levels, const float *maps, const int *meta, const i64 *rows,
+                 const i64 *offsets, const float *grad_out, i64 columns, float *grad_table, float *buffers,
+                 i64 size, int nthreads) {
+    #pragma omp parallel num_threads(nthreads)
+    {
+        Scratch s;
+        const int th = omp_get_thread_num(), nth = omp_get_num_threads();
+        float *dst = th == 0 ? grad_table : buffers + (size_t)(th - 1) * (size_t)size;
+        const i64 lo = n * th / nth, hi = n * (th + 1) / nth;
+        for (i64 i0 = lo; i0 < hi; i0 += TILE) {
+            const int nt = (int)(hi - i0 < TILE ? hi - i0 : TILE);
+            load_tile(&s, points, i0, nt);
+            const float *g = grad_out + i0 * columns;
+            for (i64 l = 0; l < levels; ++l) {
+                const Level lv = level_at(l, maps, meta, rows);
+                corners(&s, lv, nt);
+                for (int f = 0; f < lv.features; ++f) {
+                    float *b = dst + offsets[l] + f;
+                    const float *gc = g + meta[6 * l + 5] + f;
+                    for (int k = 0; k < nt; ++k) {
+                        const float v = gc[(i64)k * columns];
+                        for (int j = 0; j < 8; ++j) b[s.off[j][k]] += s.wt[j][k] * v;
+                    }
+                }
+            }
+        }
+        #pragma omp barrier
+        for (int b = 0; b < nth - 1; ++b) {
+            const float *src = buffers + (size_t)b * (size_t)size;
+            #pragma omp for schedule(static)
+            for (i64 e = 0; e < size; ++e) grad_table[e] += src[e];
+        }
+    }
+}
+"""
+
+_lock = threading.Lock()
+_library: ctypes.CDLL | None = None
+_load_error: str | None = None
+_tried = False
+
+
+def load_library() -> ctypes.CDLL | None:
+    """Build (once per machine) and load the kernel; ``None`` when it cannot be built (see :func:`load_error`)."""
+    global _library, _load_error, _tried
+    with _lock:
+        if _tried:
+            return _library
+        _tried = True
+        try:
+            wanted = os.environ.get("CC")
+            compiler = shutil.which(wanted) if wanted else shutil.which("gcc") or shutil.which("cc")
+            if compiler is None:
+                raise RuntimeError(f"C compiler {wanted!r} not found" if wanted else "no C compiler (gcc or cc) on PATH")
+            key = kernel_key(C_SOURCE, repr((COMMON_FLAGS, FLAG_SETS)), compiler, cpu_signature())
+            path = build_library(f"level_grids_cpu_{key}.so", compiler, C_SOURCE, COMMON_FLAGS, FLAG_SETS)
+            lib = ctypes.CDLL(str(path))
+            p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+            lib.lg_forward.argtypes = [p, i64, i64, p, p, p, p, p, p, i64, i32]
+            lib.lg_backward.argtypes = [p, i64, i64, p, p, p, p, p, i64, p, p, i64, i32]
+            lib.lg_forward.restype = lib.lg_backward.restype = None
+            _library = lib
+        except Exception as err:  # noqa: BLE001 - any build problem means "use the reference"
+            _load_error = f"{type(err).__name__}: {err}"
+            _library = None
+        return _library
+
+
+def load_error() -> str | None:
+    """Why :func:`load_library` returned ``None`` (``None`` when it has not failed)."""
+    return _load_error
+
+
+def is_available() -> bool:
+    """True when the kernel builds and loads on this machine."""
+    return load_library() is not None
+
+
+class KernelLayout:
+    """A :class:`LevelLayout` as the kernel reads it: ``meta`` ``[L, 6]`` int32, ``rows`` and ``offsets`` int64.
+
+    Built once per layout (:func:`kernel_layout`), not per call.
+    """
+
+    def __init__(self, layout: LevelLayout):
+        self.layout = layout
+        meta = [
+            [*res, int(hashed), f, col]
+            for res, hashed, f, col in zip(layout.resolutions, layout.hashed, layout.features, layout.columns)
+        ]
+        self.meta = torch.tensor(meta, dtype=torch.int32).contiguous()  # [L, 6]
+        self.rows = torch.tensor(layout.sizes, dtype=torch.int64)  # [L]
+        self.offsets = torch.tensor(layout.offsets, dtype=torch.int64)  # [L]
+
+
+@functools.lru_cache(maxsize=64)
+def kernel_layout(layout: LevelLayout) -> KernelLayout:
+    """The kernel's view of ``layout`` (cached: layouts are frozen and few)."""
+    return KernelLayout(layout)
+
+
+def _library_or_raise() -> ctypes.CDLL:
+    lib = load_library()
+    if lib is None:
+        raise RuntimeError(f"the CPU level-grid kernel is not available: {load_error()}")
+    return lib
+
+
+class _LevelGridFunction(torch.autograd.Function):
+    """Autograd wrapper: gradients for the table only."""
+
+    @staticmethod
+    def forward(ctx, points, maps, table, kernel_layout):  # type: ignore[override]
+        lib = _library_or_raise()
+        layout = kernel_layout.layout
+        pts = points.detach().to(torch.float32).contiguous()
+        m = maps.detach().to(torch.float32)
+        flat_maps = torch.cat([m[:, :, :3].reshape(-1, 9), m[:, :, 3]], dim=1).contiguous()  # [L, 12]: A', t
+        tab = table.detach().contiguous()
+        n = pts.shape[0]
+        out = torch.empty(n, layout.out_features, dtype=torch.float32)  # every element is written
+        lib.lg_forward(
+            pts.data_ptr(), n, layout.levels, flat_maps.data_ptr(), kernel_layout.meta.data_ptr(),
+            kernel_layout.rows.data_ptr(), kernel_layout.offsets.data_ptr(), tab.data_ptr(), out.data_ptr(),
+            layout.out_features, torch.get_num_threads(),
+        )
+        ctx.save_for_backward(pts, flat_maps)
+        ctx.kernel_layout = kernel_layout
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):  # type: ignore[override]
+        if not ctx.needs_input_grad[2]:
+            return None, None, None, None
+        lib = _library_or_raise()
+        pts, flat_maps = ctx.saved_tensors
+        kernel_layout = ctx.kernel_layout
+        layout = kernel_layout.layout
+        go = grad_out.to(torch.float32).contiguous()
+        size = layout.table_size
+        grad = torch.zeros(size, dtype=torch.float32)
+        threads = torch.get_num_threads()
+        buffers = torch.zeros(threads - 1, size, dtype=torch.float32) if threads > 1 else None
+        lib.lg_backward(
+            pts.data_ptr(), pts.shape[0], layout.levels, flat_maps.data_ptr(), kernel_layout.meta.data_ptr(),
+            kernel_layout.rows.data_ptr(), kernel_layout.offsets.data_ptr(), go.data_ptr(), layout.out_features,
+            grad.data_ptr(), None if buffers is None else buffers.data_ptr(), size, threads,
+        )
+        return None, None, grad, None
+
+
+def level_grid_features_cpu(
+    points: torch.Tensor, maps: torch.Tensor, table: torch.Tensor, layout: LevelLayout
+) -> torch.Tensor:
+    """Fused CPU level-grid features with gradients for ``table`` only (float32 CPU tensors).
+
+    Args:
+        points: ``[N, 3]``.
+        maps: ``[L, 3, 4]`` index-space maps (no gradient flows to them).
+        table: ``[T]`` flat parameters.
+        layout: the levels.
+
+    Returns:
+        ``[N, sum_l F_l]``, as :func:`~apmgsrn.ops.level_grids.level_grid_features_reference`.
+    """
+    return _LevelGridFunction.apply(points, maps, table, kernel_layout(layout))
