@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.io.container import Header, load_tensors, read_header, save_tensors
+from apmgsrn.io.container import FIELD_KIND, Header, load_tensors, read_header, save_tensors
 from apmgsrn.io.description import (
     DescriptionError,
     ModelDescription,
@@ -35,7 +35,6 @@ from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.models.value_transform import TRANSFORMS, ValueTransform
 
-FIELD_KIND = "field"
 #: Largest volume a model may describe, per axis (larger shapes are refused as corrupt).
 MAX_VOLUME_AXIS = 1 << 24
 
