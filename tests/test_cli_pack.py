@@ -7,9 +7,11 @@ import json
 
 import numpy as np
 import pytest
+import torch
 
 import apmgsrn
 from apmgsrn.cli.main import main
+from apmgsrn.sources import open_source
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 TINY = ["--grids", "4", "--resolution", "8", "--features", "2", "--width", "16", "--iterations", "40",
@@ -60,6 +62,12 @@ def test_train_with_a_bound_packs_and_every_command_reads_the_file(neghip, tmp_p
     assert main(["render", str(out), "--out", str(image), "--width", "48", "--height", "48", "--spp", "32",
                  "--reference-samples", "32", "--device", "cpu"]) == 0
     assert image.stat().st_size > 0
+    # The viewer opens models through the same render source.
+    source = open_source(out)
+    assert source.kind == "model" and "packed, |error| <= 4 at every voxel" in source.description
+    points = torch.rand(1000, 3) * 2 - 1
+    with torch.no_grad():
+        assert torch.equal(source.field(points), apmgsrn.load(out)(points))
 
 
 def test_eval_on_another_volume_reports_the_bound_violated(float32_model, neghip, test_data, tmp_path, capsys):
