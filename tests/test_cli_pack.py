@@ -114,3 +114,21 @@ def test_pack_refuses_a_volume_of_another_shape(float32_model, test_data, tmp_pa
     assert main(["pack", str(float32_model), str(test_data / "reference_neghip_24.npy"), "--out",
                  str(tmp_path / "x.apmgsrn")]) == 2
     assert "the model was trained on" in capsys.readouterr().err
+
+
+def test_train_to_a_ratio_chooses_the_model_size_and_lands_under_it(neghip, tmp_path, capsys):
+    out = tmp_path / "r.apmgsrn"
+    small = [a for a in TINY if a not in ("--resolution", "8")]
+    code, trained = run_json(["train", str(neghip), "--out", str(out), *small, "--ratio", "20"], capsys)
+    assert code == 0 and trained["model_bytes"] == out.stat().st_size <= 32**3 / 20
+    chosen = apmgsrn.load(out).description.config.encoder.resolution
+    assert chosen != (16, 16, 16)  # not the preset's: the size was chosen for the target
+    code, larger = run_json(["train", str(neghip), "--out", str(tmp_path / "l.apmgsrn"), *small, "--ratio", "5"],
+                            capsys)
+    assert apmgsrn.load(tmp_path / "l.apmgsrn").description.config.encoder.resolution[0] > chosen[0]
+
+
+def test_a_ratio_no_model_reaches_is_a_clear_error(neghip, tmp_path, capsys):
+    assert main(["train", str(neghip), "--out", str(tmp_path / "x.apmgsrn"), *TINY[4:], "--ratio", "5000"]) == 2
+    err = capsys.readouterr().err
+    assert "even grids of 2^3" in err and "a lower ratio" in err

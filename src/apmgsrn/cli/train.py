@@ -73,6 +73,13 @@ def run(args: argparse.Namespace) -> int:
     field_config, train_config = build_configs(args, device)
     volume = open_data(args, args.data)
     packing = pack_config(args, volume.stored_bytes) if packing_requested(args) else None  # checked before training
+    if packing is not None and packing.target_bytes is not None and args.resolution is None:
+        from apmgsrn.training.packing import config_for_bytes
+
+        field_config = config_for_bytes(field_config, packing.target_bytes)  # a model that packs to the target
+        if not args.json:
+            print(f"model size  grids of {field_config.encoder.resolution[0]}^3 chosen to pack into "
+                  f"{packing.target_bytes:,} bytes (--resolution to choose yourself)")
     out = Path(args.out)
     try:
         result = fit_volume(

@@ -25,7 +25,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -124,6 +124,44 @@ class PackConfig:
         if self.bits is not None:
             return "bits"
         return "size" if self.target_bytes is not None else "psnr-loss"
+
+
+#: Stored bits per parameter a model packs to at a small PSNR cost, for choosing a model size from a byte
+#: target: 5.3 to 7.5 measured at 0.1 dB on the shared volumes (docs/results_packing.md; 2.3 on a
+#: log-transformed dark-matter field). The packer then meets the target exactly, with finer or coarser steps.
+BITS_PER_PARAMETER = 6.0
+
+
+def config_for_bytes(config, target_bytes: int, bits_per_parameter: float = BITS_PER_PARAMETER):
+    """The grid resolution of ``config`` (a :class:`~apmgsrn.models.registry.FieldConfig` of an encoder with
+    a ``resolution``: apmgsrn, fvsrn) whose parameters pack to about ``target_bytes``.
+
+    Keeps the number of grids, the features and the decoder; picks the largest cubic resolution (2..256)
+    whose ``parameters * bits_per_parameter / 8`` fits.
+
+    Raises:
+        ApmgsrnError: the encoder has no resolution to choose, or even resolution 2 does not fit.
+    """
+    if not hasattr(config.encoder, "resolution"):
+        raise ApmgsrnError(f"target_bytes={target_bytes}: choosing the size of a {config.model} model is not "
+                           "supported; give its size options and pack to the target", arguments=("target_bytes",))
+
+    def estimate(resolution: int):
+        candidate = replace(config, encoder=replace(config.encoder, resolution=(resolution,) * 3))
+        parameters = sum(math.prod(shape) for shape in candidate.parameter_shapes().values())
+        return candidate, parameters * bits_per_parameter / 8
+
+    best = None
+    for resolution in range(2, 257):
+        candidate, size = estimate(resolution)
+        if size > target_bytes:
+            break
+        best = candidate
+    if best is None:
+        raise ApmgsrnError(f"target_bytes={target_bytes}: even grids of 2^3 take about {estimate(2)[1]:.0f} "
+                           "bytes; pass a larger target (a lower ratio), or fewer grids or a narrower decoder",
+                           arguments=("target_bytes",))
+    return best
 
 
 # ------------------------------------------------------------------------------------------ quantiser
