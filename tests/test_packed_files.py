@@ -4,7 +4,6 @@ reports; an error bound holds at every voxel of every volume in tests/data."""
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest
@@ -191,3 +190,16 @@ def test_a_bound_below_float32_resolution_is_a_clear_error(reference):
     model, truth = reference
     with pytest.raises(apmgsrn.errors.ApmgsrnError, match="max_error=1e-09: too small"):
         pack(model, truth, bits=8, max_error=1e-9)
+
+
+def test_bits_32_keeps_the_float32_network_exactly_beside_a_bound(reference, tmp_path):
+    model, truth = reference
+    result = pack(model, truth, bits=32, max_error=8.0)
+    write_packed(tmp_path / "f.apmgsrn", result)
+    loaded = apmgsrn.load(tmp_path / "f.apmgsrn")
+    assert all(part.encoding in ("float32", "json", "voxels") for part in loaded.description.packing.parts)
+    points = torch.rand(5000, 3) * 2 - 1
+    with torch.no_grad():
+        network = super(CorrectedField, loaded.field).forward(points)  # the network alone, no correction
+        assert torch.equal(network, model(points))
+    assert np.abs(all_voxels(loaded, truth.shape) - truth).max() <= 8.0

@@ -100,8 +100,9 @@ def packing_lines(report: dict, file_bytes: int, compression: dict) -> list[str]
         f"(cost {report['psnr_cost']:.3f} dB); max abs error {report['max_abs_error']:.4g}",
     ]
     if report.get("corrected_voxels") is not None:
-        lines.append(f"error bound {report['max_error']:.6g}: max abs error {report['bounded_max_abs_error']:.6g} over "
-                     f"every voxel ({report['corrected_voxels']:,} voxels corrected), PSNR {report['bounded_psnr']:.2f} dB")
+        lines.append(f"error bound {report['max_error']:.6g}: max abs error {report['bounded_max_abs_error']:.6g} "
+                     f"over every voxel ({report['corrected_voxels']:,} voxels corrected), "
+                     f"PSNR {report['bounded_psnr']:.2f} dB")
     return lines
 
 

@@ -142,8 +142,8 @@ class VoxelCorrection:
         """(gaps section, levels section, gap width, level width)."""
         gaps = np.diff(self.indices, prepend=0) if self.indices.size else self.indices
         gap_width, level_width = codec.width_of(gaps), codec.width_of(self.levels)
-        return (codec.compress(codec.to_bytes(gaps, gap_width)), codec.compress(codec.to_bytes(self.levels, level_width)),
-                gap_width, level_width)
+        return (codec.compress(codec.to_bytes(gaps, gap_width)),
+                codec.compress(codec.to_bytes(self.levels, level_width)), gap_width, level_width)
 
 
 # ---------------------------------------------------------------------------------------------- writing

@@ -22,7 +22,6 @@
 
 from __future__ import annotations
 
-import copy
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -109,7 +108,8 @@ class PackConfig:
             check_number("max_error", self.max_error, 0.0, low_open=True)
         check_int("qat_iterations", self.qat_iterations, 0)
         if self.qat_iterations and self.bits == FLOAT32_BITS:
-            raise InvalidArgument(f"qat_iterations={self.qat_iterations}: nothing to fine-tune when bits=32 keeps float32",
+            raise InvalidArgument(f"qat_iterations={self.qat_iterations}: nothing to fine-tune when bits=32 keeps "
+                                  "float32",
                                   arguments=("qat_iterations", "bits"))
         check_number("qat_lr", self.qat_lr, 0.0, low_open=True)
         check_int("sensitivity_points", self.sensitivity_points, 1)
@@ -541,7 +541,8 @@ def pack_field(
     correction = None
     if config.max_error is not None:
         correction, packed, bounded = _bound(packed, truth, config.max_error)
-        report.update(max_error=config.max_error, bounded_psnr=bounded.psnr, bounded_max_abs_error=bounded.max_abs_error,
+        report.update(max_error=config.max_error, bounded_psnr=bounded.psnr,
+                      bounded_max_abs_error=bounded.max_abs_error,
                       corrected_voxels=int(correction.indices.size))
         say(f"error bound {config.max_error:g}: {correction.indices.size:,} voxels corrected, max abs error "
             f"{bounded.max_abs_error:.6g}")
@@ -571,10 +572,12 @@ def _bound(packed: NeuralField, truth: np.ndarray, max_error: float):
         if not over.size:
             return correction, corrected, errors
         correction = _mend(correction, corrected, truth, over)
-    raise RuntimeError(f"the correction does not bring {over.size} voxels within {max_error}")
+    raise ApmgsrnError(f"max_error={max_error:g}: {over.size} voxels stay over the bound after correction (float32 "
+                       "rounding at this magnitude); pass a larger max_error=", arguments=("max_error",))
 
 
-def _mend(correction: VoxelCorrection, corrected: CorrectedField, truth: np.ndarray, over: np.ndarray) -> VoxelCorrection:
+def _mend(correction: VoxelCorrection, corrected: CorrectedField, truth: np.ndarray,
+          over: np.ndarray) -> VoxelCorrection:
     """Re-quantise the correction at voxels still over the bound, from their measured error."""
     shape = truth.shape
     z, rest = np.divmod(over, shape[1] * shape[2])
