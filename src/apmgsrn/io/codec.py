@@ -58,14 +58,8 @@ def decompress(data: bytes, expected: int, what: str, kind: str = "numbers") -> 
     Raises:
         ApmgsrnError: corrupt, shorter or longer than ``expected``.
     """
-    decoder = lzma.LZMADecompressor(format=lzma.FORMAT_RAW, filters=_filters(kind, expected))
-    try:
-        out = decoder.decompress(data, max_length=expected)
-        # The stream must end exactly there: one more byte, a missing end, or bytes after it are damage.
-        extra = b"" if decoder.eof else decoder.decompress(b"", max_length=1)
-    except (lzma.LZMAError, EOFError):
-        raise ApmgsrnError(f"{what}: compressed data is corrupt") from None
-    if extra or len(out) != expected or not decoder.eof or decoder.unused_data:
+    out = _inflate(data, expected, what, kind, f"does not hold the {expected} bytes its description declares")
+    if len(out) != expected:
         raise ApmgsrnError(f"{what}: compressed data is corrupt or does not hold the {expected} bytes "
                            "its description declares")
     return out
@@ -77,6 +71,12 @@ def decompress_bounded(data: bytes, limit: int, what: str, kind: str = "numbers"
     Raises:
         ApmgsrnError: corrupt, unterminated, or longer than ``limit``.
     """
+    return _inflate(data, limit, what, kind, f"longer than {limit} bytes")
+
+
+def _inflate(data: bytes, limit: int, what: str, kind: str, too_long: str) -> bytes:
+    """At most ``limit`` bytes of a raw stream that must end there (one byte more, a missing end or bytes
+    after it are damage)."""
     decoder = lzma.LZMADecompressor(format=lzma.FORMAT_RAW, filters=_filters(kind, limit))
     try:
         out = decoder.decompress(data, max_length=limit)
@@ -84,7 +84,7 @@ def decompress_bounded(data: bytes, limit: int, what: str, kind: str = "numbers"
     except (lzma.LZMAError, EOFError):
         raise ApmgsrnError(f"{what}: compressed data is corrupt") from None
     if extra or not decoder.eof or decoder.unused_data:
-        raise ApmgsrnError(f"{what}: compressed data is corrupt or longer than {limit} bytes")
+        raise ApmgsrnError(f"{what}: compressed data is corrupt or {too_long}")
     return out
 
 

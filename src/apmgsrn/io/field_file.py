@@ -64,7 +64,13 @@ def save_field(path: str | os.PathLike, field: NeuralField, source: SourceInfo, 
     Returns:
         Bytes written.
     """
-    description = {
+    return save_tensors(path, dict(field.state_dict()), FIELD_KIND, field_description(field, source, training))
+
+
+def field_description(field: NeuralField, source: SourceInfo, training: dict) -> dict:
+    """The JSON description of a single-field file (packed files extend it): config, value scaling and
+    transform, volume shape, source and training summary."""
+    return {
         "field": field.config.to_dict(),
         "fit_min": field.fit_min,
         "fit_max": field.fit_max,
@@ -75,7 +81,6 @@ def save_field(path: str | os.PathLike, field: NeuralField, source: SourceInfo, 
         "source": source.to_dict(),
         "training": training,
     }
-    return save_tensors(path, dict(field.state_dict()), FIELD_KIND, description)
 
 
 def parse_field_description(description: dict) -> FieldDescription:

@@ -21,7 +21,6 @@ Dequantising gives float32 parameters, so the loaded field evaluates any point o
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import os
@@ -53,7 +52,7 @@ from apmgsrn.io.description import (
     require_int,
     require_number,
 )
-from apmgsrn.io.field_file import FieldDescription, parse_field_description
+from apmgsrn.io.field_file import FieldDescription, field_description, parse_field_description
 from apmgsrn.io.quantization import MAX_GROUPS, QuantizedTensor, dequantize, group_count
 from apmgsrn.models.corrected_field import CorrectedField
 from apmgsrn.models.field import NeuralField
@@ -166,15 +165,7 @@ def packed_file_bytes(
         correction: the voxel correction of an error bound, or None.
     """
     description = {
-        "field": field.config.to_dict(),
-        "fit_min": field.fit_min,
-        "fit_max": field.fit_max,
-        "value_min": field.value_min,
-        "value_max": field.value_max,
-        "transform": dataclasses.asdict(field.transform),
-        "volume_shape": list(field.volume_shape),
-        "source": source.to_dict(),
-        "training": {k: v for k, v in training.items() if k in SUMMARY_KEYS},
+        **field_description(field, source, {k: v for k, v in training.items() if k in SUMMARY_KEYS}),
         "tensors": [t.entry() for t in tensors],
         "packing": report,
         "correction": None,
