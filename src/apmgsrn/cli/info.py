@@ -108,7 +108,7 @@ def describe_packing(packing) -> dict:
     return {
         "parts": [{**dataclasses.asdict(part), "bits_per_value": part.bits_per_value} for part in packing.parts],
         "container_bytes": packing.container_bytes,
-        "float32_bytes": packing.float32_bytes,
+        "float32_parameter_bytes": packing.float32_bytes,
         "max_error": packing.max_error,
         "corrected_voxels": packing.corrected_voxels,
         "correction_bytes": packing.correction_bytes,

@@ -95,7 +95,7 @@ def packing_lines(report: dict, file_bytes: int, compression: dict) -> list[str]
     """What ``pack`` and ``train`` print about a packed file."""
     lines = [
         f"packed      {format_bytes(file_bytes)} ({file_bytes:,} bytes; float32 parameters "
-        f"{format_bytes(report['float32_bytes'])}), {compression_text(compression)}",
+        f"{format_bytes(report['float32_parameter_bytes'])}), {compression_text(compression)}",
         f"PSNR        {report['psnr']:.2f} dB packed, {report['float32_psnr']:.2f} dB float32 "
         f"(cost {report['psnr_cost']:.3f} dB); max abs error {report['max_abs_error']:.4g}",
     ]

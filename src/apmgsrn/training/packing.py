@@ -495,7 +495,7 @@ def pack_field(
         float32 = evaluate(field, truth)
     report = {"mode": config.mode, "bits": config.bits, "target_bytes": config.target_bytes,
               "float32_psnr": float32.psnr, "float32_max_abs_error": float32.max_abs_error,
-              "float32_bytes": 4 * field.parameter_count(), "qat_iterations": 0}
+              "float32_parameter_bytes": 4 * field.parameter_count(), "qat_iterations": 0}
     # What the final report adds, with values as long as the real ones: a size target counts them.
     placeholder = _rounded({**report, "scale": math.pi, "psnr": math.pi, "max_abs_error": math.pi,
                             "psnr_cost": math.pi})
