@@ -28,8 +28,8 @@ VARIANTS = {
     "paper+cosine": dict(density_normalization="batch"),
     "mass-constant": dict(lr_schedule="constant"),
     "default": dict(),
-    "tlr5e-4": dict(transform_lr=5e-4),
-    "tlr2e-3": dict(transform_lr=2e-3),
+    "plr5e-4": dict(placement_lr=5e-4),
+    "plr2e-3": dict(placement_lr=2e-3),
     "no-grid-motion": dict(density_start=10**9),
 }
 

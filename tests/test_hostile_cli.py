@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 from safetensors import safe_open
-from safetensors.torch import save_file
+from safetensors.torch import load_file, save_file
 
 import apmgsrn
 from apmgsrn.bench.compress import CompressPlan
@@ -186,7 +186,7 @@ TRAIN_PROBES = [
     (["--iterations", "0"], "--iterations"), (["--iterations", "-3"], "--iterations"),
     (["--batch-size", "0"], "--batch-size"), (["--batch-size", "10000000000"], "--batch-size"),
     (["--checkpoint-every", "0"], "--checkpoint-every"), (["--lr", "nan"], "--lr"), (["--lr", "-1"], "--lr"),
-    (["--lr", "inf"], "--lr"), (["--transform-lr", "-0.1"], "--transform-lr"),
+    (["--lr", "inf"], "--lr"), (["--placement-lr", "-0.1"], "--placement-lr"),
     (["--freeze-fraction", "nan"], "--freeze-fraction"), (["--freeze-fraction", "2"], "--freeze-fraction"),
     (["--density-start", "-1"], "--density-start"), (["--seed", "-1"], "--seed"),
     (["--backend", "tcnn"], "--backend"), (["--log-offset", "nan"], "--log-offset"),
@@ -347,7 +347,7 @@ def _set_state(field, value):
 
 TAMPERING = {
     "missing optimiser moment": lambda t, d: t.pop("optim.network.0.exp_avg"),
-    "missing optimiser state": lambda t, d: [t.pop(k) for k in [k for k in t if k.startswith("optim.transform.")]],
+    "missing optimiser state": lambda t, d: [t.pop(k) for k in [k for k in t if k.startswith("optim.placement.")]],
     "extra optimiser state": lambda t, d: t.__setitem__("optim.network.99.exp_avg", torch.zeros(3)),
     "moment of the wrong shape": lambda t, d: t.__setitem__("optim.network.0.exp_avg_sq",
                                                             torch.zeros(*t["optim.network.0.exp_avg_sq"].shape, 2)),
@@ -382,6 +382,27 @@ def test_the_untampered_checkpoint_resumes(interrupted, tmp_path):
     assert main(["train", str(volume), "--out", str(tmp_path / "m.apmgsrn"), *RESUMABLE, "--resume"]) == 0
     assert apmgsrn.load(tmp_path / "m.apmgsrn").description.training["iterations"] == 40
     assert not copy.exists()
+
+
+def _older_names(tensors: dict, description: dict) -> None:
+    """A checkpoint as versions before the grid-placement rename wrote it."""
+    for name in [k for k in tensors if k.startswith("optim.placement.")]:
+        tensors["optim.transform." + name[len("optim.placement."):]] = tensors.pop(name)
+    config = description["config"]
+    config["transform_lr"] = config.pop("placement_lr")
+
+
+def test_a_checkpoint_with_the_older_names_resumes_to_the_same_model(interrupted, tmp_path):
+    volume, checkpoint = interrupted
+    _tampered(checkpoint, tmp_path, lambda tensors, description: None)
+    assert main(["train", str(volume), "--out", str(tmp_path / "m.apmgsrn"), *RESUMABLE, "--resume"]) == 0
+    older = tmp_path / "older"
+    older.mkdir()
+    _tampered(checkpoint, older, _older_names)
+    assert main(["train", str(volume), "--out", str(older / "m.apmgsrn"), *RESUMABLE, "--resume"]) == 0
+    resumed, reference = load_file(str(older / "m.apmgsrn")), load_file(str(tmp_path / "m.apmgsrn"))
+    assert resumed.keys() == reference.keys()
+    assert all(torch.equal(resumed[name], reference[name]) for name in reference)
 
 
 def test_resume_on_another_file_of_the_same_name_shape_and_dtype_is_refused(interrupted, tmp_path, capsys):

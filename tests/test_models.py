@@ -73,7 +73,7 @@ def test_output_scaling_and_inverse_transform():
 def test_reconstruction_gradients_reach_only_grids_and_decoder():
     field = small_field()
     points = torch.rand(256, 3) * 2 - 1
-    field.normalized(points, detach_transforms=True).square().mean().backward()
+    field.normalized(points, detach_placement=True).square().mean().backward()
     assert field.encoder.matrices.grad is None and field.encoder.translations.grad is None
     assert field.encoder.grids.grad is not None and field.encoder.grids.grad.abs().sum() > 0
     assert all(layer.weight.grad is not None for layer in field.decoder if isinstance(layer, torch.nn.Linear))
@@ -87,7 +87,7 @@ def test_bfloat16_decoder_matches_float32_in_forward_and_backward():
     results = []
     for dtype in (None, torch.bfloat16):
         field.zero_grad(set_to_none=True)
-        out = field.normalized(points, detach_transforms=True, hidden_dtype=dtype)
+        out = field.normalized(points, detach_placement=True, hidden_dtype=dtype)
         (out.square().mean()).backward()
         linears = [m.weight for m in field.decoder if isinstance(m, torch.nn.Linear)]
         grads = [p.grad.clone() for p in (field.encoder.grids, *linears)]

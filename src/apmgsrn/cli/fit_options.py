@@ -42,7 +42,7 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     training.add_argument("--iterations", type=int, help="default: 3000 on CPU, 50000 on GPU")
     training.add_argument("--batch-size", type=int, help="points per iteration (default: 32768 CPU, 100000 GPU)")
     training.add_argument("--lr", type=float, default=0.01)
-    training.add_argument("--transform-lr", type=float, default=0.001, help="learning rate of the grid transforms")
+    training.add_argument("--placement-lr", type=float, default=0.001, help="learning rate of the grid placements")
     training.add_argument("--lr-schedule", choices=LR_SCHEDULES,
                           help="cosine: anneal after the grids stop (default for every model, bricks too); "
                                "constant; plateau (paper; a brick ends after the third cut); "
@@ -93,7 +93,7 @@ def build_configs(args: argparse.Namespace, device):
             iterations=iterations if args.iterations is None else args.iterations,
             batch_size=batch_size if args.batch_size is None else args.batch_size,
             lr=args.lr,
-            transform_lr=args.transform_lr,
+            placement_lr=args.placement_lr,
             lr_schedule=args.lr_schedule or DEFAULT_LR_SCHEDULES.get(args.model, "cosine"),
             density_start=args.density_start,
             freeze_fraction=args.freeze_fraction,

@@ -19,6 +19,10 @@ FLAGS = {
     "shape": "--shape",
     "dtype": "--dtype",
     "fill_nonfinite": "--fill-nonfinite",
+    # decoding and export
+    "region": "--region",
+    "region_units": "--region-units",
+    "format": "--format",
     # fitting
     "out": "--out",
     "resume": "--resume",
@@ -38,7 +42,7 @@ FLAGS = {
     "iterations": "--iterations",
     "batch_size": "--batch-size",
     "lr": "--lr",
-    "transform_lr": "--transform-lr",
+    "placement_lr": "--placement-lr",
     "lr_schedule": "--lr-schedule",
     "density_start": "--density-start",
     "freeze_fraction": "--freeze-fraction",

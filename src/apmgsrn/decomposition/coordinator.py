@@ -41,7 +41,7 @@ from apmgsrn.io.brick_folder import (
 )
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.progress import Progress
-from apmgsrn.training.trainer import TrainConfig, as_json
+from apmgsrn.training.trainer import TrainConfig, as_json, current_names
 
 
 @dataclass(frozen=True)
@@ -162,9 +162,12 @@ def training_settings(volume, plan: BrickPlan, field_config: FieldConfig, train_
 
 def stored_settings(manifest: dict) -> dict:
     """A manifest's settings as this version writes them: the field config read back through
-    :class:`~apmgsrn.models.registry.FieldConfig`, so run-time fields older versions stored (the kernel
-    backend) do not make an unfinished folder look like another run's."""
+    :class:`~apmgsrn.models.registry.FieldConfig` and training names renamed since, so run-time fields older
+    versions stored (the kernel backend) and old names do not make an unfinished folder look like another
+    run's."""
     settings = dict(manifest.get("settings") or {})
+    if "training" in settings:
+        settings["training"] = current_names(settings["training"])
     try:
         settings["field"] = as_json(FieldConfig.from_dict(settings.get("field")).to_dict())
     except (TypeError, ValueError):
@@ -290,7 +293,7 @@ def train_bricks(
             log_offset=log_offset,
             device=device,
             threads=queue.threads_per_job,
-            source=source,
+            source=source.crop(brick.start, brick.stop),  # the brick file describes its own voxels
             psnr_voxels=psnr_voxels,
         )
         futures[queue.submit(train_brick, job, key=f"{brick.name}-{token}")] = brick

@@ -48,13 +48,13 @@ class NeuralField(nn.Module):
         self.volume_shape = tuple(int(s) for s in volume_shape)
 
     def normalized(
-        self, points: torch.Tensor, detach_transforms: bool = False, hidden_dtype: torch.dtype | None = None
+        self, points: torch.Tensor, detach_placement: bool = False, hidden_dtype: torch.dtype | None = None
     ) -> torch.Tensor:
         """Decoder output ``m(y)`` ``[N, 1]`` (about ``[0, 1]``), the quantity the trainer fits.
 
         ``hidden_dtype``: see :meth:`~apmgsrn.models.decoder.Decoder.forward` (training only).
         """
-        return self.decoder(self.encoder(points, detach_transforms=detach_transforms), hidden_dtype)
+        return self.decoder(self.encoder(points, detach_placement=detach_placement), hidden_dtype)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """Values in data units ``[N, 1]`` at ``points`` ``[N, 3]``."""

@@ -7,7 +7,7 @@ eight trilinear weights and ``8 C`` masked loads; a pair whose point lies outsid
 nothing (its lanes are masked off), so once the grids have moved to the features a point costs only
 the grids that cover it. Nothing ``[M, N, 3]``-sized is ever stored. The backward pass recomputes the
 weights and scatters the incoming gradient into the grids with atomic adds (float32 accumulation);
-the transforms get no gradient here (they keep the density-loss path).
+the grid placements get no gradient here (they keep the density-loss path).
 
 Grids may be float32, float16 or bfloat16 (half the bytes per gather); arithmetic and the returned
 features are float32. Grids are read through their strides, so a channel-last view (corners' ``C``

@@ -117,7 +117,7 @@ def optimizer_layout(name: str, optimizer: torch.optim.Optimizer, with_state: bo
     """The tensors an Adam optimizer's state takes in a checkpoint (none before its first step).
 
     Args:
-        name: the optimiser's name in the checkpoint (``network``, ``transform``).
+        name: the optimiser's name in the checkpoint (``network``, ``placement``).
         optimizer: the run's optimiser (its parameters give the shapes).
         with_state: whether it has stepped (then every parameter has its moments and step count).
     """

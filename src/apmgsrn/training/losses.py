@@ -21,7 +21,7 @@ def feature_density_loss(
     bound; this one charges for it.
 
     Args:
-        density: ``[N]`` unnormalised feature density ``rho`` (differentiable w.r.t. the grid transforms).
+        density: ``[N]`` unnormalised feature density ``rho`` (differentiable w.r.t. the grid placements).
         error: ``[N]`` per-point squared reconstruction error ``h`` (no gradient needed).
         mean_density: None for the paper's batch normalisation, else the all-inside mean density.
         eps: the SPEC's small constant.

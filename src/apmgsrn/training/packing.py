@@ -260,7 +260,7 @@ def sensitivity_quantizer(field: NeuralField, sensitivity: dict[str, np.ndarray]
     of zero sensitivity is kept: it can hold a ReLU unit off where the unit must stay off, and zeroing it
     turns the unit on (measured: 0.7 dB lost on a viscous-fingers model).
     """
-    placed = {id(p) for p in field.encoder.transform_parameters()}
+    placed = {id(p) for p in field.encoder.placement_parameters()}
     steps, groups, dead = {}, {}, {}
     for name, p in field.named_parameters():
         size = group_size(tuple(p.shape))
@@ -349,7 +349,7 @@ def quantization_aware_fine_tune(field: NeuralField, values: torch.Tensor, quant
     if iterations <= 0:
         return
     device = values.device
-    placed = {id(p) for p in field.encoder.transform_parameters()}
+    placed = {id(p) for p in field.encoder.placement_parameters()}
     named = {name: p for name, p in field.named_parameters() if id(p) not in placed}
     fixed = {name: p for name, p in field.named_parameters() if id(p) in placed}
     optimizer = torch.optim.Adam(list(named.values()), lr=lr, betas=(0.9, 0.99))
@@ -372,7 +372,7 @@ def quantization_aware_fine_tune(field: NeuralField, values: torch.Tensor, quant
                 for name, p in named.items():
                     saved[name] = p.detach().clone()
                     p.copy_(quantizer.fake(name, p))
-            loss = (field.normalized(points, detach_transforms=True).view(-1) - target).square().mean()
+            loss = (field.normalized(points, detach_placement=True).view(-1) - target).square().mean()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             with torch.no_grad():

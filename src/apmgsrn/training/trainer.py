@@ -41,14 +41,14 @@ class TrainConfig:
         iterations: total iterations.
         batch_size: random points per iteration.
         lr: Adam learning rate of the grids and decoder.
-        transform_lr: Adam learning rate of the grid transforms.
+        placement_lr: Adam learning rate of the grid placements.
         betas: Adam betas of both optimisers.
         density_start: iterations before the density step starts (delayed start); None: 5 % of the
             budget (paper: 500 of 50,000). Measured at 2,000 iterations, grids that move early and stop
             at half the budget leave the features time to settle: +1 to +2 dB over the paper's window.
         density_window: moving-average window of the density loss for early freezing.
-        density_tolerance: relative fall below which the transforms freeze (0.01 %).
-        freeze_fraction: the transforms freeze at this fraction of the budget at the latest (paper: 0.8).
+        density_tolerance: relative fall below which the grid placements freeze (0.01 %).
+        freeze_fraction: the grid placements freeze at this fraction of the budget at the latest (paper: 0.8).
         density_power: ``P`` of the flat-top Gaussian.
         density_normalization: ``"batch"`` (paper: ``rho / sum_X rho``) or ``"mass"`` (ours: share of the
             grids' total feature mass, so mass that leaves the domain counts; see
@@ -72,7 +72,7 @@ class TrainConfig:
     iterations: int = 2000
     batch_size: int = 32768
     lr: float = 0.01
-    transform_lr: float = 0.001
+    placement_lr: float = 0.001
     betas: tuple[float, float] = (0.9, 0.99)
     density_start: int | None = None
     density_window: int = 1000
@@ -93,7 +93,7 @@ class TrainConfig:
         check_int("iterations", self.iterations, 1)
         check_int("batch_size", self.batch_size, 1, MAX_BATCH_SIZE)
         check_number("lr", self.lr, 0.0)  # 0 is allowed: a frozen network (or grid maps) is a valid experiment
-        check_number("transform_lr", self.transform_lr, 0.0)
+        check_number("placement_lr", self.placement_lr, 0.0)
         if not isinstance(self.betas, (tuple, list)) or len(self.betas) != 2:
             raise InvalidArgument(f"betas={self.betas!r}: must be two numbers in [0, 1)", arguments=("betas",))
         object.__setattr__(self, "betas", tuple(check_number("betas", b, 0.0, 1.0, high_open=True)
@@ -115,6 +115,16 @@ class TrainConfig:
         check_int("history_every", self.history_every, 1)
         check_optional_int("stop_after_lr_cuts", self.stop_after_lr_cuts, 1)
         check_choice("decoder_precision", self.decoder_precision, DECODER_PRECISIONS)
+
+
+#: Names older versions stored for today's :class:`TrainConfig` fields.
+RENAMED = {"transform_lr": "placement_lr"}
+
+
+def current_names(stored: dict) -> dict:
+    """A stored training config with the names this version uses, so that brick folders and checkpoints
+    written before the grid maps were called placements still match their runs."""
+    return {RENAMED.get(key, key): value for key, value in stored.items()} if isinstance(stored, dict) else stored
 
 
 def decoder_hidden_dtype(precision: str, device: torch.device) -> torch.dtype | None:
@@ -206,13 +216,13 @@ class Trainer:
         self.fingerprint = fingerprint or {}
         self.callbacks = tuple(callbacks)
         encoder = field.encoder
-        transform_params = list(encoder.transform_parameters())
-        transform_ids = {id(p) for p in transform_params}
-        network_params = [p for p in field.parameters() if id(p) not in transform_ids]
+        placement_params = list(encoder.placement_parameters())
+        placement_ids = {id(p) for p in placement_params}
+        network_params = [p for p in field.parameters() if id(p) not in placement_ids]
         self.network_optimizer = torch.optim.Adam(network_params, lr=config.lr, betas=config.betas)
-        self.transform_optimizer = (
-            torch.optim.Adam(transform_params, lr=config.transform_lr, betas=config.betas)
-            if transform_params
+        self.placement_optimizer = (
+            torch.optim.Adam(placement_params, lr=config.placement_lr, betas=config.betas)
+            if placement_params
             else None
         )
         self.hidden_dtype = decoder_hidden_dtype(config.decoder_precision, self.device)
@@ -220,7 +230,7 @@ class Trainer:
         self.generator.manual_seed(config.seed)
         self.state = TrainingState()
         self._pending_density: list[torch.Tensor] = []
-        if self.transform_optimizer is None:
+        if self.placement_optimizer is None:
             self.state.frozen_at = 0
 
     # ----------------------------------------------------------------------------- schedule
@@ -236,7 +246,7 @@ class Trainer:
             cuts = sum(iteration >= int(f * cfg.iterations) for f in (0.4, 0.6, 0.8))
             return cfg.lr * 0.33**cuts
         # cosine: hold the rate while the grids may still move, then anneal over what is left.
-        hold = self._freeze_deadline() if self.transform_optimizer is not None else 0
+        hold = self._freeze_deadline() if self.placement_optimizer is not None else 0
         if self.state.frozen_at is not None:
             hold = min(hold, self.state.frozen_at)
         hold = min(hold, int(cfg.iterations * 0.5))
@@ -264,7 +274,7 @@ class Trainer:
         target = sample_volume(self.volume, points)  # [B]
 
         # Step 1: L_rec moves grids and decoder only (transform-detached coordinates).
-        prediction = self.field.normalized(points, detach_transforms=True, hidden_dtype=self.hidden_dtype)
+        prediction = self.field.normalized(points, detach_placement=True, hidden_dtype=self.hidden_dtype)
         prediction = prediction.view(-1)  # [B]
         error = (prediction - target).square()  # [B]
         reconstruction = error.mean()
@@ -282,9 +292,9 @@ class Trainer:
                 else None
             )
             density_loss = feature_density_loss(density, error.detach(), mean_density)
-            self.transform_optimizer.zero_grad(set_to_none=True)
+            self.placement_optimizer.zero_grad(set_to_none=True)
             density_loss.backward()
-            self.transform_optimizer.step()
+            self.placement_optimizer.step()
             density_value = density_loss.detach()
         return StepLosses(reconstruction.detach(), density_value)
 
@@ -311,7 +321,7 @@ class Trainer:
             st.frozen_at = st.iteration + 1
         if st.frozen_at is not None:
             self._pending_density.clear()
-            for p in self.field.encoder.transform_parameters():
+            for p in self.field.encoder.placement_parameters():
                 p.requires_grad_(False)
 
     def _flush_density(self) -> None:
@@ -397,7 +407,7 @@ class Trainer:
         """Write model, optimiser moments and RNG state atomically (safetensors + JSON, no pickle)."""
         self._flush_density()
         tensors = {f"model.{k}": v for k, v in self.field.state_dict().items()}
-        optimizers = {"network": self.network_optimizer, "transform": self.transform_optimizer}
+        optimizers = {"network": self.network_optimizer, "placement": self.placement_optimizer}
         groups = {}
         for name, optimizer in optimizers.items():
             if optimizer is None:
@@ -429,25 +439,25 @@ class Trainer:
         if header.kind != CHECKPOINT_KIND:
             raise ApmgsrnError(f"{path}: not a training checkpoint; remove it or pass another out=", arguments=("out",))
         description = header.description
-        if description.get("fingerprint") != as_json(self.fingerprint) or description.get("config") != as_json(
-            asdict(self.config)
-        ):
+        if description.get("fingerprint") != as_json(self.fingerprint) or current_names(
+            description.get("config")
+        ) != as_json(asdict(self.config)):
             raise ApmgsrnError(
                 f"{path}: checkpoint was made with other data or settings; rerun with the same data file and "
                 "options, or delete it to start over"
             )
-        optimizers = {"network": self.network_optimizer, "transform": self.transform_optimizer}
+        optimizers = {"network": self.network_optimizer, "placement": self.placement_optimizer}
         try:
             state = state_from_json(description.get("state"), self.config.iterations)
             # Adam has moments once it stepped: the network from the first iteration, the grid maps from
             # the first density step.
-            stepped = {"network": state.iteration > 0, "transform": state.density_steps > 0}
+            stepped = {"network": state.iteration > 0, "placement": state.density_steps > 0}
             expected = {f"model.{k}": (tuple(v.shape), v.dtype) for k, v in self.field.state_dict().items()}
             expected["generator"] = (tuple(self.generator.get_state().shape), torch.uint8)
             for name, optimizer in optimizers.items():
                 if optimizer is not None:
                     expected |= optimizer_layout(name, optimizer, stepped[name])
-            tensors = load_tensors(path)
+            tensors = {_current_tensor_name(k): v for k, v in load_tensors(path).items()}
             check_tensors(tensors, expected)
         except DescriptionError as exc:
             raise ApmgsrnError(f"{path}: training checkpoint is damaged ({exc}); delete it to start over") from None
@@ -465,8 +475,13 @@ class Trainer:
         self.generator.set_state(tensors["generator"])
         self.state = state
         if self.state.frozen_at is not None:
-            for p in self.field.encoder.transform_parameters():
+            for p in self.field.encoder.placement_parameters():
                 p.requires_grad_(False)
+
+
+def _current_tensor_name(name: str) -> str:
+    """``optim.transform.*`` (older checkpoints) read as ``optim.placement.*``."""
+    return "optim.placement." + name[len("optim.transform."):] if name.startswith("optim.transform.") else name
 
 
 class _StopRequest:

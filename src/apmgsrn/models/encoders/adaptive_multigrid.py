@@ -95,16 +95,16 @@ class AdaptiveMultiGridEncoder(Encoder):
             self.matrices.copy_(torch.eye(3) * 4 + noise)
             self.translations.copy_(-4 * centres)
 
-    def forward(self, points: torch.Tensor, detach_transforms: bool = False) -> torch.Tensor:
+    def forward(self, points: torch.Tensor, detach_placement: bool = False) -> torch.Tensor:
         """Features at ``points`` ``[N, 3]`` -> ``[N, M * C]``.
 
         Args:
             points: global coordinates in ``[-1, 1]^3``.
-            detach_transforms: True on the reconstruction path (SPEC section 4, step 1), so only the grids
+            detach_placement: True on the reconstruction path (SPEC section 4, step 1), so only the grids
                 and the decoder learn from the reconstruction error.
         """
         matrices, translations = self.matrices, self.translations
-        if detach_transforms:
+        if detach_placement:
             matrices, translations = matrices.detach(), translations.detach()
         return multigrid_features(points, matrices, translations, self.grids, backend=self.config.backend)
 
@@ -116,7 +116,7 @@ class AdaptiveMultiGridEncoder(Encoder):
         """Mean density over the domain ``[-1, 1]^3`` (volume 8) if every grid lay inside it."""
         return self.config.grids * feature_mass(power) / 8.0
 
-    def transform_parameters(self) -> list[nn.Parameter]:
+    def placement_parameters(self) -> list[nn.Parameter]:
         """The parameters the density loss moves."""
         return [self.matrices, self.translations]
 

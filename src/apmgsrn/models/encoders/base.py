@@ -8,15 +8,15 @@ from torch import nn
 
 
 class Encoder(nn.Module):
-    """Base of the encoders: ``forward(points [N, 3], detach_transforms) -> [N, out_features]``.
+    """Base of the encoders: ``forward(points [N, 3], detach_placement) -> [N, out_features]``.
 
-    Encoders whose grids are placed by learned maps (APMGSRN) override :meth:`transform_parameters` and
+    Encoders whose grids are placed by learned maps (APMGSRN) override :meth:`placement_parameters` and
     :meth:`grid_boxes`; the trainer's density step and the pictures of grid placement use them.
     """
 
     out_features: int
 
-    def transform_parameters(self) -> list[nn.Parameter]:
+    def placement_parameters(self) -> list[nn.Parameter]:
         """Parameters moved by the feature-density loss (none: nothing is placed)."""
         return []
 

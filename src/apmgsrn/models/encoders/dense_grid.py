@@ -79,12 +79,12 @@ class DenseGridEncoder(Encoder):
         with torch.no_grad():
             self.grid.uniform_(-1e-4, 1e-4, generator=generator)
 
-    def forward(self, points: torch.Tensor, detach_transforms: bool = False) -> torch.Tensor:
+    def forward(self, points: torch.Tensor, detach_placement: bool = False) -> torch.Tensor:
         """Features at ``points`` ``[N, 3]`` -> ``[N, C + 6 K]``.
 
         Args:
             points: global coordinates in ``[-1, 1]^3``.
-            detach_transforms: ignored (this encoder has no transforms).
+            detach_placement: ignored (this encoder places no grids).
         """
         n = points.shape[0]
         grid_features = multigrid_features(

@@ -151,12 +151,12 @@ class HashGridEncoder(Encoder):
         with torch.no_grad():
             self.table.uniform_(-1e-4, 1e-4, generator=generator)
 
-    def forward(self, points: torch.Tensor, detach_transforms: bool = False) -> torch.Tensor:
+    def forward(self, points: torch.Tensor, detach_placement: bool = False) -> torch.Tensor:
         """Features at ``points`` ``[N, 3]`` -> ``[N, L * F]``.
 
         Args:
             points: global coordinates in ``[-1, 1]^3``.
-            detach_transforms: ignored (this encoder has no transforms).
+            detach_placement: ignored (this encoder places no grids).
         """
         if self._use_tcnn(points):
             return self._forward_tcnn(points)
