@@ -127,7 +127,7 @@ class PackConfig:
 
 
 #: Stored bits per parameter a model packs to at a small PSNR cost, for choosing a model size from a byte
-#: target: 5.3 to 7.5 measured at 0.1 dB on the shared volumes (docs/results_packing.md; 2.3 on a
+#: target: 4.5 to 7.4 measured at 0.1 dB on the shared volumes (docs/results_packing.md; 2.3 on a
 #: log-transformed dark-matter field). The packer then meets the target exactly, with finer or coarser steps.
 BITS_PER_PARAMETER = 6.0
 
