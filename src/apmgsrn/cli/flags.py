@@ -51,6 +51,12 @@ FLAGS = {
     "seed": "--seed",
     "checkpoint_every": "--checkpoint-every",
     "device": "--device",
+    # packing
+    "bits": "--bits",
+    "psnr_loss": "--psnr-loss",
+    "target_bytes": "--size",
+    "max_error": "--max-error",
+    "qat_iterations": "--qat-iterations",
     # bricks
     "bricks": "--bricks",
     "ghost_cells": "--ghost-cells",

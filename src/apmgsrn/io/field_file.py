@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.io.container import Header, load_tensors, read_header, save_tensors
+from apmgsrn.io.container import FIELD_KIND, Header, load_tensors, read_header, save_tensors
 from apmgsrn.io.description import (
     DescriptionError,
     ModelDescription,
@@ -35,7 +35,6 @@ from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.models.value_transform import TRANSFORMS, ValueTransform
 
-FIELD_KIND = "field"
 #: Largest volume a model may describe, per axis (larger shapes are refused as corrupt).
 MAX_VOLUME_AXIS = 1 << 24
 
@@ -65,7 +64,13 @@ def save_field(path: str | os.PathLike, field: NeuralField, source: SourceInfo, 
     Returns:
         Bytes written.
     """
-    description = {
+    return save_tensors(path, dict(field.state_dict()), FIELD_KIND, field_description(field, source, training))
+
+
+def field_description(field: NeuralField, source: SourceInfo, training: dict) -> dict:
+    """The JSON description of a single-field file (packed files extend it): config, value scaling and
+    transform, volume shape, source and training summary."""
+    return {
         "field": field.config.to_dict(),
         "fit_min": field.fit_min,
         "fit_max": field.fit_max,
@@ -76,7 +81,6 @@ def save_field(path: str | os.PathLike, field: NeuralField, source: SourceInfo, 
         "source": source.to_dict(),
         "training": training,
     }
-    return save_tensors(path, dict(field.state_dict()), FIELD_KIND, description)
 
 
 def parse_field_description(description: dict) -> FieldDescription:

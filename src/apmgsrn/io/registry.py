@@ -1,6 +1,6 @@
 """One door to every model format: a loader per kind, registered by the layer that can build it.
 
-Single-field files load here. Brick models need the brick router, which lives in
+Single-field files, float32 or packed, load here. Brick models need the brick router, which lives in
 :mod:`apmgsrn.decomposition` (a layer above this one): it registers its loader on import, and
 :func:`apmgsrn.load` imports it, so callers of the public API open every kind.
 """
@@ -17,9 +17,10 @@ from torch import nn
 
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.io.brick_folder import BRICKS_KIND, MANIFEST_NAME, is_brick_folder, read_manifest
-from apmgsrn.io.container import read_header
+from apmgsrn.io.container import PACKED_KIND, read_header
 from apmgsrn.io.description import ModelDescription
 from apmgsrn.io.field_file import FIELD_KIND, load_field
+from apmgsrn.io.packed import load_packed
 
 
 @dataclass(frozen=True)
@@ -37,7 +38,10 @@ class LoadedModel:
 
 #: kind -> loader(path, device) returning (field, description).
 Loader = Callable[[Path, torch.device], tuple[nn.Module, ModelDescription]]
-_LOADERS: dict[str, Loader] = {FIELD_KIND: lambda path, device: load_field(path, device)}
+_LOADERS: dict[str, Loader] = {
+    FIELD_KIND: lambda path, device: load_field(path, device),
+    PACKED_KIND: lambda path, device: load_packed(path, device),
+}
 
 
 def register_loader(kind: str, loader: Loader) -> None:
