@@ -94,3 +94,25 @@ def test_a_missing_compressor_package_is_skipped_with_the_install_hint(c60_block
     assert [r.method for r in report.rows] == ["fvsrn"]
     assert len(report.skipped) == 2 and all("apmgsrn[baselines]" in s for s in report.skipped)
     assert any(line.startswith("skipped sz3: the 'pysz' package is not installed") for line in lines)
+
+
+def test_packed_and_bounded_models_are_their_own_methods(test_data, tmp_path):
+    import numpy as np
+    import torch
+
+    import apmgsrn
+    from apmgsrn.bench.compress import measure_model
+    from apmgsrn.training.packing import PackConfig, pack_field, write_packed
+
+    model = apmgsrn.load(test_data / "reference_field.apmgsrn")
+    truth = np.load(test_data / "reference_neghip_24.npy").astype(np.float32)
+    points = torch.rand(1000, 3) * 2 - 1
+    rows = {}
+    for name, config in {"packed": PackConfig(bits=8), "bounded": PackConfig(bits=8, max_error=5.0)}.items():
+        path = tmp_path / f"{name}.apmgsrn"
+        write_packed(path, pack_field(apmgsrn.load(test_data / "reference_field.apmgsrn").field, truth, config,
+                                      model.description.source, {}))
+        rows[name] = measure_model(path, truth, points, "neghip24", torch.device("cpu"), truth.size)
+    assert rows["packed"].method == "apmgsrn packed" and rows["bounded"].method == "apmgsrn packed bounded"
+    assert rows["bounded"].max_abs_error <= 5.0 < rows["packed"].max_abs_error
+    assert rows["packed"].compressed_bytes == (tmp_path / "packed.apmgsrn").stat().st_size

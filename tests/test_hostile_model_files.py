@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file, save_file
@@ -179,6 +180,156 @@ def test_the_container_format_constants_are_what_files_carry(good_model):
         meta = json.loads(f.read(length))["__metadata__"]
     assert meta["format"] == FORMAT and int(meta["format_version"]) == FORMAT_VERSION and meta["kind"] == "field"
     assert "backend" not in json.loads(meta["description"])["field"]["encoder"]
+
+
+# ---------------------------------------------------------------------------------------- packed files
+def packed_parts(field, correction=None) -> tuple[dict, list[bytes]]:
+    """The description and the raw sections of a packed file of ``field`` (8 bits, optional correction)."""
+    from apmgsrn.io.packed import packed_file_bytes
+    from apmgsrn.training.packing import bits_quantizer, encode_field
+
+    tensors, _ = encode_field(field, bits_quantizer(field, 8))
+    data = packed_file_bytes(field, tensors, SourceInfo(path="v.npy"), {"iterations": 3}, {"psnr": 40.0}, correction)
+    return split_packed(data)
+
+
+def split_packed(data: bytes) -> tuple[dict, list[bytes]]:
+    from apmgsrn.io import codec
+
+    length = int.from_bytes(data[:8], "little")
+    header = json.loads(data[8 : 8 + length])
+    payload = data[8 + length :]
+    sizes = json.loads(header["__metadata__"]["description"])["sections"]
+    offsets = [sum(sizes[:i]) for i in range(len(sizes) + 1)]
+    sections = [payload[offsets[i] : offsets[i + 1]] for i in range(len(sizes))]
+    description = json.loads(codec.decompress_bounded(sections[0], 1 << 20, "d", "text"))
+    return description, sections[1:]
+
+
+def write_packed_parts(path: Path, description: dict, sections: list[bytes], sizes: list[int] | None = None) -> Path:
+    """A packed file of these parts (``sizes``: section sizes to declare instead of the true ones)."""
+    from apmgsrn.io import codec
+    from apmgsrn.io.container import PACKED_KIND, file_bytes
+
+    text = description if isinstance(description, bytes) else json.dumps(description).encode()
+    parts = [codec.compress(text, "text"), *sections]
+    payload = torch.frombuffer(bytearray(b"".join(parts)), dtype=torch.uint8)
+    declared = sizes if sizes is not None else [len(p) for p in parts]
+    path.write_bytes(file_bytes({"payload": payload}, PACKED_KIND, {"sections": declared}))
+    return path
+
+
+@pytest.fixture()
+def good_packed_parts(good_model):
+    from apmgsrn.io.packed import VoxelCorrection
+
+    field = apmgsrn.load(good_model).field
+    correction = VoxelCorrection(0.5, 0.9, np.array([0, 5, 200, 335], dtype=np.int64),
+                                 np.array([1, -2, 3, 1], dtype=np.int64))
+    return packed_parts(field, correction)
+
+
+def test_a_good_packed_file_loads(good_packed_parts, tmp_path):
+    description, sections = good_packed_parts
+    model = apmgsrn.load(write_packed_parts(tmp_path / "p.apmgsrn", description, sections))
+    assert model.description.packing.corrected_voxels == 4 and model.description.packing.max_error == 0.5
+
+
+def _set(keys, value):
+    return lambda description, sections: set_path(keys, value)(description)
+
+
+def _section(index, data):
+    def mutate(description, sections):
+        sections[index] = data(sections[index]) if callable(data) else data
+    return mutate
+
+
+def _correction(description, sections, index, values):
+    """Replace the correction's gaps (``index`` -2) or values (-1) by ``values``, coded as the file declares."""
+    from apmgsrn.io import codec
+
+    width = description["correction"]["gap_width" if index == -2 else "level_width"]
+    sections[index] = codec.compress(codec.to_bytes(np.array(values), width))
+
+
+PACKED_HOSTILE = {
+    # Size claims: refused from the description, before any section is decompressed or a module built.
+    "resolution 300^3": (_set(["field", "encoder", "resolution"], [300, 300, 300]), "inconsistent"),
+    "100,000 grids": (_set(["field", "encoder", "grids"], 100_000), "inconsistent"),
+    "a correction on every voxel, coded in 20 bytes": (_set(["correction", "count"], 336), "corrupt"),
+    "2^24 corrections in 18 bytes": (lambda d, s: (_set(["volume_shape"], [256, 256, 256])(d, s),
+                                                   _set(["correction", "count"], 1 << 24)(d, s)),
+                                     "more than its [0-9]+ stored bytes can hold"),
+    "more corrections than voxels": (_set(["correction", "count"], 10**12), "inconsistent"),
+    "volume of 2^72 voxels": (_set(["volume_shape"], [1 << 24, 1 << 24, 1 << 24]), "inconsistent"),
+    "a group of zero": (_set(["tensors", 0, 1], 0), "inconsistent"),
+    "predictor unknown": (_set(["tensors", 0, 2], "exec"), "inconsistent"),
+    "width 3": (_set(["tensors", 0, 3], 3), "inconsistent"),
+    "encoding pickle": (_set(["tensors", 1], ["pickle"]), "inconsistent"),
+    "a tensor fewer": (lambda d, s: d["tensors"].pop(), "inconsistent"),
+    "correction keys": (_set(["correction", "exec"], 1), "inconsistent"),
+    "correction bound negative": (_set(["correction", "max_error"], -1.0), "inconsistent"),
+    "report nested": (_set(["packing", "psnr"], {"a": 1}), "inconsistent"),
+    # Sections that lie about what they hold.
+    "grid section corrupt": (_section(0, lambda b: b[:4] + bytes(len(b) - 4)), "corrupt"),
+    "grid section truncated": (_section(0, lambda b: b[: len(b) // 2]), "corrupt|inconsistent"),
+    "steps NaN": (_section(0, lambda b: b"\xff\x7f" + b[2:]), "not positive and finite"),
+    "correction index outside": (lambda d, s: _correction(d, s, -2, [0, 10, 250, 255]), "outside the volume"),
+    "correction indices repeat": (lambda d, s: _correction(d, s, -2, [0, 0, 2, 2]), "strictly increasing"),
+    "correction value zero": (lambda d, s: _correction(d, s, -1, [2, 0, 2, 2]), "zero value"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(PACKED_HOSTILE))
+def test_hostile_packed_files_are_one_line_errors(good_packed_parts, tmp_path, case, capsys):
+    description, sections = json.loads(json.dumps(good_packed_parts[0])), list(good_packed_parts[1])
+    mutate, message = PACKED_HOSTILE[case]
+    mutate(description, sections)
+    hostile = write_packed_parts(tmp_path / "h.apmgsrn", description, sections)
+    with pytest.raises(ApmgsrnError, match=message):
+        apmgsrn.load(hostile)
+    assert main(["info", str(hostile)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_packed_size_claims_are_refused_before_a_module_is_built(good_packed_parts, tmp_path, monkeypatch):
+    description, sections = json.loads(json.dumps(good_packed_parts[0])), list(good_packed_parts[1])
+    description["field"]["encoder"]["resolution"] = [300, 300, 300]
+    hostile = write_packed_parts(tmp_path / "h.apmgsrn", description, sections)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a module was built from a file that should have been refused first")
+    monkeypatch.setattr(field_module.NeuralField, "__init__", refuse)
+    with pytest.raises(ApmgsrnError, match="inconsistent"):
+        apmgsrn.load(hostile)
+
+
+def test_packed_section_lists_that_disagree_with_the_payload_are_refused(good_packed_parts, tmp_path):
+    description, sections = good_packed_parts
+    true_sizes = [len(codec_text(description))] + [len(s) for s in sections]
+    for sizes in ([*true_sizes[:-1], true_sizes[-1] + 1], true_sizes[:-1], [-1, *true_sizes[1:]],
+                  ["1", *true_sizes[1:]], []):
+        hostile = write_packed_parts(tmp_path / "h.apmgsrn", description, sections, sizes=sizes)
+        with pytest.raises(ApmgsrnError, match="not an apmgsrn model file|inconsistent"):
+            apmgsrn.load(hostile)
+
+
+def codec_text(description: dict) -> bytes:
+    from apmgsrn.io import codec
+
+    return codec.compress(json.dumps(description).encode(), "text")
+
+
+def test_a_packed_description_that_inflates_past_its_limit_is_refused(good_packed_parts, tmp_path):
+    description, sections = good_packed_parts
+    # A JSON object padded to 4 MiB of spaces: a few KB compressed, refused at 1 MiB.
+    bomb = json.dumps(description).encode() + b" " * (4 << 20)
+    hostile = write_packed_parts(tmp_path / "h.apmgsrn", bomb, sections)
+    assert hostile.stat().st_size < 64 << 10
+    with pytest.raises(ApmgsrnError, match="longer than"):
+        apmgsrn.load(hostile)
 
 
 HOSTILE_SOURCES = {

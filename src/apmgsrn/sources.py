@@ -224,6 +224,9 @@ def _load_model(path: Path, name: str, device: torch.device, step: int | None = 
         text = f"{description.model} model{grids}"
         kind, brick_boxes = "model", None
     text += f", volume {shape[2]}x{shape[1]}x{shape[0]}"
+    if description.packing is not None:
+        bound = description.packing.max_error
+        text += ", packed" + (f", |error| <= {bound:.4g} at every voxel" if bound is not None else "")
     return RenderSource(name, kind, field, description.value_range, shape, device, text, grid_boxes, brick_boxes)
 
 

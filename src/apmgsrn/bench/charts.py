@@ -10,7 +10,8 @@ from apmgsrn.bench.results import MODEL_TITLES, SIZE_ORDER, CompressRow, Quality
 from apmgsrn.choices import MODEL_KINDS
 
 # One colour per method, the same in every chart.
-COLOURS = {"apmgsrn": "#d62728", "fvsrn": "#1f77b4", "ngp": "#2ca02c", "sz3": "#9467bd", "zfp": "#ff7f0e"}
+COLOURS = {"apmgsrn": "#d62728", "fvsrn": "#1f77b4", "ngp": "#2ca02c", "sz3": "#9467bd", "zfp": "#ff7f0e",
+           "apmgsrn packed": "#8c564b", "apmgsrn packed bounded": "#e377c2"}
 MARKERS = {"small": "o", "medium": "s", "large": "D"}
 
 

@@ -238,6 +238,8 @@ def measure_model(
     if train_seconds is None:
         train_seconds = float(description.training.get("seconds", math.nan))
     method = description.model
+    if description.packing is not None:  # its own line in tables and charts
+        method += " packed" + (" bounded" if description.packing.max_error is not None else "")
     query(field, points[:4096].to(device))  # warm-up: allocator, kernels, thread pool
     _synchronize(device)
     start = time.perf_counter()

@@ -49,10 +49,15 @@ def run(args: argparse.Namespace) -> int:
     model_bytes = model.description.file_bytes
     compression = compression_figures(math.prod(volume.shape), str(volume.dtype), volume.dtype.itemsize, model_bytes)
     figures = {**result.to_dict(), "model_bytes": model_bytes, **compression}
+    packing = model.description.packing
+    bound = packing.max_error if packing is not None else None
+    if bound is not None:  # the promise is checked here, on every voxel of the volume given
+        figures.update(max_error=bound, bound_holds=result.max_abs_error <= bound,
+                       corrected_voxels=packing.corrected_voxels, correction_bytes=packing.correction_bytes)
     if args.json:
         finite = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in figures.items()}
         print(json.dumps(finite))
-        return 0
+        return 0 if figures.get("bound_holds", True) else 1
     print(f"PSNR              {result.psnr:.2f} dB")
     share = percent_of_range(result.max_abs_error, result.data_min, result.data_max)
     print(f"max abs error     {result.max_abs_error:.6g} ({share})")
@@ -62,4 +67,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"data size         {format_bytes(volume.stored_bytes)} as stored ({volume.dtype}), "
           f"{format_bytes(compression['float32_bytes'])} as float32")
     print(f"compression ratio {compression_text(compression)}")
+    if bound is not None:
+        verdict = "holds at every voxel" if figures["bound_holds"] else "VIOLATED (is this the volume it was packed on?)"
+        print(f"error bound       {bound:.6g}: {verdict}; {packing.corrected_voxels:,} voxels corrected, "
+              f"{packing.correction_bytes:,} bytes of the file ({100 * packing.correction_bytes / model_bytes:.1f} %)")
+        return 0 if figures["bound_holds"] else 1
     return 0

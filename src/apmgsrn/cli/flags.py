@@ -57,6 +57,12 @@ FLAGS = {
     "residual": "--residual",
     "storage": "--storage",
     "steps_per_iteration": "--steps-per-iteration",
+    # packing
+    "bits": "--bits",
+    "psnr_loss": "--psnr-loss",
+    "target_bytes": "--size",
+    "max_error": "--max-error",
+    "qat_iterations": "--qat-iterations",
     # bricks
     "bricks": "--bricks",
     "ghost_cells": "--ghost-cells",

@@ -81,6 +81,8 @@ def describe_field(field, description) -> dict:
         "source": description.source.to_dict(),
         **_compression(description),
     }
+    if description.packing is not None:
+        info["packing"] = describe_packing(description.packing)
     training = dict(description.training)
     history = training.pop("history", None)
     if history and history.get("reconstruction"):
@@ -99,6 +101,37 @@ def describe_field(field, description) -> dict:
             for box in boxes
         ]
     return info
+
+
+def describe_packing(packing) -> dict:
+    """A packed file's parts (bytes, bits per value), what packing measured and its error bound, JSON-able."""
+    return {
+        "parts": [{**dataclasses.asdict(part), "bits_per_value": part.bits_per_value} for part in packing.parts],
+        "container_bytes": packing.container_bytes,
+        "float32_parameter_bytes": packing.float32_bytes,
+        "max_error": packing.max_error,
+        "corrected_voxels": packing.corrected_voxels,
+        "correction_bytes": packing.correction_bytes,
+        "report": packing.report,
+    }
+
+
+def packing_lines(packing: dict) -> list[str]:
+    """``info``'s lines about a packed file."""
+    report = packing["report"]
+    lines = [f"packing         {report.get('mode')}: PSNR {report.get('psnr', float('nan')):.2f} dB packed, "
+             f"{report.get('float32_psnr', float('nan')):.2f} dB float32 (cost {report.get('psnr_cost', float('nan')):.3f}"
+             f" dB, measured when packed), fine-tune {report.get('qat_iterations') or 0} iterations"]
+    if packing["max_error"] is not None:
+        lines.append(f"error bound     |model - data| <= {packing['max_error']:.6g} at every voxel: "
+                     f"{packing['corrected_voxels']:,} voxels corrected, {packing['correction_bytes']:,} bytes")
+    lines.append(f"  {'part':<24}  {'encoding':<9}  {'values':>9}  {'bytes':>9}  {'bits/value':>10}  {'max bits':>8}")
+    for part in packing["parts"]:
+        per_value = f"{part['bits_per_value']:.2f}" if part["bits_per_value"] is not None else "-"
+        lines.append(f"  {part['name']:<24}  {part['encoding']:<9}  {part['values']:>9,}  {part['bytes']:>9,}  "
+                     f"{per_value:>10}  {part['bits'] if part['bits'] is not None else '-':>8}")
+    lines.append(f"  {'container framing':<24}  {'':<9}  {'':>9}  {packing['container_bytes']:>9,}")
+    return lines
 
 
 def _compression(description) -> dict:
@@ -139,11 +172,15 @@ def run(args: argparse.Namespace) -> int:
     print(f"value range     [{info['value_range'][0]:.6g}, {info['value_range'][1]:.6g}], transform {info['transform']['kind']}")
     _print_source_metadata(model.description)
     print(f"compression     {compression_text(info)}")
+    if "packing" in info:
+        print("\n".join(packing_lines(info["packing"])))
     if t:
+        psnr = f", PSNR {t['psnr']:.2f} dB" if isinstance(t.get("psnr"), (int, float)) else ""
         print(f"training        {t.get('iterations')} iterations x {t.get('batch_size')} points, "
-              f"{t.get('seconds')} s on {t.get('device')}, PSNR {t.get('psnr', float('nan')):.2f} dB")
-        print(f"final losses    reconstruction {info.get('final_reconstruction_loss', float('nan')):.3e}, "
-              f"density {t.get('final_density_loss')}")
+              f"{t.get('seconds')} s on {t.get('device')}{psnr}")
+        if "final_reconstruction_loss" in info:  # a packed file keeps no loss history
+            print(f"final losses    reconstruction {info['final_reconstruction_loss']:.3e}, "
+                  f"density {t.get('final_density_loss')}")
         print(f"grids frozen at iteration {t.get('frozen_at')}")
     levels = info.get("levels")
     if levels:

@@ -18,6 +18,7 @@ from apmgsrn.cli.common import (
     percent_of_range,
 )
 from apmgsrn.cli.fit_options import add_fit_arguments, build_configs
+from apmgsrn.cli.pack import add_pack_arguments, pack_config, pack_model, packing_lines, packing_requested
 from apmgsrn.cli.paths import CommandPaths, Output
 from apmgsrn.cli.train_bricks import add_brick_arguments, run_bricks
 
@@ -45,6 +46,8 @@ def register(subparsers) -> None:
                         help="value transform before fitting")
     parser.add_argument("--log-offset", type=float, default=0.0, help="offset added before --transform log10")
     add_fit_arguments(parser)
+    add_pack_arguments(parser, "packing (any of these packs the model at the end of training; --out is then "
+                               "the packed file)")
     add_brick_arguments(parser)
     add_series_arguments(parser)
     add_device_argument(parser)
@@ -76,6 +79,10 @@ def run(args: argparse.Namespace) -> int:
         return run_series_train(args, series, *build_configs(args, resolve_device(args.device), steps=len(series)))
     args.data = single_input(args)
     if args.bricks:
+        if packing_requested(args):
+            from apmgsrn.errors import ApmgsrnError
+
+            raise ApmgsrnError("packing options (--bits, --max-error, ...) apply to single models, not --bricks")
         return run_bricks(args)
     from apmgsrn.training.fit import fit_volume
     from apmgsrn.training.trainer import TrainingInterrupted
@@ -83,6 +90,14 @@ def run(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     field_config, train_config = build_configs(args, device)
     volume = open_data(args, args.data)
+    packing = pack_config(args, volume.stored_bytes) if packing_requested(args) else None  # checked before training
+    if packing is not None and packing.target_bytes is not None and args.resolution is None:
+        from apmgsrn.training.packing import config_for_bytes
+
+        field_config = config_for_bytes(field_config, packing.target_bytes)  # a model that packs to the target
+        if not args.json:
+            print(f"model size  grids of {field_config.encoder.resolution[0]}^3 chosen to pack into "
+                  f"{packing.target_bytes:,} bytes (--resolution to choose yourself)")
     out = Path(args.out)
     try:
         result = fit_volume(
@@ -94,11 +109,19 @@ def run(args: argparse.Namespace) -> int:
         return 130
     voxels = math.prod(volume.shape)
     compression = compression_figures(voxels, str(volume.dtype), volume.dtype.itemsize, result.model_bytes)
+    packed = None
+    if packing is not None:
+        training = {"iterations": result.iterations, "batch_size": train_config.batch_size,
+                    "seconds": round(result.seconds, 3), "frozen_at": result.frozen_at,
+                    "stopped_early": result.stopped_early, "device": str(device)}
+        packed = pack_model(result.field, volume, packing, training, device, out,
+                            log=(lambda line: None) if args.json else print)
+        compression = compression_figures(voxels, str(volume.dtype), volume.dtype.itemsize, packed.file_bytes)
     summary = {
         "model": str(out),
         "psnr": result.psnr,
         "max_abs_error": result.max_abs_error,
-        "model_bytes": result.model_bytes,
+        "model_bytes": packed.file_bytes if packed else result.model_bytes,
         "parameters": result.field.parameter_count(),
         **compression,
         "seconds": result.seconds,
@@ -106,10 +129,13 @@ def run(args: argparse.Namespace) -> int:
         "ms_per_iteration": 1000 * result.seconds / max(result.iterations, 1),
         "grids_frozen_at": result.frozen_at,
     }
+    if packed is not None:
+        summary.update(float32_model_bytes=result.model_bytes, packing=packed.report)
     if args.json:
         print(json.dumps(summary))
     else:
-        print(f"model       {out} ({format_bytes(result.model_bytes)}, {summary['parameters']:,} parameters)")
+        print(f"model       {out} ({format_bytes(summary['model_bytes'])}{', packed' if packed else ''}, "
+              f"{summary['parameters']:,} parameters)")
         print(f"data        {volume.describe()} ({format_bytes(volume.stored_bytes)} as stored)")
         evaluation = result.evaluation
         print(f"PSNR        {evaluation.psnr:.2f} dB over all {voxels:,} voxels; "
@@ -121,4 +147,6 @@ def run(args: argparse.Namespace) -> int:
         else:
             print(f"training    {result.iterations} iterations in {result.seconds:.1f} s "
                   f"({summary['ms_per_iteration']:.1f} ms/iteration), grids frozen at {result.frozen_at}")
+        if packed is not None:
+            print("\n".join(packing_lines(packed.report, packed.file_bytes, compression)))
     return 0

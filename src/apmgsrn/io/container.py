@@ -28,6 +28,10 @@ FORMAT = "apmgsrn"
 #: Version 1: the first format. Files of every version up to this one load.
 FORMAT_VERSION = 1
 MAX_HEADER_BYTES = 64 * 1024 * 1024
+#: Kinds of single-file models: a float32 field (:mod:`apmgsrn.io.field_file`) and a packed one
+#: (:mod:`apmgsrn.io.packed`). A model of either kind may replace a model file of the other.
+FIELD_KIND, PACKED_KIND = "field", "packed-field"
+MODEL_FILE_KINDS = (FIELD_KIND, PACKED_KIND)
 #: Element sizes of the dtypes a model file may hold.
 DTYPE_BYTES = {"F64": 8, "F32": 4, "F16": 2, "BF16": 2, "I64": 8, "I32": 4, "I16": 2, "I8": 1, "U8": 1, "BOOL": 1}
 
@@ -158,9 +162,9 @@ def load_tensors(path: str | os.PathLike) -> dict[str, torch.Tensor]:
 def check_replaceable(path: str | os.PathLike, kind: str, what: str = "model file") -> None:
     """Refuse to write a file of ``kind`` where anything but an older file of the same kind lies.
 
-    A model replaces an older model (atomically, once the new one is complete) and a training checkpoint an
-    older checkpoint; a volume, an image, a file of another kind or one this version cannot read is never
-    overwritten by one.
+    A model replaces an older model of any single-file kind (:data:`MODEL_FILE_KINDS`; atomically, once the
+    new one is complete) and a training checkpoint an older checkpoint; a volume, an image, a file of another
+    kind or one this version cannot read is never overwritten by one.
 
     Raises:
         ApmgsrnError: ``path`` exists and is not a readable apmgsrn file of ``kind``.
@@ -168,8 +172,9 @@ def check_replaceable(path: str | os.PathLike, kind: str, what: str = "model fil
     path = Path(path)
     if not path.exists() or path.is_dir():
         return  # nothing to lose; a folder is refused by the writer
+    replaceable = MODEL_FILE_KINDS if kind in MODEL_FILE_KINDS else (kind,)
     try:
-        same_kind = read_header(path).kind == kind
+        same_kind = read_header(path).kind in replaceable
     except ApmgsrnError:
         same_kind = False
     if not same_kind:
@@ -177,6 +182,18 @@ def check_replaceable(path: str | os.PathLike, kind: str, what: str = "model fil
             f"{path}: exists and is not an apmgsrn {what}; it is never overwritten by one: delete it yourself "
             "or pass another out=", arguments=("out",),
         )
+
+
+def file_bytes(tensors: dict[str, torch.Tensor], kind: str, description: dict) -> bytes:
+    """The bytes of a container file holding ``tensors`` and a JSON ``description`` (nothing written)."""
+    tensors = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
+    metadata = {
+        "format": FORMAT,
+        "format_version": str(FORMAT_VERSION),
+        "kind": kind,
+        "description": json.dumps(description, allow_nan=True),
+    }
+    return save_safetensors_bytes(tensors, metadata=metadata)
 
 
 def save_tensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], kind: str, description: dict,
@@ -190,14 +207,15 @@ def save_tensors(path: str | os.PathLike, tensors: dict[str, torch.Tensor], kind
     Returns:
         The file's size in bytes.
     """
+    return write_file_bytes(path, file_bytes(tensors, kind, description), kind, what)
+
+
+def write_file_bytes(path: str | os.PathLike, data: bytes, kind: str, what: str = "model file") -> int:
+    """Write a container file's bytes (from :func:`file_bytes`) atomically, after :func:`check_replaceable`.
+
+    Returns:
+        The file's size in bytes.
+    """
     check_replaceable(path, kind, what)
-    tensors = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
-    metadata = {
-        "format": FORMAT,
-        "format_version": str(FORMAT_VERSION),
-        "kind": kind,
-        "description": json.dumps(description, allow_nan=True),
-    }
-    data = save_safetensors_bytes(tensors, metadata=metadata)
     atomic_write(path, lambda temp: Path(temp).write_bytes(data), what)
     return len(data)

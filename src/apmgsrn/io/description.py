@@ -263,6 +263,57 @@ class SeriesLayout:
 
 
 @dataclass(frozen=True)
+class PackedPart:
+    """One stored part of a packed model file and what it costs.
+
+    Attributes:
+        name: ``description``, a parameter's name, ``correction indices`` or ``correction values``.
+        encoding: ``json``, ``quantized``, ``float32`` or ``voxels``.
+        values: numbers it holds (0 for the description).
+        bytes: compressed bytes in the file.
+        bits: largest bit width of its integers before entropy coding (quantized parts), else None.
+    """
+
+    name: str
+    encoding: str
+    values: int
+    bytes: int
+    bits: int | None = None
+
+    @property
+    def bits_per_value(self) -> float | None:
+        """Stored bits per value after entropy coding (None for the description)."""
+        return 8 * self.bytes / self.values if self.values else None
+
+
+@dataclass(frozen=True)
+class PackingSummary:
+    """What a packed model file holds beside the network's config, and what packing cost.
+
+    Attributes:
+        parts: every stored part, in file order.
+        container_bytes: the safetensors framing around them.
+        float32_bytes: the same parameters as float32 (4 bytes each).
+        report: figures measured when the file was packed (``float32_psnr``, ``psnr``, ``psnr_cost``,
+            ``max_abs_error``, ``mode``, ``qat_iterations``, ...): numbers, strings or None.
+        max_error: the error bound promised at every voxel (data units), or None without one.
+        corrected_voxels: voxels that carry a correction.
+    """
+
+    parts: tuple[PackedPart, ...]
+    container_bytes: int
+    float32_bytes: int
+    report: dict
+    max_error: float | None = None
+    corrected_voxels: int = 0
+
+    @property
+    def correction_bytes(self) -> int:
+        """Bytes the error bound costs (its correction parts)."""
+        return sum(part.bytes for part in self.parts if part.encoding == "voxels")
+
+
+@dataclass(frozen=True)
 class ModelDescription:
     """Everything a model file says about the model it holds.
 
@@ -280,6 +331,7 @@ class ModelDescription:
         format_version: the file's format version.
         bricks: the brick grid of a brick model, else None.
         series: the time axis of a time-series model (kind ``series``), else None.
+        packing: what a packed model file stores and what packing cost, else None.
     """
 
     kind: str
@@ -294,6 +346,7 @@ class ModelDescription:
     format_version: int
     bricks: BrickLayout | None = None
     series: SeriesLayout | None = None
+    packing: PackingSummary | None = None
 
     @property
     def model(self) -> str:

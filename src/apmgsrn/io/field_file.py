@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.io.container import Header, load_tensors, read_header, save_tensors
+from apmgsrn.io.container import FIELD_KIND, Header, load_tensors, read_header, save_tensors
 from apmgsrn.io.description import (
     DescriptionError,
     ModelDescription,
@@ -35,7 +35,6 @@ from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.models.value_transform import TRANSFORMS, ValueTransform
 
-FIELD_KIND = "field"
 #: Largest volume a model may describe, per axis (larger shapes are refused as corrupt).
 MAX_VOLUME_AXIS = 1 << 24
 
@@ -69,8 +68,8 @@ def save_field(path: str | os.PathLike, field: NeuralField, source: SourceInfo, 
 
 
 def field_description(field, source: SourceInfo, training: dict) -> dict:
-    """The description entries every field file has (a series file adds its own): the field's config, value
-    scaling and transform, volume shape, source and training summary."""
+    """The description entries every field file has (a series file and a packed file extend it): the field's
+    config, value scaling and transform, volume shape, source and training summary."""
     return {
         "field": field.config.to_dict(),
         "fit_min": field.fit_min,

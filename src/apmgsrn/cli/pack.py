@@ -1,0 +1,158 @@
+"""``apmgsrn pack``: a trained model into a small packed file, optionally with an error bound; and the packing
+options ``train`` shares (training then packs its model at the end)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+from apmgsrn.cli.common import (
+    add_data_arguments,
+    add_device_argument,
+    compression_figures,
+    compression_text,
+    format_bytes,
+    open_data,
+)
+from apmgsrn.cli.paths import CommandPaths, Output
+from apmgsrn.errors import ApmgsrnError
+
+#: The packing options (dest names); ``train`` packs when any of them is given.
+PACK_OPTIONS = ("bits", "psnr_loss", "size", "ratio", "max_error", "qat_iterations")
+
+
+def add_pack_arguments(parser: argparse.ArgumentParser, title: str = "packing") -> None:
+    """``--bits``, ``--psnr-loss``, ``--size``, ``--ratio``, ``--max-error``, ``--qat-iterations``."""
+    group = parser.add_argument_group(title, "quantise and entropy-code the model (docs/packing.md); "
+                                             "the PSNR cost is measured on the data and stored in the file")
+    group.add_argument("--bits", type=int, metavar="B",
+                       help="bit width of every stored feature and weight (2..16; 32 keeps float32, coded "
+                            "losslessly, e.g. for --max-error alone)")
+    group.add_argument("--psnr-loss", type=float, metavar="DB",
+                       help="largest PSNR cost allowed: each tensor's steps follow its effect on the output "
+                            "(the default, at 0.1 dB, when no other packing option sets the size)")
+    group.add_argument("--size", type=int, metavar="BYTES", help="pack to at most this many bytes")
+    group.add_argument("--ratio", type=float, metavar="R",
+                       help="pack to at most the data's stored bytes / R (e.g. 1000 for 1000:1)")
+    group.add_argument("--max-error", type=float, metavar="E",
+                       help="guarantee |model - data| <= E (data units) at every voxel with a stored sparse "
+                            "correction; eval verifies it")
+    group.add_argument("--qat-iterations", type=int, metavar="N",
+                       help="quantisation-aware fine-tune iterations before coding (default 0)")
+
+
+def packing_requested(args: argparse.Namespace) -> bool:
+    """Whether any packing option was given."""
+    return any(getattr(args, name, None) is not None for name in PACK_OPTIONS)
+
+
+def pack_config(args: argparse.Namespace, stored_bytes: int):
+    """The :class:`~apmgsrn.training.packing.PackConfig` of the command line.
+
+    Args:
+        args: parsed options.
+        stored_bytes: the data's bytes as stored (``--ratio`` divides them).
+
+    Raises:
+        ApmgsrnError: options that contradict each other or are out of range (named as options).
+    """
+    from apmgsrn.training.packing import PackConfig
+
+    if args.size is not None and args.ratio is not None:
+        raise ApmgsrnError("--size and --ratio both set the file size: give one of them")
+    target = args.size
+    if args.ratio is not None:
+        if not (math.isfinite(args.ratio) and args.ratio > 0):
+            raise ApmgsrnError(f"--ratio {args.ratio}: must be a positive number such as 1000")
+        target = max(int(stored_bytes / args.ratio), 1)
+    options = {"bits": args.bits, "target_bytes": target, "max_error": args.max_error,
+               "qat_iterations": args.qat_iterations or 0}
+    if args.psnr_loss is not None:
+        options["psnr_loss"] = args.psnr_loss
+    return PackConfig(**options)
+
+
+def pack_model(field, volume, config, training: dict, device, out: Path, log=print):
+    """Pack ``field`` against ``volume`` and write it to ``out`` (replacing an older model file of either kind).
+
+    Returns:
+        The :class:`~apmgsrn.training.packing.PackResult`.
+    """
+    from apmgsrn.io import SourceInfo
+    from apmgsrn.training.packing import fitted_values, pack_field, write_packed
+
+    truth = volume.to_numpy()
+    values = fitted_values(field, truth, device) if config.qat_iterations else None
+    result = pack_field(field.to(device), truth, config, SourceInfo.of_volume(volume), training, values=values,
+                        log=log)
+    write_packed(out, result)
+    return result
+
+
+def packing_lines(report: dict, file_bytes: int, compression: dict) -> list[str]:
+    """What ``pack`` and ``train`` print about a packed file."""
+    lines = [
+        f"packed      {format_bytes(file_bytes)} ({file_bytes:,} bytes; float32 parameters "
+        f"{format_bytes(report['float32_parameter_bytes'])}), {compression_text(compression)}",
+        f"PSNR        {report['psnr']:.2f} dB packed, {report['float32_psnr']:.2f} dB float32 "
+        f"(cost {report['psnr_cost']:.3f} dB); max abs error {report['max_abs_error']:.4g}",
+    ]
+    if report.get("corrected_voxels") is not None:
+        lines.append(f"error bound {report['max_error']:.6g}: max abs error {report['bounded_max_abs_error']:.6g} "
+                     f"over every voxel ({report['corrected_voxels']:,} voxels corrected), "
+                     f"PSNR {report['bounded_psnr']:.2f} dB")
+    return lines
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "pack",
+        help="pack a model into a small file (quantised, entropy-coded, optional error bound)",
+        description="Quantise and entropy-code a trained model against the volume it was trained on; the file "
+                    "loads like any model. The volume measures the PSNR cost (stored in the file) and makes "
+                    "the correction of --max-error.",
+    )
+    parser.add_argument("model", help="trained model file (float32 or packed)")
+    parser.add_argument("data", help="the volume the model was trained on")
+    parser.add_argument("--out", required=True,
+                        help="packed model file to write (an existing apmgsrn model there is replaced atomically)")
+    add_data_arguments(parser)
+    add_pack_arguments(parser)
+    add_device_argument(parser)
+    parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    parser.set_defaults(func=run, paths=paths)
+
+
+def paths(args: argparse.Namespace) -> CommandPaths:
+    return CommandPaths(reads=[args.model, args.data], writes=[Output(args.out, "--out", "packed model", model=True)])
+
+
+def run(args: argparse.Namespace) -> int:
+    import apmgsrn
+    from apmgsrn.device import resolve_device
+    from apmgsrn.inference.evaluate import check_volume_shape
+
+    device = resolve_device(args.device)
+    model = apmgsrn.load(args.model, device=device)
+    if model.description.kind == "bricks":
+        raise ApmgsrnError(f"{args.model}: is a brick model; pack a single model file")
+    volume = open_data(args, args.data)
+    check_volume_shape(volume.shape, model.description.volume_shape, str(args.data))
+    config = pack_config(args, volume.stored_bytes)
+    field = model.field
+    if model.description.packing is not None and model.description.packing.max_error is not None:
+        raise ApmgsrnError(f"{args.model}: already carries an error bound; pack its float32 model instead")
+    out = Path(args.out)
+    result = pack_model(field, volume, config, model.description.training, device, out,
+                        log=(lambda line: None) if args.json else print)
+    compression = compression_figures(math.prod(volume.shape), str(volume.dtype), volume.dtype.itemsize,
+                                      result.file_bytes)
+    if args.json:
+        print(json.dumps({"model": str(out), "file_bytes": result.file_bytes, **result.report, **compression}))
+        return 0
+    print(f"model       {out}")
+    for line in packing_lines(result.report, result.file_bytes, compression):
+        print(line)
+    return 0
