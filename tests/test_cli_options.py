@@ -88,7 +88,8 @@ def test_choice_lists_are_the_librarys():
         "--density-normalization": choices.DENSITY_NORMALIZATIONS,
         "--decoder-precision": choices.DECODER_PRECISIONS, "--preset-units": choices.PRESET_UNITS,
         "--compressors": choices.COMPRESSORS, "--region-units": choices.REGION_UNITS,
-        "--format": choices.EXPORT_FORMATS,
+        "--format": choices.EXPORT_FORMATS, "--coefficients": choices.SERIES_COEFFICIENTS,
+        "--storage": choices.SERIES_STORAGE,
         "--vtk-coordinates": ("index", "normalized"),  # the grids command's own: no library list behind it
     }
     seen = set()
@@ -122,6 +123,7 @@ LIBRARY_ONLY = {
     "betas", "density_window", "density_tolerance", "density_power", "final_lr_fraction", "history_every",
     "stop_after_lr_cuts", "samples_per_cell", "table_size", "points", "qat_lr", "sensitivity_points",
     "measure_voxels",
+    "steps", "mixing",  # a series' step count comes from its data; weight lattices are a library option
 }
 CHECKS = {"check_int", "check_optional_int", "check_number", "check_choice"}
 

@@ -21,6 +21,7 @@ import torch
 from torch import nn
 
 import apmgsrn.decomposition.brick_model  # noqa: F401 - registers the brick-model loader
+import apmgsrn.decomposition.series_bricks  # noqa: F401 - registers the time-series brick-model loader
 from apmgsrn.data import ArrayVolume, Volume, open_volume
 from apmgsrn.data.grid import AxisCoordinates, Region, VolumeMetadata, plain_attributes
 from apmgsrn.device import resolve_device
@@ -29,10 +30,12 @@ from apmgsrn.export import export_onnx
 from apmgsrn.inference.decode import decode_array, decode_volume
 from apmgsrn.inference.query import query
 from apmgsrn.inference.slabs import QUERY_BATCH
-from apmgsrn.io import ModelDescription, SourceInfo, open_model, save_field
+from apmgsrn.io import ModelDescription, SourceInfo, open_model, save_field, save_series
 from apmgsrn.io.container import check_replaceable
 from apmgsrn.io.decode_plan import DecodePlan, plan_decode
+from apmgsrn.io.description import check_time
 from apmgsrn.io.field_file import FIELD_KIND
+from apmgsrn.io.series_file import SERIES_KIND
 from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
 from apmgsrn.render import Camera, RendererConfig, VolumeRenderer, extent_from_shape, make_transfer_function
 from apmgsrn.render.images import as_uint8
@@ -91,6 +94,19 @@ class Model(nn.Module):
         flat = torch.from_numpy(np.ascontiguousarray(array.reshape(-1, 3), dtype=np.float32))  # [N, 3]
         return query(self.field, flat, batch_size).numpy().reshape(array.shape[:-1])
 
+    def step_field(self, time: int | None = None) -> nn.Module:
+        """The network of one time step: a time-series model materialises that step's features once (as fast
+        to evaluate as a single-step model); any other model is its own field.
+
+        Args:
+            time: the time step (default: the first).
+
+        Raises:
+            ApmgsrnError: a time step the model lacks.
+        """
+        step = check_time(self.description, time)
+        return self.field if self.description.series is None else self.field.step_field(step)
+
     def plan_decode(self, shape: tuple[int, int, int] | None = None, region: Region | str | dict | None = None,
                     time: int | None = None, region_units: str = "index") -> DecodePlan:
         """What :meth:`decode` samples and writes (lattice, names, coordinates), without evaluating anything.
@@ -122,7 +138,7 @@ class Model(nn.Module):
             ApmgsrnError: a region outside the volume, a bad shape or time step.
         """
         plan = self.plan_decode(shape, region, time, region_units)
-        values = decode_array(self.field, plan.shape, batch_size=batch_size, box=plan.grid.box())  # [D, H, W]
+        values = decode_array(self.step_field(plan.time), plan.shape, batch_size=batch_size, box=plan.grid.box())  # [D, H, W]
         try:
             import xarray
         except ImportError:
@@ -148,7 +164,7 @@ class Model(nn.Module):
         options = plan.writer_options()
         if self.path is not None:
             options["attributes"] = {"source_model": self.path.name}
-        decode_volume(self.field, Path(out), plan.shape, batch_size=batch_size, progress=progress,
+        decode_volume(self.step_field(plan.time), Path(out), plan.shape, batch_size=batch_size, progress=progress,
                       box=plan.grid.box(), **options)
         return plan
 
@@ -159,12 +175,16 @@ class Model(nn.Module):
         Raises:
             ApmgsrnError: a brick model (a folder: copy it), or a file there that is not an apmgsrn model.
         """
-        if self.description.kind != FIELD_KIND:
+        if self.description.kind not in (FIELD_KIND, SERIES_KIND):
             raise ApmgsrnError(f"{path}: a {self.description.kind} model is a folder written by brick training; "
                                "copy the folder instead of saving it")
         path = Path(path)
-        check_replaceable(path, FIELD_KIND)
-        save_field(path, self.field, self.description.source, self.description.training)
+        check_replaceable(path, self.description.kind)
+        if self.description.kind == SERIES_KIND:
+            save_series(path, self.field, self.description.source, self.description.training,
+                        list(self.description.series.steps))
+        else:
+            save_field(path, self.field, self.description.source, self.description.training)
         return path
 
     def export_onnx(self, path: str | os.PathLike) -> Path:

@@ -45,12 +45,14 @@ class SourceOptions:
         max_volume_voxels: refuse a raw volume larger than this (it is held in memory); None: no limit.
         histogram_bins: bins of the value histogram (0: none).
         histogram_lattice: a model's histogram samples it on this many points per axis.
+        step: the step of a time-series model to show first (None: step 0).
     """
 
     volume: dict = field(default_factory=dict)
     max_volume_voxels: int | None = None
     histogram_bins: int = 0
     histogram_lattice: int = 40
+    step: int | None = None
 
 
 @dataclass(frozen=True)
@@ -69,6 +71,10 @@ class RenderSource:
         grid_boxes: ``[M, 8, 3]`` corners of the learned feature grids, field coordinates, or None.
         brick_boxes: ``[B, 8, 3]`` corners of the bricks' routing regions, or None.
         histogram: ``[bins]`` log(1 + count) over ``value_range``, the largest 1; empty unless asked for.
+        series: the :class:`~apmgsrn.models.series_field.SeriesField` of a time-series model, else None;
+            ``field`` is then its step ``step``, materialised (see :meth:`at_step`).
+        step: the step shown of a time-series model.
+        step_labels: the number of every step of a time-series model (empty otherwise).
     """
 
     name: str
@@ -81,6 +87,29 @@ class RenderSource:
     grid_boxes: torch.Tensor | None = None
     brick_boxes: torch.Tensor | None = None
     histogram: list[float] = field(default_factory=list)
+    series: torch.nn.Module | None = None
+    step: int = 0
+    step_labels: tuple[float, ...] = ()
+
+    @property
+    def steps(self) -> int:
+        """Time steps of a time-series model (1 for anything else)."""
+        return len(self.step_labels) if self.series is not None else 1
+
+    def at_step(self, step: int) -> RenderSource:
+        """This time-series model at another step: that step's features materialised once, so rendering it
+        costs what a single-step model costs. The value range stays the whole series' (colours compare).
+
+        Raises:
+            ApmgsrnError: not a time-series model, or ``step`` outside it.
+        """
+        if self.series is None:
+            raise ApmgsrnError(f"{self.name}: holds one volume; only time-series models have steps")
+        if not 0 <= int(step) < self.steps:
+            raise ApmgsrnError(f"{self.name}: step {step} is outside the series of {self.steps} steps (0..{self.steps - 1})")
+        step = int(step)
+        return replace(self, field=self.series.step_field(step), step=step,
+                       description=_step_text(self.description, step, self.step_labels))
 
     @property
     def extent(self) -> tuple[float, float, float]:
@@ -146,7 +175,7 @@ def open_source(
         raise ApmgsrnError(f"{path}: no such file; give a model file or a volume file")
     device = torch.device(device)
     if is_model_path(path):
-        source = _load_model(Path(path), name, device)
+        source = _load_model(Path(path), name, device, options.step)
     else:
         source = _open_volume(Path(path), name, device, options)
     if options.histogram_bins > 0:
@@ -154,11 +183,28 @@ def open_source(
     return source
 
 
-def _load_model(path: Path, name: str, device: torch.device) -> RenderSource:
-    """The one place a model file is opened for rendering: the network and its file's description."""
+def _load_model(path: Path, name: str, device: torch.device, step: int | None = None) -> RenderSource:
+    """The one place a model file is opened for rendering: the network and its file's description (a
+    time-series model at step ``step``, 0 by default)."""
     model = load(path, device=device)
     field, description = model.field, model.description
     shape = description.volume_shape
+    if description.series is not None:
+        labels = tuple(step.label for step in description.series.steps)
+        bricks = description.bricks
+        if bricks is None:
+            parts, grid_boxes, brick_boxes = f"{description.config.encoder.grids} feature grids", _grid_boxes_of(field), None
+        else:
+            counts = bricks.counts
+            parts, grid_boxes, brick_boxes = f"{counts[0]}x{counts[1]}x{counts[2]} bricks", None, routing_boxes(counts)
+        text = (f"time-series {description.model} {'brick ' if bricks else ''}model, {len(labels)} steps, {parts}, "
+                f"volume {shape[2]}x{shape[1]}x{shape[0]}")
+        source = RenderSource(name, "brick model" if bricks else "model", field, description.value_range, shape,
+                              device, text, grid_boxes, brick_boxes, series=field, step_labels=labels)
+        return source.at_step(step or 0)
+    if step is not None:
+        raise ApmgsrnError(f"{path}: holds one volume; time= picks a step of a time-series model only",
+                           arguments=("time",))
     if description.bricks is not None:
         counts = description.bricks.counts  # (I, J, K) along x, y, z
         per_brick = []
@@ -182,6 +228,12 @@ def _load_model(path: Path, name: str, device: torch.device) -> RenderSource:
         bound = description.packing.max_error
         text += ", packed" + (f", |error| <= {bound:.4g} at every voxel" if bound is not None else "")
     return RenderSource(name, kind, field, description.value_range, shape, device, text, grid_boxes, brick_boxes)
+
+
+def _step_text(description: str, step: int, labels: tuple[float, ...]) -> str:
+    """A time-series source's description with the step shown."""
+    base = description.split("; step ")[0]
+    return f"{base}; step {step} of {len(labels)} (number {labels[step]:g})"
 
 
 def _grid_boxes_of(field: torch.nn.Module) -> torch.Tensor | None:

@@ -102,3 +102,26 @@ def rate_distortion_chart(rows: list[CompressRow], path: Path, title: str = "") 
     axis.grid(alpha=0.3, which="both")
     axis.legend(fontsize=8)
     atomic_write(path, figure.savefig, "chart")
+
+
+def psnr_over_time_chart(labels: list[float], lines: dict[str, list[float]], path: Path, title: str = "") -> None:
+    """PSNR of every step of a time series, one line per method (e.g. one model per step against one model for
+    the whole series).
+
+    Args:
+        labels: the step numbers (x axis).
+        lines: method name -> PSNR of each step, dB.
+        path: PNG file to write.
+        title: the chart's title.
+    """
+    figure = _figure(6.4, 3.4)
+    axis = figure.subplots()
+    for (name, values), marker in zip(lines.items(), "os^Dv"):
+        axis.plot(labels, values, marker=marker, markersize=3.5, linewidth=1.2, label=name)
+    axis.set_xlabel("time step")
+    axis.set_ylabel("PSNR (dB)")
+    if title:
+        axis.set_title(title, fontsize=10)
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize=8)
+    atomic_write(path, figure.savefig, "chart")

@@ -11,20 +11,42 @@ def add_data_arguments(parser: argparse.ArgumentParser) -> None:
     """Options that say how to read a volume file."""
     group = parser.add_argument_group("input volume")
     group.add_argument("--variable", help="variable / dataset / array name (default: the only 3-D one)")
-    group.add_argument("--time", type=int, help="index along a leading time dimension")
+    group.add_argument("--time", type=time_option, metavar="K|all|A:B[:S]",
+                       help="index along a leading time dimension, or of a time-series model's steps; all or "
+                            "A:B[:S] (stop exclusive) for several steps")
     group.add_argument("--shape", help="X,Y,Z dimensions of a raw file (else parsed from NAME_XxYxZ_dtype.raw)")
     group.add_argument("--dtype", help="element type of a raw file (uint8, int16, float32, ...)")
     group.add_argument("--fill-nonfinite", type=float, metavar="VALUE",
                        help="replace NaN/Inf voxels by VALUE instead of refusing the volume")
 
 
-def volume_options(args: argparse.Namespace) -> dict:
-    """Keyword arguments of :func:`apmgsrn.data.open_volume` from the data options of ``args``."""
+def time_option(text: str):
+    """``--time``: an index, ``all`` or ``A:B[:S]`` (argparse type; a bad value is a usage error)."""
+    from apmgsrn.data.series import parse_time
+
+    from apmgsrn.cli.flags import cli_message
+
+    try:
+        return parse_time(text)
+    except ApmgsrnError as exc:
+        raise argparse.ArgumentTypeError(cli_message(exc)) from None
+
+
+def volume_options(args: argparse.Namespace, allow_series: bool = False) -> dict:
+    """Keyword arguments of :func:`apmgsrn.data.open_volume` (or, with ``allow_series``,
+    :func:`apmgsrn.data.series.open_series`) from the data options of ``args``.
+
+    Raises:
+        ApmgsrnError: ``--time all`` or ``A:B`` where one volume is read.
+    """
     from apmgsrn.data import parse_shape
 
+    time = getattr(args, "time", None)
+    if not allow_series and time is not None and not isinstance(time, int):
+        raise ApmgsrnError(f"--time {time} selects several steps, but this reads one volume; pass --time INDEX")
     return {
         "variable": getattr(args, "variable", None),
-        "time": getattr(args, "time", None),
+        "time": time,
         "shape": parse_shape(args.shape) if getattr(args, "shape", None) else None,
         "dtype": getattr(args, "dtype", None),
         "fill_nonfinite": getattr(args, "fill_nonfinite", None),

@@ -9,8 +9,9 @@ from pathlib import Path
 
 import apmgsrn
 from apmgsrn.choices import REGION_UNITS
-from apmgsrn.cli.common import add_device_argument, parse_triple
+from apmgsrn.cli.common import add_device_argument, parse_triple, time_option
 from apmgsrn.cli.paths import CommandPaths, Output
+from apmgsrn.errors import ApmgsrnError
 
 
 def register(subparsers) -> None:
@@ -32,7 +33,10 @@ def register(subparsers) -> None:
     parser.add_argument("--region-units", choices=REGION_UNITS, default="index",
                         help="index (default): --region in voxel indices; coordinates: a closed box in the "
                              "source's coordinates")
-    parser.add_argument("--time", type=int, help="time step to decode (default: the first)")
+    parser.add_argument("--time", type=time_option, metavar="K|all|A:B[:S]",
+                        help="time step to decode (default: the first; required for a time-series model); "
+                             "several steps of a time-series model go to one file with a time axis (.nc, .raw, "
+                             ".npy), or one file per step when --out holds {step}")
     parser.add_argument("--batch-size", type=int, default=2**18, help="points per forward pass")
     parser.add_argument("--dry-run", action="store_true",
                         help="write nothing: say what would be written (lattice, origin, spacing, variable)")
@@ -47,6 +51,7 @@ def paths(args: argparse.Namespace) -> CommandPaths:
 
 def run(args: argparse.Namespace) -> int:
     from apmgsrn.data.grid import Region
+    from apmgsrn.data.series import TimeSelection
     from apmgsrn.data.writers import check_axes_writable
     from apmgsrn.io.description import time_steps
 
@@ -56,12 +61,21 @@ def run(args: argparse.Namespace) -> int:
         x, y, z = parse_triple(args.shape, "--shape")
         shape = (z, y, x)
     region = Region.parse(args.region, args.region_units) if args.region else None
+    time = args.time
+    if model.description.series is not None:
+        from apmgsrn.cli.series import STEP_FIELD, model_step, run_series_decode
+
+        if isinstance(time, TimeSelection) or STEP_FIELD in str(args.out):
+            return run_series_decode(args, model, shape, region)
+        time = model_step(model, time)  # a series has no default step
+    elif isinstance(time, TimeSelection):
+        raise ApmgsrnError(f"--time {time} selects several steps, but {args.model} holds one volume; drop --time")
     out = Path(args.out)
     if args.dry_run:
-        plan = model.plan_decode(shape=shape, region=region, time=args.time)
+        plan = model.plan_decode(shape=shape, region=region, time=time)
         check_axes_writable(out, plan.axes)
     else:
-        plan = model.save_decoded(out, shape=shape, region=region, time=args.time, batch_size=args.batch_size,
+        plan = model.save_decoded(out, shape=shape, region=region, time=time, batch_size=args.batch_size,
                                   progress=not args.json)
     d, h, w = plan.shape
     report = {"out": str(out), "written": not args.dry_run, "shape_xyz": [w, h, d], "variable": plan.variable,

@@ -21,7 +21,9 @@ from apmgsrn.cli.common import (
 def register(subparsers) -> None:
     parser = subparsers.add_parser("eval", help="compare a model with a volume (PSNR, errors, size)")
     parser.add_argument("model", help="model file")
-    parser.add_argument("data", help="ground-truth volume")
+    parser.add_argument("data", nargs="+",
+                        help="ground-truth volume; for a time-series model its series (several files, a quoted glob, "
+                             "a .pvd, or one file with --time all)")
     add_data_arguments(parser)
     add_device_argument(parser)
     parser.add_argument("--batch-size", type=int, default=2**18, help="points per forward pass")
@@ -35,7 +37,13 @@ def run(args: argparse.Namespace) -> int:
 
     device = resolve_device(args.device)
     model = apmgsrn.load(args.model, device=device)
-    volume = open_data(args, args.data)
+    if model.description.series is not None:
+        from apmgsrn.cli.series import run_series_eval
+
+        return run_series_eval(args, model)
+    from apmgsrn.cli.series import single_input
+
+    volume = open_data(args, single_input(args))
     result = evaluate(model.field, volume, trained_shape=model.description.volume_shape, progress=True,
                       batch_size=args.batch_size)
     model_bytes = model.description.file_bytes

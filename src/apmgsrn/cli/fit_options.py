@@ -64,16 +64,23 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                                "unchanged, and the same options)")
 
 
-def build_configs(args: argparse.Namespace, device):
+def build_configs(args: argparse.Namespace, device, steps: int | None = None):
     """(FieldConfig, TrainConfig) from the command line, presets overridden by explicit flags.
+
+    Args:
+        args: the parsed command line.
+        device: the training device (sizes the default budget).
+        steps: the number of steps of a time series (None: one volume); sizes the default budget.
 
     Raises:
         ApmgsrnError: an option out of range (the configs refuse it), or an invalid model size.
     """
     from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
-    from apmgsrn.training.trainer import TrainConfig, default_budget
+    from apmgsrn.training.trainer import TrainConfig, default_budget, series_budget
 
     iterations, batch_size = default_budget(device)
+    if steps is not None:
+        iterations = series_budget(iterations, steps)
     overrides = {
         "grids": args.grids,
         "features": args.features,
@@ -102,6 +109,8 @@ def build_configs(args: argparse.Namespace, device):
             decoder_precision=args.decoder_precision,
             seed=args.seed,
             checkpoint_every=args.checkpoint_every,
+            **({"steps_per_iteration": args.steps_per_iteration}
+               if getattr(args, "steps_per_iteration", None) is not None else {}),
         )
     except ApmgsrnError:
         raise  # names the option already (translated by the command line)

@@ -51,6 +51,12 @@ FLAGS = {
     "seed": "--seed",
     "checkpoint_every": "--checkpoint-every",
     "device": "--device",
+    # time series
+    "basis": "--basis",
+    "coefficients": "--coefficients",
+    "residual": "--residual",
+    "storage": "--storage",
+    "steps_per_iteration": "--steps-per-iteration",
     # packing
     "bits": "--bits",
     "psnr_loss": "--psnr-loss",

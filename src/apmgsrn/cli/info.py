@@ -67,7 +67,7 @@ def describe_field(field, description) -> dict:
         field: the :class:`~apmgsrn.models.field.NeuralField`.
         description: its file's :class:`~apmgsrn.io.ModelDescription`.
     """
-    config = field.config
+    config = description.config  # the spatial network (of every step, for a time-series model)
     info = {
         "model": config.model,
         "encoder": {k: v for k, v in config.to_dict()["encoder"].items()},
@@ -135,21 +135,31 @@ def packing_lines(packing: dict) -> list[str]:
 
 
 def _compression(description) -> dict:
-    """Compression figures of the file against its training volume (stored dtype when the file records it)."""
-    return compression_figures(math.prod(description.volume_shape), description.source.dtype,
+    """Compression figures of the file against its training volume (every step of a series; stored dtype when
+    the file records it)."""
+    from apmgsrn.io.description import time_steps
+
+    return compression_figures(math.prod(description.volume_shape) * time_steps(description), description.source.dtype,
                                description.source.itemsize, description.file_bytes)
 
 
 def run(args: argparse.Namespace) -> int:
 
     model = apmgsrn.load(args.model)
-    if model.description.kind == "bricks":
+    if model.description.bricks is not None:
         return _run_bricks(args, model)
+    series = None
+    if model.description.series is not None:
+        from apmgsrn.cli.series import describe_series, print_series_info, strict_json
+
+        series = describe_series(model)
     info = describe_field(model.field, model.description)
+    if series is not None:
+        info["series"] = series
     if args.plot:
         plot_training_curves(model.description.training, args.plot)
     if args.json:
-        print(json.dumps(info))
+        print(json.dumps(info if series is None else strict_json(info)))
         return 0
     enc = info["encoder"]
     t = info["training"]
@@ -178,6 +188,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"hash levels     {len(levels)}: resolution {levels[0]['resolution']}..{levels[-1]['resolution']}, "
               f"table entries {min(v['table_entries'] for v in levels):,}..{max(v['table_entries'] for v in levels):,} "
               f"per level ({dense} stored densely)")
+    if series is not None:
+        print_series_info(series)
     for i, grid in enumerate(info.get("grids", [])):
         c, e = grid["center"], grid["extent"]
         print(f"  grid {i:2d}  center ({c[0]:+.3f}, {c[1]:+.3f}, {c[2]:+.3f})  extent ({e[0]:.3f}, {e[1]:.3f}, {e[2]:.3f})")
@@ -238,6 +250,11 @@ def describe_bricks(model) -> dict:
 
 def _run_bricks(args: argparse.Namespace, model) -> int:
     info = describe_bricks(model)
+    series = None
+    if model.description.series is not None:
+        from apmgsrn.cli.series import describe_series, print_series_info
+
+        series = info["series"] = describe_series(model)
     if args.json:
         # Strict JSON: an exact (constant) brick's infinite PSNR becomes null.
         for brick in info["per_brick"]:
@@ -273,4 +290,6 @@ def _run_bricks(args: argparse.Namespace, model) -> int:
         seconds = f"{brick['seconds']:.1f}" if isinstance(brick["seconds"], (int, float)) else "?"
         print(f"  {brick['name']:<17}  {f'{x0}:{x1}':>9}  {f'{y0}:{y1}':>9}  {f'{z0}:{z1}':>9}  {psnr_text:>8}  "
               f"{iterations:>10}  {seconds:>8}{early}")
+    if series is not None:
+        print_series_info(series)
     return 0

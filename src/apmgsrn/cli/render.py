@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from apmgsrn.choices import PRESET_UNITS
-from apmgsrn.cli.common import add_data_arguments, add_device_argument, volume_options
+from apmgsrn.cli.common import add_data_arguments, add_device_argument
 from apmgsrn.cli.paths import CommandPaths, Output
 from apmgsrn.errors import ApmgsrnError
 
@@ -103,17 +103,22 @@ def run(args: argparse.Namespace) -> int:
     from apmgsrn.device import resolve_device
     from apmgsrn.render import Camera, RendererConfig, image_psnr, image_ssim, make_transfer_function
     from apmgsrn.render.animation import render_frames, turntable_cameras, write_animation
-    from apmgsrn.render.images import error_image, save_image, side_by_side
+    from apmgsrn.render.images import as_uint8, error_image, save_image, side_by_side
     from apmgsrn.render.paraview import save_transfer_function
     from apmgsrn.render.raymarch import default_batch_size
     from apmgsrn.sources import SourceOptions, open_source
 
+    from apmgsrn.cli.series import render_steps
+
     out = Path(args.out)
-    animate = args.frames is not None
+    volume, first_step, time_steps = render_steps(args)
+    if time_steps and args.frames is not None:
+        raise ApmgsrnError("--time with several steps animates over time (one frame per step); drop --frames")
+    animate = args.frames is not None or bool(time_steps)
     if animate and args.compare:
         raise ApmgsrnError("--frames and --compare cannot be combined; run them separately")
     if animate and out.suffix.lower() not in (".gif", ".mp4"):
-        raise ApmgsrnError(f"{out}: with --frames the output must be a .gif or .mp4 file")
+        raise ApmgsrnError(f"{out}: an animation (--frames, or --time over several steps) must be a .gif or .mp4 file")
     if not animate and out.suffix.lower() != ".png":
         raise ApmgsrnError(f"{out}: the output image must be a .png file (or use --frames with .gif/.mp4)")
     if not (out.parent if str(out.parent) else Path(".")).is_dir():
@@ -133,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         background=parse_background(args.background),
     )
-    options = SourceOptions(volume=volume_options(args))
+    options = SourceOptions(volume=volume, step=first_step)
     source = open_source(args.input, device, options)
     value_range = parse_range(args.range) if args.range else source.value_range
     opacity = parse_opacity(args.opacity) if args.opacity else None
@@ -145,9 +150,21 @@ def run(args: argparse.Namespace) -> int:
     extent = (1.0, 1.0, 1.0) if args.no_aspect else source.extent
     renderer = source.renderer(transfer_function, config, extent)
     report: dict = {"input": args.input, "out": str(out), "device": str(device)}
+    if source.series is not None:
+        report["step"] = source.step
     if args.save_tf:
         save_transfer_function(transfer_function, args.save_tf)
         report["transfer_function"] = args.save_tf
+
+    if time_steps:
+        camera = Camera.orbit(args.azimuth, args.elevation, args.distance, args.fov, args.width, args.height, extent)
+        start = time.perf_counter()
+        frames = (as_uint8(source.at_step(k).renderer(transfer_function, config, extent).render(camera).image)
+                  for k in time_steps)
+        write_animation(frames, out, fps=args.fps)
+        report.update(frames=len(time_steps), steps=time_steps, seconds=round(time.perf_counter() - start, 3))
+        return _finish(args, report, f"wrote {out} ({len(time_steps)} time steps, {args.width}x{args.height}) "
+                                     f"in {report['seconds']:.1f} s")
 
     if animate:
         cameras = turntable_cameras(

@@ -30,12 +30,16 @@ OUT_HELP = (
 
 
 def register(subparsers) -> None:
+    from apmgsrn.cli.series import add_series_arguments
+
     parser = subparsers.add_parser(
         "train",
         help="fit a model to a volume",
         description="Fit an adaptive multi-grid network to a volume and save it as one safe model file.",
     )
-    parser.add_argument("data", help="volume file (.nc, .h5, .zarr, .raw, .npy, .vti, .vtr)")
+    parser.add_argument("data", nargs="+",
+                        help="volume file (.nc, .h5, .zarr, .raw, .npy, .vti, .vtr); several files, a quoted glob "
+                             "or a .pvd for a time series")
     parser.add_argument("--out", required=True, help=OUT_HELP)
     add_data_arguments(parser)
     parser.add_argument("--transform", choices=VALUE_TRANSFORMS, default="none",
@@ -45,27 +49,41 @@ def register(subparsers) -> None:
     add_pack_arguments(parser, "packing (any of these packs the model at the end of training; --out is then "
                                "the packed file)")
     add_brick_arguments(parser)
+    add_series_arguments(parser)
     add_device_argument(parser)
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
     parser.set_defaults(func=run, paths=paths)
 
 
 def paths(args: argparse.Namespace) -> CommandPaths:
-    """The volume is read; the model (and, for one model, its training checkpoint ``MODEL.ckpt``) written."""
+    """The volume (or every file of a series) is read; the model (and, for one model, its training checkpoint
+    ``MODEL.ckpt``) written."""
+    from apmgsrn.data.series import input_files
+
     writes = [Output(args.out, "--out", "model", model=True)]
     if not args.bricks:
         writes.append(Output(f"{args.out}.ckpt", "--out", "training checkpoint", model=True))
-    return CommandPaths(reads=[args.data], writes=writes)
+    return CommandPaths(reads=input_files(args.data), writes=writes)
 
 
 def run(args: argparse.Namespace) -> int:
+    from apmgsrn.cli.series import is_series, open_series_data, run_series_train, single_input
+    from apmgsrn.device import resolve_device
+
+    if is_series(args):
+        if args.bricks:
+            from apmgsrn.cli.train_bricks import run_series_bricks
+
+            return run_series_bricks(args)
+        series = open_series_data(args)
+        return run_series_train(args, series, *build_configs(args, resolve_device(args.device), steps=len(series)))
+    args.data = single_input(args)
     if args.bricks:
         if packing_requested(args):
             from apmgsrn.errors import ApmgsrnError
 
             raise ApmgsrnError("packing options (--bits, --max-error, ...) apply to single models, not --bricks")
         return run_bricks(args)
-    from apmgsrn.device import resolve_device
     from apmgsrn.training.fit import fit_volume
     from apmgsrn.training.trainer import TrainingInterrupted
 

@@ -30,6 +30,8 @@ def add_brick_arguments(parser: argparse.ArgumentParser) -> None:
                        help="extra attempts of a brick whose job raised (default 2)")
     group.add_argument("--blend", action="store_true",
                        help="at inference, blend neighbouring bricks across their shared ghost region (no seams)")
+    group.add_argument("--group-steps", type=int, metavar="S",
+                       help="a time series: one job per (brick, group of S consecutive steps) (default: every step)")
 
 
 def run_bricks(args: argparse.Namespace) -> int:
@@ -92,4 +94,46 @@ def run_bricks(args: argparse.Namespace) -> int:
             f"{out}: {len(summary.failed)} brick(s) failed: {names} (reasons above); the others are saved: "
             "run the same command again to retry the failed ones"
         )
+    return 0
+
+
+def run_series_bricks(args: argparse.Namespace) -> int:
+    """Train (or finish) a time-series brick model: one job per (brick, group of ``--group-steps`` steps)."""
+    from apmgsrn.cli.series import build_series_config, open_series_data
+    from apmgsrn.decomposition.coordinator import BrickProgress
+    from apmgsrn.decomposition.executor import ExecutorConfig, open_job_queue
+    from apmgsrn.decomposition.planner import DecompositionConfig
+    from apmgsrn.decomposition.series_bricks import step_groups, train_series_bricks
+    from apmgsrn.device import resolve_device
+
+    counts = parse_triple(args.bricks, "--bricks")
+    if args.group_steps is not None and args.group_steps < 1:
+        raise ApmgsrnError(f"--group-steps {args.group_steps}: must be 1 or more")
+    series = open_series_data(args).absolute()  # workers reopen the steps by path
+    groups = step_groups(len(series), args.group_steps)
+    # Each group trains with the budget of its own number of steps.
+    field_config, train_config = build_configs(args, resolve_device(args.device), steps=len(groups[0]))
+    config = build_series_config(args, field_config, len(series))
+    out = Path(args.out)
+    executor = ExecutorConfig(scheduler=args.scheduler, workers=args.workers, retries=args.retries)
+    with open_job_queue(executor) as queue:
+        summary = train_series_bricks(
+            series, DecompositionConfig(counts, args.ghost_cells, args.blend), config, train_config, out, queue,
+            group_steps=args.group_steps, transform=args.transform, log_offset=args.log_offset, device=args.device,
+            progress=BrickProgress(),
+        )
+    result = {"model": str(out), "bricks": list(counts), "steps": len(series), "groups": len(groups),
+              "complete": summary.complete, "failed": summary.failed, "model_bytes": summary.model_bytes,
+              "raw_bytes": series.raw_bytes, "seconds": summary.seconds}
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(f"model       {out}/ ({len(series)} steps in {len(groups)} group(s), {counts[0]}x{counts[1]}x{counts[2]} "
+              f"bricks, {format_bytes(summary.model_bytes)})")
+        print(f"data        {series.describe()} ({format_bytes(series.raw_bytes)} as float32)")
+        print(f"time        {summary.seconds:.1f} s")
+    if summary.failed:
+        names = ", ".join(sorted(summary.failed))
+        raise ApmgsrnError(f"{out}: {len(summary.failed)} job(s) failed: {names} (reasons above); the others are "
+                           "saved: run the same command again to retry the failed ones")
     return 0

@@ -78,7 +78,8 @@ class HDF5Volume(Volume):
             info = choose_array(path, list_hdf5_datasets(handle), variable, self.kind, default_ndims)
             time_index, shape = select_time(path, info, time, self.kind)
             self._dataset_attributes = {k: _plain(v) for k, v in handle[info.name].attrs.items()}
-            super().__init__(path, info.name, shape, info.dtype, fill_nonfinite, time=time_index)
+            super().__init__(path, info.name, shape, info.dtype, fill_nonfinite, time=time_index,
+                             time_steps=info.shape[0] if len(info.shape) == 4 else None)
             dataset = handle[info.name]
             compression = None
             if dataset.compression == "gzip":

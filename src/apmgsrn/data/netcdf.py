@@ -88,7 +88,8 @@ class NetCDFVolume(Volume):
             info = choose_array(path, _list_variables(handle), variable, "variable", NETCDF_DEFAULT_NDIMS)
             time_index, shape = select_time(path, info, time, "variable")
             self.dimensions = info.dims
-            super().__init__(path, info.name, shape, info.dtype, fill_nonfinite, time=time_index)
+            super().__init__(path, info.name, shape, info.dtype, fill_nonfinite, time=time_index,
+                             time_steps=info.shape[0] if len(info.shape) == 4 else None)
             self.metadata = netcdf_metadata(handle, info.name)
         except BaseException:
             handle.close()

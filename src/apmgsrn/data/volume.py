@@ -98,6 +98,7 @@ class Volume:
         path: The file (or Zarr directory) the data comes from.
         variable: Name of the variable/dataset/array used, or ``None`` for raw and npy files.
         time: Time index selected in a 4-D variable, or ``None`` if the data has no time axis.
+        time_steps: Length of the variable's time axis, or ``None`` if it has none.
         shape: ``(D, H, W) = (z, y, x)``, C order, x fastest.
         dtype: The stored dtype (``uint8``, ``float32``, ...); reads always return float32.
         fill_nonfinite: If set, reads replace NaN/Inf by this value.
@@ -115,10 +116,12 @@ class Volume:
         dtype: np.dtype,
         fill_nonfinite: float | None = None,
         time: int | None = None,
+        time_steps: int | None = None,
     ) -> None:
         self.path = Path(path)
         self.variable = variable
         self.time = time
+        self.time_steps = time_steps
         self.shape = tuple(int(n) for n in shape)
         self.dtype = np.dtype(dtype)
         if fill_nonfinite is not None:

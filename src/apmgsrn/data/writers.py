@@ -1,4 +1,5 @@
-"""`VolumeWriter`: write a float32 volume slab by slab (``.nc``, ``.vti``, ``.raw``/``.bin``, ``.npy``).
+"""`VolumeWriter`: write a float32 volume (or a series of them) slab by slab (``.nc``, ``.vti``, ``.raw``/``.bin``,
+``.npy``).
 
 Used by ``apmgsrn decode``, which produces the volume chunk by chunk, so outputs larger than
 memory work. The file is written under a temporary name beside the target and renamed into place
@@ -131,6 +132,9 @@ class VolumeWriter:
     as global attributes; ``.vti`` VTK ImageData (raw appended float32 point data named `variable`, origin
     and spacing from the axes, which must be evenly spaced); ``.raw``/``.bin`` headerless little-endian
     float32, x fastest; ``.npy`` a float32 array (the last two hold no names, coordinates or attributes).
+    With `steps`, a time series (not ``.vti``): a leading time dimension (NetCDF dims ``(time, z, y, x)`` and a
+    ``time`` coordinate of `time_values`; raw and ``.npy`` steps one after the other), every step written slab by
+    slab.
 
     Args:
         path: Output file; its folder must exist.
@@ -141,6 +145,8 @@ class VolumeWriter:
         variable_attributes: The variable's attributes in a NetCDF output (``units``, ``long_name``...).
         axes: The ``(z, y, x)`` axes (default: voxel indices named z, y, x).
         compression: ``{"zlib": bool, "complevel": int, "shuffle": bool}`` for a NetCDF output, or None.
+        steps: Number of time steps of a series (None: one volume, no time dimension).
+        time_values: The ``time`` coordinate of a NetCDF series (default 0, 1, ...).
 
     Raises:
         ApmgsrnError: For an unknown suffix, a missing or unwritable output folder, or a
@@ -156,6 +162,8 @@ class VolumeWriter:
         variable_attributes: dict | None = None,
         axes: tuple[OutputAxis, OutputAxis, OutputAxis] | None = None,
         compression: dict | None = None,
+        steps: int | None = None,
+        time_values=None,
     ) -> None:
         self.path = Path(path).expanduser()
         self.shape = tuple(int(n) for n in shape)
@@ -164,6 +172,13 @@ class VolumeWriter:
         self.axes = index_axes(self.shape) if axes is None else tuple(axes)
         if tuple(len(a.values) for a in self.axes) != self.shape:
             raise ValueError(f"VolumeWriter: axes of {[len(a.values) for a in self.axes]} values for shape {shape}")
+        if steps is not None and steps < 1:
+            raise ValueError(f"VolumeWriter needs a positive number of steps, got {steps}")
+        self.steps = steps
+        if steps is not None and Path(path).suffix.lower() == ".vti":
+            raise ApmgsrnError(f"{path}: a VTK ImageData file holds one step; write several steps to .nc, .raw "
+                               "or .npy, or one file per step")
+        self._time_values = list(time_values) if time_values is not None else list(range(steps or 0))
         self.variable = variable
         self.variable_attributes = dict(variable_attributes or {})
         self.compression = compression
@@ -184,7 +199,7 @@ class VolumeWriter:
         # Same folder as the target, so the final rename is atomic (same file system); the real
         # suffix is kept so libraries that look at it behave.
         self._temporary = folder / f".{self.path.stem}.{uuid.uuid4().hex[:12]}.partial{self.suffix}"
-        self._written = np.zeros(self.shape[0], dtype=bool)
+        self._written = np.zeros((steps or 1, self.shape[0]), dtype=bool)  # [steps, D]
         self._handle: Any = None
         self._closed = False
         try:
@@ -209,6 +224,10 @@ class VolumeWriter:
                 # Every voxel gets written, so skip netCDF's pre-fill (it would write the file twice).
                 dataset.set_fill_off()
                 names = tuple(axis.name for axis in self.axes)
+                if self.steps is not None:
+                    dataset.createDimension("time", self.steps)
+                    dataset.createVariable("time", "f8", ("time",))[:] = np.asarray(self._time_values, np.float64)
+                    names = ("time", *names)
                 for axis, size in zip(self.axes, self.shape):
                     dataset.createDimension(axis.name, size)
                     if axis.recorded:
@@ -219,7 +238,7 @@ class VolumeWriter:
                     # One chunk per z-slice: every slab write fills whole chunks, none is compressed twice.
                     options = dict(zlib=True, complevel=int(self.compression.get("complevel", 4)),
                                    shuffle=bool(self.compression.get("shuffle", True)),
-                                   chunksizes=(1, height, width))
+                                   chunksizes=(1, height, width) if self.steps is None else (1, 1, height, width))
                 else:
                     options = dict(contiguous=True)
                 variable = dataset.createVariable(self.variable, "f4", names, **options)
@@ -232,7 +251,7 @@ class VolumeWriter:
             return dataset
         # raw and .npy: plain writes at known offsets (never a memory map: on a full disk a write to a mapped
         # page kills the process with SIGBUS, where a write() call fails with ENOSPC that we can report).
-        needed = depth * height * width * 4
+        needed = (self.steps or 1) * depth * height * width * 4
         free = shutil.disk_usage(self.path.parent).free
         if needed > free:
             raise OSError(errno.ENOSPC, f"needs {needed:,} bytes, {free:,} free")
@@ -240,7 +259,8 @@ class VolumeWriter:
         try:
             footer = b""
             if self.suffix == ".npy":
-                header = {"descr": "<f4", "fortran_order": False, "shape": self.shape}
+                shape = self.shape if self.steps is None else (self.steps, *self.shape)
+                header = {"descr": "<f4", "fortran_order": False, "shape": shape}
                 np.lib.format.write_array_header_1_0(handle, header)
             elif self.suffix == ".vti":
                 header, footer = _vti_frame(self.variable, self.shape, self._origin, self._spacing)
@@ -255,12 +275,15 @@ class VolumeWriter:
             raise
         return handle
 
-    def _store(self, z: slice, block: np.ndarray) -> None:
+    def _store(self, z: slice, block: np.ndarray, step: int | None = None) -> None:
         if self.suffix == ".nc":
-            self._handle[self.variable][z.start:z.stop, :, :] = block
+            if step is None:
+                self._handle[self.variable][z.start:z.stop, :, :] = block
+            else:
+                self._handle[self.variable][step, z.start:z.stop, :, :] = block
         else:
-            _, height, width = self.shape
-            self._handle.seek(self._data_offset + z.start * height * width * 4)
+            depth, height, width = self.shape
+            self._handle.seek(self._data_offset + ((step or 0) * depth + z.start) * height * width * 4)
             self._handle.write(np.ascontiguousarray(block, dtype="<f4").data)
 
     def _finish(self) -> None:
@@ -271,20 +294,23 @@ class VolumeWriter:
         self._handle = None
 
     # ----------------------------------------------------------------- public
-    def write(self, z: slice, block: np.ndarray) -> None:
-        """Write the slab ``z`` of the volume.
+    def write(self, z: slice, block: np.ndarray, step: int | None = None) -> None:
+        """Write the slab ``z`` of the volume (of step ``step`` of a series).
 
         Args:
             z: Range of z-slices, step 1, within ``[0, D)``.
             block: float32 (or convertible) array ``[dz, H, W]`` with ``dz`` = length of `z`.
+            step: the time step, ``0 .. steps-1``, when writing a series (else None).
 
         Raises:
             ApmgsrnError: If the disk write fails (full disk, lost folder).
         """
         if self._closed:
             raise ValueError(f"VolumeWriter for {self.path} is closed")
-        start, stop, step = z.indices(self.shape[0])
-        if step != 1 or stop <= start:
+        if (step is None) != (self.steps is None) or (step is not None and not 0 <= step < self.steps):
+            raise ValueError(f"VolumeWriter.write: step {step} for a writer of {self.steps} steps")
+        start, stop, stride = z.indices(self.shape[0])
+        if stride != 1 or stop <= start:
             raise ValueError(f"VolumeWriter.write needs a non-empty z slice with step 1, got {z}")
         block = np.asarray(block, dtype=np.float32)
         expected = (stop - start, self.shape[1], self.shape[2])
@@ -293,10 +319,13 @@ class VolumeWriter:
                 f"VolumeWriter.write: block shape {block.shape} does not match z={start}:{stop} -> {expected}"
             )
         try:
-            self._store(slice(start, stop), block)
+            if step is None:  # one volume: the two-argument call (tests stand in for it to fail a disk)
+                self._store(slice(start, stop), block)
+            else:
+                self._store(slice(start, stop), block, step)
         except (OSError, RuntimeError) as exc:
             raise ApmgsrnError(f"{self.path}: writing failed ({exc}); check free disk space and the folder") from exc
-        self._written[start:stop] = True
+        self._written[step or 0, start:stop] = True
 
     def close(self) -> None:
         """Finish the file and rename it into place (all of z must have been written).
@@ -308,11 +337,12 @@ class VolumeWriter:
         if self._closed:
             return
         if not self._written.all():
-            missing = np.flatnonzero(~self._written)
+            missing = np.argwhere(~self._written)  # [n, 2] (step, z)
             self.abort()
+            first = f"step {missing[0][0]}, z={missing[0][1]}" if self.steps is not None else f"z={missing[0][1]}"
             raise ValueError(
-                f"VolumeWriter for {self.path}: {missing.size} z-slices were never written "
-                f"(first missing: z={missing[0]}); nothing was saved"
+                f"VolumeWriter for {self.path}: {len(missing)} z-slices were never written "
+                f"(first missing: {first}); nothing was saved"
             )
         try:
             self._finish()

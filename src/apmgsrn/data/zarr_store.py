@@ -105,7 +105,8 @@ class ZarrVolume(Volume):
             info = choose_array(path, arrays, variable, "array")
             name = info.name
         time_index, shape = select_time(path, info, time, "array")
-        super().__init__(path, name, shape, info.dtype, fill_nonfinite, time=time_index)
+        super().__init__(path, name, shape, info.dtype, fill_nonfinite, time=time_index,
+                         time_steps=info.shape[0] if len(info.shape) == 4 else None)
         self.metadata = _zarr_metadata(node, node if name is None else node[name])
 
     def _open_handle(self) -> Any:

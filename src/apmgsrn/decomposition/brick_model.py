@@ -6,6 +6,7 @@ Importing this module registers the ``bricks`` loader with :func:`apmgsrn.io.ope
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -13,15 +14,19 @@ import torch
 from apmgsrn.decomposition.bricked_field import BrickedField
 from apmgsrn.decomposition.planner import Brick, BrickPlan, DecompositionConfig, plan_bricks
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.io import ModelDescription, SourceInfo, load_field, register_loader
+from apmgsrn.io import BrickLayout, ModelDescription, SeriesLayout, SourceInfo, load_field, load_series, register_loader
 from apmgsrn.io.brick_folder import (
     BRICKS_KIND,
     brick_file_name,
     brick_file_ready,
+    brick_kind,
     brick_layout,
     manifest_path,
     read_manifest,
 )
+from apmgsrn.io.field_file import FIELD_KIND
+from apmgsrn.io.series_file import SERIES_KIND
+from apmgsrn.models.series_field import SeriesFieldConfig
 
 
 def plan_from_manifest(manifest: dict) -> BrickPlan:
@@ -31,9 +36,10 @@ def plan_from_manifest(manifest: dict) -> BrickPlan:
     return plan_bricks(tuple(manifest["volume_shape"]), config)
 
 
-def missing_bricks(directory: Path, plan: BrickPlan) -> list[Brick]:
-    """Bricks without a readable model file in ``directory``."""
-    return [b for b in plan.bricks if not brick_file_ready(Path(directory) / brick_file_name(b.name))]
+def missing_bricks(directory: Path, plan: BrickPlan, kind: str = FIELD_KIND) -> list[Brick]:
+    """Bricks without a readable model file (of ``kind``: ``field``, or ``series`` for a time series) in
+    ``directory``."""
+    return [b for b in plan.bricks if not brick_file_ready(Path(directory) / brick_file_name(b.name), kind)]
 
 
 def load_brick_model(path: Path, device: torch.device) -> tuple[BrickedField, ModelDescription]:
@@ -50,15 +56,52 @@ def load_brick_model(path: Path, device: torch.device) -> tuple[BrickedField, Mo
         ApmgsrnError: an unfinished model, a missing or foreign brick file, or boxes that disagree with
             the grid.
     """
-    directory = Path(path)
+    bricks = load_bricks(Path(path), device)
+    if bricks.kind != FIELD_KIND:
+        raise ApmgsrnError(f"{path}: is one step group of a time-series brick model; open the folder above it")
+    model = BrickedField(bricks.plan, bricks.fields, blend=bricks.manifest["blend"]).to(device).eval()
+    return model, brick_description(bricks, model.parameter_count())
+
+
+@dataclass(frozen=True)
+class LoadedBricks:
+    """The networks of a brick-model folder, checked against its manifest.
+
+    Attributes:
+        directory: the folder.
+        manifest: its checked manifest.
+        plan: the brick grid.
+        layout: the typed brick entries.
+        fields: one network per brick in flat-index order (series fields for a time series).
+        kind: the kind of every brick file (``field`` or ``series``).
+        file_bytes: bytes of the manifest and every brick file.
+    """
+
+    directory: Path
+    manifest: dict
+    plan: BrickPlan
+    layout: BrickLayout
+    fields: list
+    kind: str
+    file_bytes: int
+
+
+def load_bricks(directory: Path, device: torch.device) -> LoadedBricks:
+    """Load and check every brick network of a finished brick-model folder.
+
+    Raises:
+        ApmgsrnError: an unfinished model, a missing or foreign brick file, or boxes that disagree with
+            the grid.
+    """
     manifest = read_manifest(directory)
     try:
         plan = plan_from_manifest(manifest)
     except (ApmgsrnError, ValueError) as exc:
         raise ApmgsrnError(f"{manifest_path(directory)}: brick grid does not fit the volume ({exc}); "
                            "re-train the model") from None
+    kind = brick_kind(manifest)
     if not manifest["complete"]:
-        missing = [b.name for b in missing_bricks(directory, plan)]
+        missing = [b.name for b in missing_bricks(directory, plan, kind)]
         if missing:
             listed = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
             state = f"{len(missing)} of {len(plan)} bricks missing: {listed}"
@@ -68,6 +111,7 @@ def load_brick_model(path: Path, device: torch.device) -> tuple[BrickedField, Mo
             f"{directory}: brick model is unfinished ({state}); run the same brick training again to finish it"
         )
     layout = brick_layout(manifest)
+    load = load_series if kind == SERIES_KIND else load_field
     fields = []
     total_bytes = manifest_path(directory).stat().st_size
     for brick, entry in zip(plan.bricks, layout.entries):
@@ -80,7 +124,7 @@ def load_brick_model(path: Path, device: torch.device) -> tuple[BrickedField, Mo
             raise ApmgsrnError(
                 f"{brick_path}: brick model file is missing; run the same brick training again to re-train it"
             )
-        field, description = load_field(brick_path, device)
+        field, description = load(brick_path, device)
         trained_as = description.training.get("brick")
         if (
             description.volume_shape != brick.shape
@@ -90,24 +134,30 @@ def load_brick_model(path: Path, device: torch.device) -> tuple[BrickedField, Mo
             raise ApmgsrnError(f"{brick_path}: not the model of {brick.name}; re-train the model")
         fields.append(field)
         total_bytes += description.file_bytes
-    model = BrickedField(plan, fields, blend=manifest["blend"]).to(device).eval()
+    return LoadedBricks(directory, manifest, plan, layout, fields, kind, total_bytes)
+
+
+def brick_description(bricks: LoadedBricks, parameters: int, series: SeriesLayout | None = None) -> ModelDescription:
+    """The description of loaded bricks (their manifest's figures; ``series`` for a time series)."""
+    manifest, fields = bricks.manifest, bricks.fields
     value_range = manifest.get("value_range") or [min(f.value_min for f in fields), max(f.value_max for f in fields)]
     if not all(math.isfinite(v) for v in value_range):
-        raise ApmgsrnError(f"{manifest_path(directory)}: value range is not finite; re-train the model")
-    description = ModelDescription(
+        raise ApmgsrnError(f"{manifest_path(bricks.directory)}: value range is not finite; re-train the model")
+    config = fields[0].config
+    return ModelDescription(
         kind=BRICKS_KIND,
-        config=fields[0].config,
+        config=config.field if isinstance(config, SeriesFieldConfig) else config,
         volume_shape=tuple(manifest["volume_shape"]),
         value_range=(float(value_range[0]), float(value_range[1])),
         transform=fields[0].transform.kind,
         source=SourceInfo.from_dict(manifest.get("source", {})),
         training=manifest.get("training") or {},
-        parameters=model.parameter_count(),
-        file_bytes=total_bytes,
+        parameters=parameters,
+        file_bytes=bricks.file_bytes,
         format_version=manifest["format_version"],
-        bricks=layout,
+        bricks=bricks.layout,
+        series=series,
     )
-    return model, description
 
 
 register_loader(BRICKS_KIND, load_brick_model)

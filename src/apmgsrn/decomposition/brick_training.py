@@ -24,7 +24,8 @@ from apmgsrn.decomposition.executor import BRICK_RESOURCE
 from apmgsrn.decomposition.planner import Brick
 from apmgsrn.device import resolve_device
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.io import SourceInfo
+from apmgsrn.data.series import VolumeSeries
+from apmgsrn.io import SeriesStepInfo, SourceInfo
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.training.fit import fit, prepare_values
 from apmgsrn.training.trainer import TrainConfig
@@ -39,9 +40,10 @@ class BrickJob:
 
     Attributes:
         volume: the :class:`apmgsrn.data.Volume` (pickles as a recipe; the file must be readable on the
-            worker under the same path), or a :class:`VolumeRecipe` for readers that do not pickle.
+            worker under the same path), or a :class:`VolumeRecipe` for readers that do not pickle, or a
+            :class:`~apmgsrn.data.series.VolumeSeries` (its steps' files, opened by the worker one at a time).
         brick: which box to read and fit.
-        field_config: the model to build for the brick.
+        field_config: the model to build for the brick (a series config when ``volume`` is a series).
         train_config: how to train it (its ``seed`` is already the brick's own: run seed + brick index).
         model_path: the brick's model file (written atomically when done).
         transform: value transform kind (fitted on the brick's own values).
@@ -202,9 +204,12 @@ def read_brick(volume, brick: Brick) -> np.ndarray:
         brick: the box to read.
 
     Returns:
-        float32 ``[d, h, w]``.
+        float32 ``[d, h, w]`` (``[T, d, h, w]`` for a :class:`~apmgsrn.data.series.VolumeSeries`).
     """
     z, y, x = brick.slices()
+    if isinstance(volume, VolumeSeries):
+        # A time series: the box of every step, one step's file open at a time.
+        return np.stack([volume.read(t, z, y, x) for t in range(len(volume))])  # [T, d, h, w]
     if not isinstance(volume, MemoryMappedVolume):
         region = volume.read(z, y, x)
         volume.close()
@@ -243,7 +248,7 @@ def train_brick(job: BrickJob) -> BrickResult:
         elif device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
         volume = job.volume.open() if isinstance(job.volume, VolumeRecipe) else job.volume
-        region = read_brick(volume, brick)  # [d, h, w] float32: this brick only
+        region = read_brick(volume, brick)  # [d, h, w] ([T, d, h, w] for a series) float32: this brick only
         return _fit_region(job, region, device, worker, volume.path)
     except ApmgsrnError as exc:
         return BrickResult(brick.name, brick.index, ok=False, message=str(exc), worker=worker)
@@ -261,9 +266,13 @@ def _fit_region(job: BrickJob, region: np.ndarray, device: torch.device, worker:
            "start": list(brick.start), "stop": list(brick.stop)}
     fingerprint = {"brick": brick.name, "box": [list(brick.start), list(brick.stop)],
                    "source": job.source.to_dict(), "field": job.field_config.to_dict()}
+    steps = None
+    if isinstance(job.volume, VolumeSeries):  # each step's number, file and value range in the brick's box
+        steps = [SeriesStepInfo(label, job.volume.step_name(t), (float(region[t].min()), float(region[t].max())))
+                 for t, label in enumerate(job.volume.labels)]
     # A brick always resumes its own checkpoint: the job may be a retry after a crash.
     result = fit(prepared, region, job.field_config, job.train_config, Path(job.model_path), job.source,
-                 fingerprint, resume=True, psnr_voxels=job.psnr_voxels, summary_extra={"brick": box})
+                 fingerprint, resume=True, psnr_voxels=job.psnr_voxels, summary_extra={"brick": box}, steps=steps)
     peak_device = int(torch.cuda.max_memory_allocated(device)) if device.type == "cuda" else 0
     return BrickResult(
         name=brick.name,

@@ -12,11 +12,12 @@ import math
 import sys
 import time
 import uuid
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TextIO
 
-from apmgsrn.data.fingerprint import volume_fingerprint
+from apmgsrn.data.fingerprint import series_fingerprint, volume_fingerprint
+from apmgsrn.data.series import VolumeSeries
 from apmgsrn.decomposition.brick_model import missing_bricks
 from apmgsrn.decomposition.brick_training import (
     BrickJob,
@@ -33,13 +34,16 @@ from apmgsrn.errors import ApmgsrnError
 from apmgsrn.io import SourceInfo
 from apmgsrn.io.brick_folder import (
     brick_file_name,
+    brick_kind,
     brick_summary_from_file,
     manifest_path,
     new_manifest,
     read_manifest,
     write_manifest,
 )
+from apmgsrn.io.series_file import SERIES_KIND
 from apmgsrn.models.registry import FieldConfig
+from apmgsrn.models.series_field import SeriesFieldConfig
 from apmgsrn.progress import Progress
 from apmgsrn.training.trainer import TrainConfig, as_json, current_names
 
@@ -148,9 +152,11 @@ def missing_names(summary: BrickTrainingSummary) -> list[str]:
 def training_settings(volume, plan: BrickPlan, field_config: FieldConfig, train_config: TrainConfig,
                       transform: str, log_offset: float) -> dict:
     """Everything that decides the bricks' models; a rerun must match it to reuse finished bricks."""
+    steps = getattr(volume, "steps", None)  # a series: every step's file and time index
     return as_json({
         "volume": {"path": Path(str(volume.path)).name, "variable": volume.variable,
-                   "time": getattr(volume, "time", None), "shape": list(volume.shape)},
+                   "time": getattr(volume, "time", None), "shape": list(volume.shape),
+                   **({"steps": [s.name() for s in steps]} if steps is not None else {})},
         "grid": list(plan.counts),
         "ghost_cells": plan.config.ghost_cells,
         "field": field_config.to_dict(),
@@ -162,14 +168,22 @@ def training_settings(volume, plan: BrickPlan, field_config: FieldConfig, train_
 
 def stored_settings(manifest: dict) -> dict:
     """A manifest's settings as this version writes them: the field config read back through
-    :class:`~apmgsrn.models.registry.FieldConfig` and training names renamed since, so run-time fields older
-    versions stored (the kernel backend) and old names do not make an unfinished folder look like another
-    run's."""
+    :class:`~apmgsrn.models.registry.FieldConfig`, the training config through
+    :class:`~apmgsrn.training.trainer.TrainConfig` under the names renamed since, so run-time fields older
+    versions stored (the kernel backend), old names and options added since (their defaults) do not make an
+    unfinished folder look like another run's."""
     settings = dict(manifest.get("settings") or {})
     if "training" in settings:
         settings["training"] = current_names(settings["training"])
     try:
-        settings["field"] = as_json(FieldConfig.from_dict(settings.get("field")).to_dict())
+        field = settings.get("field")
+        if isinstance(field, dict) and "series" in field:  # the bricks of a time series
+            field = dict(field, field=as_json(FieldConfig.from_dict(field.get("field")).to_dict()))
+        else:
+            field = FieldConfig.from_dict(field).to_dict()
+        settings["field"] = as_json(field)
+        if isinstance(settings.get("training"), dict):  # options added since (steps_per_iteration): defaults
+            settings["training"] = as_json(asdict(TrainConfig(**settings["training"])))
     except (TypeError, ValueError):
         pass  # not a config this version reads: the comparison reports it as differing
     return settings
@@ -237,7 +251,9 @@ def train_bricks(
 
     Args:
         volume: a :class:`apmgsrn.data.Volume`; only its recipe is sent to the jobs, each of which reads its
-            own brick. File-backed volumes must be readable under the same path on every worker.
+            own brick. File-backed volumes must be readable under the same path on every worker. A
+            :class:`~apmgsrn.data.series.VolumeSeries` makes every brick a time-series model of its box over
+            every step (``field_config`` then a :class:`~apmgsrn.models.series_field.SeriesFieldConfig`).
         decomposition: brick counts (x, y, z), ghost cells and the blend flag saved with the model.
         field_config: the model of every brick.
         train_config: how to train every brick, through :func:`~apmgsrn.decomposition.brick_training.brick_policy`
@@ -260,30 +276,49 @@ def train_bricks(
         ApmgsrnError: the folder holds another model, or the bricks do not fit the volume.
     """
     started = time.perf_counter()
-    out = Path(out)
-    progress = progress or BrickProgress(enabled=False)
+    run = open_brick_run(volume, decomposition, field_config, train_config, Path(out), transform, log_offset,
+                         device, queue.threads_per_job, psnr_voxels)
+    return run_brick_jobs([run], queue, progress or BrickProgress(enabled=False), poll_seconds, started)[0]
+
+
+@dataclass
+class BrickRun:
+    """One brick-model folder being trained: its plan, manifest, and the jobs of its missing bricks."""
+
+    out: Path
+    plan: BrickPlan
+    manifest: dict
+    jobs: list[BrickJob]
+    reused: list[str]
+
+
+def open_brick_run(volume, decomposition: DecompositionConfig, field_config, train_config: TrainConfig, out: Path,
+                   transform: str, log_offset: float, device: str, threads: int | None,
+                   psnr_voxels: int | None) -> BrickRun:
+    """Plan the bricks, prepare the folder and its manifest, and make a job for every missing brick.
+
+    Raises:
+        ApmgsrnError: the folder holds another model, or the bricks do not fit the volume.
+    """
     plan = plan_bricks(volume.shape, decomposition, str(volume.path))
     source = SourceInfo.of_volume(volume)
     train_config = brick_policy(train_config)
     settings = training_settings(volume, plan, field_config, train_config, transform, log_offset)
-    data = as_json(volume_fingerprint(volume))
+    data = as_json(series_fingerprint(volume) if isinstance(volume, VolumeSeries) else volume_fingerprint(volume))
     manifest = _prepare_directory(out, settings, data) or new_manifest(
         plan.volume_shape, plan.counts, plan.config.ghost_cells, decomposition.blend, plan.bricks, settings, source
     )
     manifest["data"] = data
     manifest["blend"] = decomposition.blend
     manifest["complete"] = False
+    if isinstance(field_config, SeriesFieldConfig):
+        manifest["brick_kind"] = SERIES_KIND
     write_manifest(out, manifest)
-
-    todo = missing_bricks(out, plan)
+    todo = missing_bricks(out, plan, brick_kind(manifest))
     todo_names = {b.name for b in todo}
-    reused = [b.name for b in plan.bricks if b.name not in todo_names]
-    progress.start(plan, len(todo), queue.description)
-    token = uuid.uuid4().hex[:8]
-    futures = {}
     shipped = shippable_volume(volume)
-    for brick in todo:
-        job = BrickJob(
+    jobs = [
+        BrickJob(
             volume=shipped,
             brick=brick,
             field_config=field_config,
@@ -292,31 +327,50 @@ def train_bricks(
             transform=transform,
             log_offset=log_offset,
             device=device,
-            threads=queue.threads_per_job,
+            threads=threads,
             source=source.crop(brick.start, brick.stop),  # the brick file describes its own voxels
             psnr_voxels=psnr_voxels,
         )
-        futures[queue.submit(train_brick, job, key=f"{brick.name}-{token}")] = brick
-    trained: list[BrickResult] = []
-    failed: dict[str, str] = {}
+        for brick in todo
+    ]
+    return BrickRun(out, plan, manifest, jobs, [b.name for b in plan.bricks if b.name not in todo_names])
+
+
+def run_brick_jobs(runs: list[BrickRun], queue: JobQueue, progress: BrickProgress, poll_seconds: float,
+                   started: float) -> list[BrickTrainingSummary]:
+    """Queue the jobs of every run at once, follow them, then finish each run's manifest.
+
+    Returns:
+        One summary per run, in order.
+    """
+    first = runs[0]
+    progress.start(first.plan, sum(len(r.jobs) for r in runs), queue.description)
+    token = uuid.uuid4().hex[:8]
+    futures = {}
+    for number, run in enumerate(runs):
+        for job in run.jobs:
+            key = f"{job.brick.name}-{number}-{token}" if len(runs) > 1 else f"{job.brick.name}-{token}"
+            futures[queue.submit(train_brick, job, key=key)] = (number, job.brick, _job_label(run, job, len(runs)))
+    trained: list[list[BrickResult]] = [[] for _ in runs]
+    failed: list[dict[str, str]] = [{} for _ in runs]
     pending = set(futures)
     try:
         while pending:
             for future in queue.wait(pending, poll_seconds):
                 pending.discard(future)
-                brick = futures[future]
+                number, brick, label = futures[future]
                 error = future.exception()
                 if error is not None:
-                    failed[brick.name] = _one_line(error)
-                    progress.brick_failed(brick.name, failed[brick.name])
+                    failed[number][brick.name] = _one_line(error)
+                    progress.brick_failed(label, failed[number][brick.name])
                     continue
                 result = future.result()
                 if result.ok:
-                    trained.append(result)
-                    progress.finished(result)
+                    trained[number].append(result)
+                    progress.finished(result if len(runs) == 1 else replace(result, name=label))
                 else:
-                    failed[brick.name] = result.message
-                    progress.brick_failed(brick.name, result.message)
+                    failed[number][brick.name] = result.message
+                    progress.brick_failed(label, result.message)
             progress.tick(queue.running())
     finally:
         for future in pending:  # interrupted: do not leave jobs running for nobody
@@ -324,9 +378,16 @@ def train_bricks(
                 future.cancel()
             except Exception:  # noqa: BLE001 - cancelling is best effort
                 pass
-        summary = _finish(out, plan, manifest, trained, reused, failed, started, queue)
-        progress.close(summary)
-    return summary
+        summaries = [_finish(run.out, run.plan, run.manifest, trained[n], run.reused, failed[n], started, queue)
+                     for n, run in enumerate(runs)]
+        for summary in summaries:
+            progress.close(summary)
+    return summaries
+
+
+def _job_label(run: BrickRun, job: BrickJob, runs: int) -> str:
+    """A job's name in progress lines: the brick, and the run's folder when several run at once."""
+    return job.brick.name if runs == 1 else f"{run.out.name}/{job.brick.name}"
 
 
 def _one_line(error: BaseException) -> str:
@@ -338,7 +399,7 @@ def _finish(out: Path, plan: BrickPlan, manifest: dict, trained: list[BrickResul
             failed: dict[str, str], started: float, queue: JobQueue) -> BrickTrainingSummary:
     """Write the final manifest: per-brick figures, value range, and whether every brick is there."""
     by_name = {r.name: r for r in trained}
-    missing = {b.name for b in missing_bricks(out, plan)}
+    missing = {b.name for b in missing_bricks(out, plan, brick_kind(manifest))}
     low, high = math.inf, -math.inf
     for entry, brick in zip(manifest["bricks"], plan.bricks):
         if brick.name in missing:

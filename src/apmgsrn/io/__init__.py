@@ -6,22 +6,27 @@ saves through it); it imports no training, decomposition, render or CLI code.
 """
 
 from apmgsrn.atomic import atomic_write, atomic_write_text, check_output_path
-from apmgsrn.io.description import BrickEntry, BrickLayout, ModelDescription, SourceInfo
+from apmgsrn.io.description import BrickEntry, BrickLayout, ModelDescription, SeriesLayout, SeriesStepInfo, SourceInfo
 from apmgsrn.io.field_file import load_field, save_field
 from apmgsrn.io.registry import LoadedModel, model_kind, open_model, register_loader
+from apmgsrn.io.series_file import load_series, save_series
 
 __all__ = [
     "BrickEntry",
     "BrickLayout",
     "LoadedModel",
     "ModelDescription",
+    "SeriesLayout",
+    "SeriesStepInfo",
     "SourceInfo",
     "atomic_write",
     "atomic_write_text",
     "check_output_path",
     "load_field",
+    "load_series",
     "model_kind",
     "open_model",
     "register_loader",
     "save_field",
+    "save_series",
 ]

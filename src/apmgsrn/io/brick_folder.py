@@ -35,6 +35,7 @@ from apmgsrn.io.description import (
     require_ints,
 )
 from apmgsrn.io.field_file import FIELD_KIND, MAX_VOLUME_AXIS
+from apmgsrn.io.series_file import SERIES_KIND
 
 BRICKS_KIND = "bricks"
 MANIFEST_NAME = "manifest.json"
@@ -148,6 +149,8 @@ def _check_manifest(manifest: dict) -> None:
     for flag in ("blend", "complete"):
         if not isinstance(manifest.get(flag), bool):
             raise DescriptionError(f"{flag} is not true or false")
+    if manifest.get("brick_kind", FIELD_KIND) not in (FIELD_KIND, SERIES_KIND):
+        raise DescriptionError("brick_kind is not a model kind")
     for key in ("settings", "training"):
         if manifest.get(key) is not None:
             require_dict(manifest[key], key)
@@ -197,13 +200,19 @@ def brick_layout(manifest: dict) -> BrickLayout:
     )
 
 
-def brick_file_ready(path: str | os.PathLike) -> bool:
-    """Whether a brick's model file exists as a readable single-field file (a symbolic link never is)."""
+def brick_file_ready(path: str | os.PathLike, kind: str = FIELD_KIND) -> bool:
+    """Whether a brick's model file exists as a readable model file of ``kind`` (``field``; ``series`` for the
+    bricks of a time series); a symbolic link never is."""
     path = Path(path)
     try:
-        return not path.is_symlink() and read_header(path).kind == FIELD_KIND
+        return not path.is_symlink() and read_header(path).kind == kind
     except ApmgsrnError:
         return False
+
+
+def brick_kind(manifest: dict) -> str:
+    """The kind of every brick file of a checked manifest: ``field``, or ``series`` for a time series."""
+    return manifest.get("brick_kind", FIELD_KIND)
 
 
 def brick_summary_from_file(path: str | os.PathLike) -> dict:

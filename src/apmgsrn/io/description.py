@@ -16,6 +16,7 @@ import numpy as np
 from apmgsrn.data.grid import AxisCoordinates, VolumeMetadata
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.models.registry import FieldConfig
+from apmgsrn.models.series_field import SeriesConfig
 
 #: Bounds of the source's recorded metadata: more is not a variable's description but a way to bloat a file.
 MAX_ATTRIBUTES = 256
@@ -224,6 +225,44 @@ class BrickLayout:
 
 
 @dataclass(frozen=True)
+class SeriesStepInfo:
+    """One step of a time-series model: its number, where it came from and its value range (data units)."""
+
+    label: float
+    name: str
+    value_range: tuple[float, float]
+
+    def to_dict(self) -> dict:
+        label = int(self.label) if float(self.label).is_integer() else self.label
+        return {"label": label, "name": self.name, "value_min": self.value_range[0], "value_max": self.value_range[1]}
+
+
+@dataclass(frozen=True)
+class SeriesLayout:
+    """The time axis of a time-series model (SPEC section 10).
+
+    Attributes:
+        config: steps, basis size and kind of weights.
+        steps: one entry per step, in order.
+    """
+
+    config: SeriesConfig
+    steps: tuple[SeriesStepInfo, ...]
+
+    def step_index(self, time: int) -> int:
+        """Check a step index (``--time K``) against the series.
+
+        Raises:
+            ApmgsrnError: outside ``0 .. T-1``.
+        """
+        count = len(self.steps)
+        if isinstance(time, bool) or not isinstance(time, int) or not 0 <= time < count:
+            raise ApmgsrnError(f"time={time} is outside the model's series of {count} steps; pass 0..{count - 1}",
+                               arguments=("time",))
+        return time
+
+
+@dataclass(frozen=True)
 class PackedPart:
     """One stored part of a packed model file and what it costs.
 
@@ -279,7 +318,8 @@ class ModelDescription:
     """Everything a model file says about the model it holds.
 
     Attributes:
-        kind: ``"field"`` (one network) or ``"bricks"`` (a folder of one network per brick).
+        kind: ``"field"`` (one network), ``"bricks"`` (a folder of one network per brick) or ``"series"`` (one
+            network for every step of a time series).
         config: the network's config (of every brick, for a brick model); ``model`` is its kind.
         volume_shape: ``(D, H, W)`` of the training volume.
         value_range: ``(min, max)`` of the training data, data units.
@@ -290,6 +330,7 @@ class ModelDescription:
         file_bytes: bytes on disk (a brick model: all of its files).
         format_version: the file's format version.
         bricks: the brick grid of a brick model, else None.
+        series: the time axis of a time-series model (kind ``series``), else None.
         packing: what a packed model file stores and what packing cost, else None.
     """
 
@@ -304,6 +345,7 @@ class ModelDescription:
     file_bytes: int
     format_version: int
     bricks: BrickLayout | None = None
+    series: SeriesLayout | None = None
     packing: PackingSummary | None = None
 
     @property
@@ -368,12 +410,11 @@ def inconsistent(path, error: Exception) -> ApmgsrnError:
 
 
 def time_steps(description: ModelDescription) -> int:
-    """How many time steps a model holds: 1 for a model of one volume (every kind today).
+    """How many time steps a model holds: those of a time-series model, else 1.
 
-    The one place consumers (decode, the notebook API, the ParaView reader) ask; a time-varying model kind
-    answers here.
+    The one place consumers (decode, the notebook API, the ParaView reader) ask.
     """
-    return 1
+    return 1 if description.series is None else len(description.series.steps)
 
 
 def check_time(description: ModelDescription, time: int | None) -> int:

@@ -67,9 +67,9 @@ def save_field(path: str | os.PathLike, field: NeuralField, source: SourceInfo, 
     return save_tensors(path, dict(field.state_dict()), FIELD_KIND, field_description(field, source, training))
 
 
-def field_description(field: NeuralField, source: SourceInfo, training: dict) -> dict:
-    """The JSON description of a single-field file (packed files extend it): config, value scaling and
-    transform, volume shape, source and training summary."""
+def field_description(field, source: SourceInfo, training: dict) -> dict:
+    """The description entries every field file has (a series file and a packed file extend it): the field's
+    config, value scaling and transform, volume shape, source and training summary."""
     return {
         "field": field.config.to_dict(),
         "fit_min": field.fit_min,
@@ -114,8 +114,15 @@ def parse_field_description(description: dict) -> FieldDescription:
     )
 
 
-def _check_declared_tensors(header: Header, config: FieldConfig) -> None:
-    """The file must store exactly the float32 parameters the config implies, no more, no fewer."""
+def check_declared_tensors(header: Header, config, dtype_names: dict | None = None) -> None:
+    """The file must store exactly the parameters the config implies, no more, no fewer, in their dtypes.
+
+    Args:
+        header: the file's validated header.
+        config: anything with ``parameter_shapes()`` (a field's or a series field's config); a config with
+            ``stored_dtypes()`` says each tensor's dtype, else every tensor is float32.
+        dtype_names: safetensors name of each torch dtype (with ``stored_dtypes()``).
+    """
     expected = config.parameter_shapes()
     declared = {name: entry.shape for name, entry in header.tensors.items()}
     if declared != expected:
@@ -125,7 +132,12 @@ def _check_declared_tensors(header: Header, config: FieldConfig) -> None:
         detail = (f"missing {missing[:3]}" if missing else f"unexpected {extra[:3]}" if extra
                   else f"{wrong[0]} is {list(declared[wrong[0]])}, the config says {list(expected[wrong[0]])}")
         raise DescriptionError(f"stored tensors do not match the model config: {detail}")
-    if any(entry.dtype != "F32" for entry in header.tensors.values()):
+    if dtype_names is not None:
+        stored = {name: dtype_names[dtype] for name, dtype in config.stored_dtypes().items()}
+        wrong = sorted(name for name, entry in header.tensors.items() if entry.dtype != stored[name])
+        if wrong:
+            raise DescriptionError(f"{wrong[0]} is stored as {header.tensors[wrong[0]].dtype}, not {stored[wrong[0]]}")
+    elif any(entry.dtype != "F32" for entry in header.tensors.values()):
         raise DescriptionError("stored tensors are not float32")
 
 
@@ -150,7 +162,7 @@ def load_field(path: str | os.PathLike, device: torch.device | str = "cpu",
         raise ApmgsrnError(f"{path}: is a {header.kind or 'unknown'} file, not a single model; pass a model file")
     try:
         parsed = parse_field_description(header.description)
-        _check_declared_tensors(header, parsed.config)
+        check_declared_tensors(header, parsed.config)
     except (DescriptionError, ValueError, TypeError) as exc:
         raise inconsistent(path, exc) from None
     tensors = load_tensors(path)

@@ -21,6 +21,8 @@ from apmgsrn.io.container import PACKED_KIND, read_header
 from apmgsrn.io.description import ModelDescription
 from apmgsrn.io.field_file import FIELD_KIND, load_field
 from apmgsrn.io.packed import load_packed
+from apmgsrn.io.series_file import SERIES_KIND, load_series
+from apmgsrn.io.series_folder import SERIES_BRICKS_KIND, is_series_brick_folder, read_series_manifest
 
 
 @dataclass(frozen=True)
@@ -40,6 +42,7 @@ class LoadedModel:
 Loader = Callable[[Path, torch.device], tuple[nn.Module, ModelDescription]]
 _LOADERS: dict[str, Loader] = {
     FIELD_KIND: lambda path, device: load_field(path, device),
+    SERIES_KIND: lambda path, device: load_series(path, device),
     PACKED_KIND: lambda path, device: load_packed(path, device),
 }
 
@@ -50,18 +53,20 @@ def register_loader(kind: str, loader: Loader) -> None:
 
 
 def model_kind(path: str | os.PathLike) -> str | None:
-    """``"field"``, ``"bricks"`` (or another registered kind) for a model file or folder, else None.
+    """``"field"``, ``"series"``, ``"bricks"`` (or another registered kind) for a model file or folder, else None.
 
     Reads only a file's header or a folder's manifest, never tensors.
     """
     path = Path(path)
     try:
         if path.is_dir():
+            if is_series_brick_folder(path):
+                return SERIES_BRICKS_KIND if read_series_manifest(path) else None
             return BRICKS_KIND if is_brick_folder(path) and read_manifest(path) else None
         kind = read_header(path).kind
     except (ApmgsrnError, OSError):
         return None
-    return kind if kind in _LOADERS or kind == BRICKS_KIND else None
+    return kind if kind in _LOADERS or kind in (BRICKS_KIND, SERIES_BRICKS_KIND) else None
 
 
 def open_model(path: str | os.PathLike, device: torch.device | str = "cpu") -> LoadedModel:
@@ -76,15 +81,18 @@ def open_model(path: str | os.PathLike, device: torch.device | str = "cpu") -> L
     """
     path = Path(path)
     device = torch.device(device)
-    if path.is_dir() and not is_brick_folder(path):
+    if path.is_dir() and not is_brick_folder(path) and not is_series_brick_folder(path):
         raise ApmgsrnError(
             f"{path}: folder has no {MANIFEST_NAME}, so it is not a brick model; pass a model file or a "
             "folder written by a brick training run"
         )
-    kind = BRICKS_KIND if path.is_dir() else read_header(path).kind
+    if path.is_dir():
+        kind = SERIES_BRICKS_KIND if is_series_brick_folder(path) else BRICKS_KIND
+    else:
+        kind = read_header(path).kind
     loader = _LOADERS.get(kind)
     if loader is None:
-        if kind == BRICKS_KIND:
+        if kind in (BRICKS_KIND, SERIES_BRICKS_KIND):
             raise ApmgsrnError(f"{path}: brick models open through apmgsrn.load (import apmgsrn.decomposition)")
         raise ApmgsrnError(f"{path}: is a {kind or 'unknown'} file, not a model; pass a model file")
     field, description = loader(path, device)

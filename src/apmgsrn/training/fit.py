@@ -1,6 +1,7 @@
 """The fitting pipeline: prepare the values, build the field, train it, measure it, save it.
 
-Every fit goes through here: ``apmgsrn train`` (:func:`fit_volume`), each brick of a brick model
+Every fit goes through here: ``apmgsrn train`` (:func:`fit_volume`; :func:`fit_series` for a time series,
+one model for every step), each brick of a brick model
 (:mod:`apmgsrn.decomposition.brick_training`) and the replay behind the grid animation
 (:func:`train_prepared` with a callback). The steps take an array and plain metadata, not a volume
 object, so data that is not one volume (a time series) can be prepared its own way and fitted the same.
@@ -22,15 +23,18 @@ import numpy as np
 import torch
 
 from apmgsrn.data import Volume
-from apmgsrn.data.fingerprint import volume_fingerprint
+from apmgsrn.data.fingerprint import series_fingerprint, volume_fingerprint
+from apmgsrn.data.series import VolumeSeries
 from apmgsrn.device import keep_large_allocations_cached
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.inference.evaluate import Evaluation, evaluate
-from apmgsrn.io import SourceInfo, save_field
+from apmgsrn.inference.evaluate import Evaluation, SeriesEvaluation, evaluate, evaluate_series
+from apmgsrn.io import SeriesStepInfo, SourceInfo, save_field, save_series
 from apmgsrn.io.container import check_replaceable
 from apmgsrn.io.field_file import FIELD_KIND
+from apmgsrn.io.series_file import SERIES_KIND
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
+from apmgsrn.models.series_field import SeriesField, SeriesFieldConfig
 from apmgsrn.models.value_transform import ValueTransform, fit_value_transform
 from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.checkpoint import checkpoint_path_for
@@ -42,7 +46,8 @@ class PreparedValues:
     """Values ready for training, and what maps the network's output back to data units.
 
     Attributes:
-        values: ``[D, H, W]`` float32 in ``[0, 1]`` (fitted units scaled by their range), on the device.
+        values: ``[D, H, W]`` (a series: ``[T, D, H, W]``) float32 in ``[0, 1]`` (fitted units scaled by their
+            range), on the device.
         transform: the value transform, fitted on the data.
         fit_min, fit_max: value range in fitted units (after the transform).
         value_min, value_max: value range in data units.
@@ -67,7 +72,8 @@ def prepare_values(
     """Check, transform and scale values for training (``data`` itself is left as it is).
 
     Args:
-        data: ``[D, H, W]`` float32 values in data units.
+        data: ``[D, H, W]`` float32 values in data units (``[T, D, H, W]`` for a series: one transform and
+            one scaling for every step).
         transform: value transform kind (``none``, ``log10``, ``zscore``), fitted on ``data``.
         log_offset: offset for ``log10``.
         where: the data's file (and region), for error messages.
@@ -92,20 +98,20 @@ def prepare_values(
     scaled -= np.float32(fit_min)
     # A constant volume has no range: fit zeros, and the output scaling returns the constant exactly.
     scaled /= np.float32(span if span > 0 else 1.0)
-    values = torch.from_numpy(scaled).to(device)  # [D, H, W] in [0, 1]
+    values = torch.from_numpy(scaled).to(device)  # [D, H, W] (or [T, D, H, W]) in [0, 1]
     return PreparedValues(values, value_transform, fit_min, fit_max, value_min, value_max)
 
 
-def check_output(out: Path, resume: bool) -> None:
-    """Refuse, before any work, an output whose folder is missing, a file there that is not an older model,
-    or a leftover checkpoint that ``resume`` does not take.
+def check_output(out: Path, resume: bool, kind: str = FIELD_KIND) -> None:
+    """Refuse, before any work, an output whose folder is missing, a file there that is not an older model
+    of ``kind`` (``field`` or ``series``), or a leftover checkpoint that ``resume`` does not take.
 
     Raises:
         ApmgsrnError: the folder does not exist, ``out`` is a file a model may not replace, or an
             interrupted run's checkpoint is there.
     """
     out = Path(out)
-    check_replaceable(out, FIELD_KIND)
+    check_replaceable(out, kind)
     if not out.absolute().parent.is_dir():
         raise ApmgsrnError(f"{out}: output folder {out.parent} does not exist; create it or pass another out=",
                            arguments=("out",))
@@ -127,14 +133,14 @@ class TrainedField:
         resumed_from: iteration the run resumed at from a checkpoint (0: fresh).
     """
 
-    field: NeuralField
+    field: NeuralField | SeriesField
     state: TrainingState
     resumed_from: int
 
 
 def train_prepared(
     prepared: PreparedValues,
-    field_config: FieldConfig,
+    field_config: FieldConfig | SeriesFieldConfig,
     train_config: TrainConfig,
     volume_shape: tuple[int, int, int],
     checkpoint: Path | None = None,
@@ -144,10 +150,10 @@ def train_prepared(
     """Build a field (initialised from ``train_config.seed``) and train it on prepared values.
 
     Args:
-        prepared: the values and their scaling.
-        field_config: the model to build.
+        prepared: the values and their scaling (``[T, D, H, W]`` values for a series).
+        field_config: the model to build: a :class:`FieldConfig`, or a :class:`SeriesFieldConfig` for a series.
         train_config: how to train.
-        volume_shape: ``(D, H, W)`` of the data, saved with the field.
+        volume_shape: ``(D, H, W)`` of the data (of every step of a series), saved with the field.
         checkpoint: periodic training checkpoints go here; one already there is resumed (None: none).
         fingerprint: what a resumed checkpoint must match (data and model).
         callbacks: called around every iteration.
@@ -155,7 +161,8 @@ def train_prepared(
     device = prepared.values.device
     if device.type == "cpu":
         keep_large_allocations_cached()
-    field = NeuralField(
+    field_class = SeriesField if isinstance(field_config, SeriesFieldConfig) else NeuralField
+    field = field_class(
         field_config,
         fit_min=prepared.fit_min,
         fit_max=prepared.fit_max,
@@ -189,10 +196,10 @@ class FitResult:
         frozen_at: iteration where the grids stopped moving.
         stopped_early: training ended before the budget (early stop, or a constant volume).
         resumed_from: iteration the run resumed at (0: fresh).
-        evaluation: PSNR and largest error against the truth, data units.
+        evaluation: PSNR and largest error against the truth, data units (per step and overall for a series).
     """
 
-    field: NeuralField
+    field: NeuralField | SeriesField
     model_path: Path
     model_bytes: int
     seconds: float
@@ -200,7 +207,7 @@ class FitResult:
     frozen_at: int | None
     stopped_early: bool
     resumed_from: int
-    evaluation: Evaluation
+    evaluation: Evaluation | SeriesEvaluation
 
     @property
     def psnr(self) -> float:
@@ -214,7 +221,7 @@ class FitResult:
 def fit(
     prepared: PreparedValues,
     truth: np.ndarray,
-    field_config: FieldConfig,
+    field_config: FieldConfig | SeriesFieldConfig,
     train_config: TrainConfig,
     out: Path,
     source: SourceInfo,
@@ -223,6 +230,7 @@ def fit(
     callbacks: Sequence[TrainingCallback] = (),
     psnr_voxels: int | None = None,
     summary_extra: dict | None = None,
+    steps: Sequence[SeriesStepInfo] | None = None,
 ) -> FitResult:
     """Train a field on prepared values, measure it against the truth and save it to ``out``.
 
@@ -230,8 +238,9 @@ def fit(
 
     Args:
         prepared: the values and their scaling (:func:`prepare_values`).
-        truth: ``[D, H, W]`` the same values in data units, for the final PSNR and largest error.
-        field_config: the model to build.
+        truth: ``[D, H, W]`` the same values in data units, for the final PSNR and largest error;
+            ``[T, D, H, W]`` for a series.
+        field_config: the model to build (a :class:`SeriesFieldConfig` for a series).
         train_config: how to train.
         out: model file to write (atomically).
         source: description of the data, saved in the file.
@@ -240,13 +249,21 @@ def fit(
         callbacks: called around every iteration (e.g. :class:`~apmgsrn.training.callbacks.TrainingProgress`).
         psnr_voxels: measure on a regular subset of about this many voxels (None: every voxel).
         summary_extra: more entries of the training summary (e.g. the brick's box).
+        steps: a series: each step's number, name and value range, saved in the file.
     """
     out = Path(out)
-    check_output(out, resume)
+    series = isinstance(field_config, SeriesFieldConfig)
+    check_output(out, resume, SERIES_KIND if series else FIELD_KIND)
     checkpoint = checkpoint_path_for(out)
-    trained = train_prepared(prepared, field_config, train_config, tuple(truth.shape), checkpoint, fingerprint,
+    trained = train_prepared(prepared, field_config, train_config, tuple(truth.shape[-3:]), checkpoint, fingerprint,
                              callbacks)
-    evaluation = evaluate(trained.field, truth, max_voxels=psnr_voxels)
+    if series:
+        trained.field.round_to_storage()  # measure what the file will give back
+        evaluation = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
+        summary_extra = {"steps": [{"psnr": e.psnr, "max_abs_error": e.max_abs_error} for e in evaluation.steps],
+                         **(summary_extra or {})}
+    else:
+        evaluation = evaluate(trained.field, truth, max_voxels=psnr_voxels)
     state = trained.state
     summary = {
         "iterations": state.iteration,
@@ -263,7 +280,10 @@ def fit(
         "history": state.history,
         **(summary_extra or {}),
     }
-    save_field(out, trained.field, source, summary)
+    if series:
+        save_series(out, trained.field, source, summary, list(steps))
+    else:
+        save_field(out, trained.field, source, summary)
     if checkpoint.exists():
         checkpoint.unlink()
     return FitResult(
@@ -313,6 +333,51 @@ def fit_volume(
                    "transform": asdict(prepared.transform)}
     return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
                callbacks=[TrainingProgress(enabled=progress)])
+
+
+def fit_series(
+    series: VolumeSeries,
+    field_config: SeriesFieldConfig,
+    train_config: TrainConfig,
+    out: Path,
+    device: torch.device,
+    transform: str = "none",
+    log_offset: float = 0.0,
+    resume: bool = False,
+    progress: bool = True,
+) -> FitResult:
+    """Train one time-series model on every step of a series and save it to ``out`` (``train`` on a series).
+
+    The steps are read one at a time into one ``[T, D, H, W]`` array; the value transform and scaling are
+    fitted on all of them, so every step shares the decoder's output range.
+
+    Args:
+        series: the data.
+        field_config: the model to build; its series config must have ``len(series)`` steps.
+        train_config: how to train (the batch is split over ``steps_per_iteration`` steps).
+        out: model file to write (atomically).
+        device: training device.
+        transform: value transform (``none``, ``log10``, ``zscore``).
+        log_offset: offset for ``log10``.
+        resume: continue from ``out.ckpt`` if it exists.
+        progress: show training progress (see :mod:`apmgsrn.progress`).
+
+    Returns:
+        The result; its evaluation is a :class:`~apmgsrn.inference.evaluate.SeriesEvaluation`.
+    """
+    if field_config.series.steps != len(series):
+        raise ValueError(f"the model has {field_config.series.steps} steps, the series {len(series)}")
+    check_output(out, resume, SERIES_KIND)  # before reading what may be a large series
+    data = series.to_numpy()  # [T, D, H, W] float32, data units
+    prepared = prepare_values(data, transform, log_offset, series.describe(), device)
+    source = SourceInfo(series.step_name(0), series.variable, series.describe())
+    steps = [SeriesStepInfo(label, series.step_name(t), (float(data[t].min()), float(data[t].max())))
+             for t, label in enumerate(series.labels)]
+    # A resume must continue on the same steps: each file's real path and a hash of a sample of its values.
+    fingerprint = {"data": series_fingerprint(series), "field": field_config.to_dict(),
+                   "transform": asdict(prepared.transform)}
+    return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
+               callbacks=[TrainingProgress(enabled=progress)], steps=steps)
 
 
 def _last_finite(values: list[float]) -> float | None:

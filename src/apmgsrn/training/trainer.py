@@ -34,6 +34,9 @@ from apmgsrn.training.checkpoint import (
 )
 from apmgsrn.training.losses import feature_density_loss
 
+#: Weight of the newest loss in a series step's running loss.
+STEP_LOSS_WEIGHT = 0.3
+
 
 @dataclass(frozen=True)
 class TrainConfig:
@@ -69,6 +72,8 @@ class TrainConfig:
             (weights, gradients, optimiser and the output layer stay float32). ``"auto"``: bfloat16 on CPUs
             that multiply it natively (AVX512-BF16 or AMX), where it makes CPU training 20-25 % faster at the
             same PSNR (docs/benchmarks.md); float32 elsewhere. Evaluation always runs in float32.
+        steps_per_iteration: a time series only: the batch is split evenly over this many steps (every step is
+            visited once per round of ``T / steps_per_iteration`` iterations).
     """
 
     iterations: int = 2000
@@ -89,6 +94,7 @@ class TrainConfig:
     history_every: int | None = None
     stop_after_lr_cuts: int | None = None
     decoder_precision: str = "auto"
+    steps_per_iteration: int = 4
 
     def __post_init__(self) -> None:
         """Refuse every value the loop cannot run with (:class:`~apmgsrn.errors.InvalidArgument`)."""
@@ -104,6 +110,7 @@ class TrainConfig:
             object.__setattr__(self, "history_every", max(10, self.iterations // 500))
         if self.density_start is None:
             object.__setattr__(self, "density_start", max(1, round(0.05 * self.iterations)))
+        check_int("steps_per_iteration", self.steps_per_iteration, 1)
         check_int("density_start", self.density_start, 0)
         check_int("density_window", self.density_window, 1)
         check_number("density_tolerance", self.density_tolerance, 0.0, 1.0)
@@ -156,6 +163,19 @@ def default_budget(device: torch.device) -> tuple[int, int]:
     return 3_000, 32_768
 
 
+#: A time series trains for ``min(steps, SERIES_BUDGET_STEPS)`` times the budget of one volume.
+SERIES_BUDGET_STEPS = 4.5
+
+
+def series_budget(iterations: int, steps: int) -> int:
+    """Iterations of a time series of ``steps`` steps, given those of one volume.
+
+    Consecutive steps share most of what they hold, and every iteration trains the shared grids and decoder
+    on several steps at once, so the series needs far less than one budget per step.
+    """
+    return max(1, round(iterations * min(float(steps), SERIES_BUDGET_STEPS)))
+
+
 class TrainingInterrupted(Exception):
     """Raised after Ctrl-C once the checkpoint is safely written."""
 
@@ -190,11 +210,12 @@ class TrainingCallback:
 
 
 class Trainer:
-    """Fits a :class:`NeuralField` to a volume of values already scaled to ``[0, 1]``.
+    """Fits a :class:`NeuralField` to a volume (or a series field to a series) of values scaled to ``[0, 1]``.
 
     Args:
         field: the model (its ``fit_min``/``fit_max`` give the scaling to data units).
-        volume: ``[D, H, W]`` fitted values scaled to ``[0, 1]``, on the training device.
+        volume: ``[D, H, W]`` fitted values scaled to ``[0, 1]``, on the training device; ``[T, D, H, W]``
+            for a :class:`~apmgsrn.models.series_field.SeriesField` (one volume per step).
         config: how to train.
         checkpoint_path: where periodic training checkpoints go (None: no checkpoints).
         fingerprint: description of the run that a resumed checkpoint must match.
@@ -234,6 +255,8 @@ class Trainer:
         self.generator.manual_seed(config.seed)
         self.state = TrainingState()
         self._pending_density: list[torch.Tensor] = []
+        #: A series: each step's recent reconstruction loss ``[T]`` (for progress; NaN until it is drawn).
+        self.step_losses = torch.full((volume.shape[0],), math.nan, device=self.device) if volume.dim() == 4 else None
         if self.placement_optimizer is None:
             self.state.frozen_at = 0
         # Encoders that start from the data (hybrid: adaptive grids on the volume's detail) do it here, the
@@ -279,13 +302,27 @@ class Trainer:
         for group in self.network_optimizer.param_groups:
             group["lr"] = self.learning_rate(st.iteration) * group.get("lr_multiplier", 1.0)
         points = torch.rand(cfg.batch_size, 3, generator=self.generator, device=self.device) * 2 - 1
-        target = sample_volume(self.volume, points)  # [B]
 
         # Step 1: L_rec moves grids and decoder only (transform-detached coordinates).
-        prediction = self.field.normalized(points, detach_placement=True, hidden_dtype=self.hidden_dtype)
+        if self.volume.dim() == 3:
+            target = sample_volume(self.volume, points)  # [B]
+            prediction = self.field.normalized(points, detach_placement=True, hidden_dtype=self.hidden_dtype)
+        else:
+            # A series: the batch is cut into groups of equal size, each at one step.
+            steps = self.batch_steps(st.iteration)  # [G]
+            points = points[: len(steps) * (cfg.batch_size // len(steps))]
+            groups = points.view(len(steps), -1, 3)  # [G, n, 3]
+            target = torch.cat([sample_volume(self.volume[s], group) for s, group in zip(steps.tolist(), groups)])
+            prediction = self.field.normalized(points, steps, detach_placement=True, hidden_dtype=self.hidden_dtype)
         prediction = prediction.view(-1)  # [B]
         error = (prediction - target).square()  # [B]
         reconstruction = error.mean()
+        if self.step_losses is not None:
+            # Running per-step loss (stays on the device; the progress display reads it now and then).
+            group_losses = error.detach().view(len(steps), -1).mean(1)  # [G]
+            previous = self.step_losses[steps]
+            self.step_losses[steps] = torch.where(previous.isnan(), group_losses,
+                                                  torch.lerp(previous, group_losses, STEP_LOSS_WEIGHT))
         self.network_optimizer.zero_grad(set_to_none=True)
         reconstruction.backward()
         self.network_optimizer.step()
@@ -305,6 +342,24 @@ class Trainer:
             self.placement_optimizer.step()
             density_value = density_loss.detach()
         return StepLosses(reconstruction.detach(), density_value)
+
+    def batch_steps(self, iteration: int) -> torch.Tensor:
+        """Steps of a series that iteration ``iteration`` trains on: ``steps_per_iteration`` indices ``[G]``.
+
+        The steps are visited in rounds: each round is a random order of every step (seeded by the seed and
+        the round), cut into consecutive groups, so every step gets the same share of the budget. It is a
+        function of the iteration alone, so a resumed run draws exactly what the interrupted one would have.
+        """
+        total = self.volume.shape[0]
+        count = min(self.config.steps_per_iteration, total)
+        first = iteration * count
+        chosen = []
+        for position in range(first, first + count):
+            round_, index = divmod(position, total)
+            if not chosen or index == 0:
+                order = torch.randperm(total, generator=torch.Generator().manual_seed(self.config.seed * 7919 + round_))
+            chosen.append(int(order[index]))
+        return torch.tensor(chosen, device=self.device)
 
     def _update_freeze(self, density: torch.Tensor | None) -> None:
         """Early stop of grid motion: freeze once the windowed mean fails to fall by the tolerance.

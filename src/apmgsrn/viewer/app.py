@@ -25,6 +25,7 @@ from apmgsrn.viewer.layout import build_page
 from apmgsrn.viewer.page_state import PageState
 from apmgsrn.viewer.session import ViewerSession
 from apmgsrn.viewer.settings import ViewerConfig
+from apmgsrn.viewer.timeline import Timeline
 
 # Room for a message's framing beside an upload's text (file name, RPC name, msgpack headers).
 MESSAGE_MARGIN_BYTES = 64 * 1024
@@ -67,6 +68,7 @@ class ViewerApp:
         self.page = PageState(self.state, self.session, self.device)
         self.session.on_frame = self.page.on_frame
         self.session.on_message = self.page.on_message
+        self.timeline = Timeline(self.session)
         self.guard = ConnectionGuard(
             new_secret(),
             GuardConfig(message_bytes=message_bytes, loopback_only=is_loopback_name(config.host)),
@@ -180,6 +182,17 @@ class ViewerApp:
             if bool(overlay) != self.session.settings.overlay:
                 self._guard(self.session.set_overlay, bool(overlay))
 
+        @state.change("time_step")
+        def time_step_changed(time_step, **_):
+            source = self.session.source
+            if source is not None and source.series is not None and time_step is not None \
+                    and int(time_step) != source.step:
+                self._guard(self.timeline.request_step, time_step)
+
+        @state.change("time_playing")
+        def playing_changed(time_playing, **_):
+            self.timeline.playing = bool(time_playing)
+
         controller.on_server_ready.add(self._on_ready)
 
     def _guard(self, function, *args):
@@ -235,8 +248,17 @@ class ViewerApp:
         self.state.error_message = ""
         self.state.saved_message = f"added {len(keys)} colour map(s) from {name}"
 
+    async def _play(self) -> None:
+        """While playing, move to the next step whenever the shown one is rendered whole."""
+        while True:
+            await asyncio.sleep(0.1)
+            step = self.timeline.next_step()
+            if step is not None:
+                self._guard(self.timeline.request_step, step)
+
     def _on_ready(self, **_) -> None:
         self.page.loop = asyncio.get_event_loop()
+        self._player = self.page.loop.create_task(self._play())
         self.session.start()
         if self._first_entry is not None:
             self.state.source_name = self._first_entry

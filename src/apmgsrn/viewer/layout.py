@@ -59,6 +59,25 @@ def build_page(server, title: str, settings: RenderSettings):
                     hide_details=True,
                     id="apm-source-select",
                 )
+                with html.Div(v_show="time_steps > 1", classes="d-flex align-center mt-2", id="apm-time"):
+                    v.VBtn(
+                        "{{ time_playing ? 'pause' : 'play' }}",
+                        click="time_playing = !time_playing",
+                        variant="tonal",
+                        size="small",
+                        classes="mr-3",
+                        id="apm-time-play",
+                    )
+                    v.VSlider(
+                        v_model=("time_step", 0),
+                        min=0,
+                        max=("time_steps - 1",),
+                        step=1,
+                        hide_details=True,
+                        density="compact",
+                        id="apm-time-slider",
+                    )
+                html.Div("{{ time_label }}", v_show="time_steps > 1", classes="text-caption", id="apm-time-label")
                 # Files under PATH the listing left out (unreadable, foreign, hostile), with the reason.
                 with html.Details(v_if="skipped_count", classes="text-caption mt-1", id="apm-skipped"):
                     html.Summary("{{ skipped_count }} file(s) under the folder not listed")

@@ -53,10 +53,17 @@ class PageState:
             "batch_size": lambda value: _is_whole(value, BATCH_SIZE_LIMITS),
             "image_size": lambda value: _is_whole(value, IMAGE_SIZE_LIMITS),
             "overlay": lambda value: isinstance(value, bool),
+            "time_step": lambda value: _is_whole(value, (0, self._shown_steps() - 1)),
+            "time_playing": lambda value: isinstance(value, bool),
             # The messages are the server's; a page may only close them.
             "error_message": lambda text: text == "",
             "saved_message": lambda text: text == "",
         }
+
+    def _shown_steps(self) -> int:
+        """Time steps of the shown source (1 for anything but a time-series model)."""
+        source = self.session.source
+        return 1 if source is None else source.steps
 
     def accepts(self, key: str, value: object) -> bool:
         """Whether a page may set state ``key`` to ``value`` (see the module notes)."""
@@ -111,6 +118,10 @@ class PageState:
                 "status_message": "",
                 "saved_message": "",
                 "upload_limit": upload_limit,
+                "time_steps": 1,
+                "time_step": 0,
+                "time_playing": False,
+                "time_label": "",
                 "trame__title": title,
             }
         )
@@ -188,6 +199,8 @@ class PageState:
             self.push({"status_message": str(payload)})
         elif kind == "source" and isinstance(payload, RenderSource):
             self.push(self._source_state(payload))
+        elif kind == "step" and isinstance(payload, RenderSource):
+            self.push({**_time_state(payload), "source_description": f"{payload.name}: {payload.description}"})
 
     def _source_state(self, source: RenderSource) -> dict:
         low, high = self.session.settings.value_range
@@ -202,7 +215,15 @@ class PageState:
             "overlay_available": source.grid_boxes is not None or source.brick_boxes is not None,
             "error_message": "",
             "status_message": "rendering",
+            **_time_state(source),
         }
+
+
+def _time_state(source: RenderSource) -> dict:
+    """The time slider's state: steps, the one shown and its number (one step: the slider hides)."""
+    label = f"step {source.step} of {source.steps} (number {source.step_labels[source.step]:g})" \
+        if source.series is not None else ""
+    return {"time_steps": source.steps, "time_step": source.step, "time_label": label}
 
 
 def _is_whole(value: object, limits: tuple[int, int]) -> bool:

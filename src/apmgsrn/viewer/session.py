@@ -51,7 +51,8 @@ class ViewerSession:
     Every public method may be called from any thread; rendering happens in the worker's thread (or in
     the caller's through :meth:`step`, as tests do). Callbacks run in the worker's thread:
     ``on_frame(frame)`` for every image, ``on_message(kind, payload)`` with kind ``"source"`` (a
-    :class:`RenderSource` was opened), ``"status"`` (a line of text) or ``"error"`` (a message).
+    :class:`RenderSource` was opened), ``"step"`` (another step of a time-series model is shown), ``"status"``
+    (a line of text) or ``"error"`` (a message).
     """
 
     def __init__(
@@ -321,6 +322,18 @@ class ViewerSession:
             self.worker.adopt(source, renderer)
             self._changed()
         self.message("source", source)
+
+    def swap_source(self, current: RenderSource, source: RenderSource, renderer) -> bool:
+        """Show ``source`` (another step of the shown time-series model) with its prepared renderer, keeping the
+        view and settings. Returns False, changing nothing, when ``current`` is no longer what is shown."""
+        with self._lock:
+            if self._source is not current:
+                return False
+            self._source = source
+            self.worker.adopt(source, renderer)
+            self._changed()
+        self.message("step", source)
+        return True
 
     # ------------------------------------------------------------------------------------ for the worker
     def render_request(self) -> RenderRequest | None:

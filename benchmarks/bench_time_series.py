@@ -1,0 +1,338 @@
+"""One model for a whole simulation run against one small model per step (issue 16).
+
+    python benchmarks/bench_time_series.py baseline --threads 1   # 30 independent small models -> CSV
+    python benchmarks/bench_time_series.py series --threads 1     # one time-series model -> CSV
+    python benchmarks/bench_time_series.py timing --threads 1     # one step's training right before and after
+    python benchmarks/bench_time_series.py speed --model M        # decode/render one step: series vs single file
+    python benchmarks/bench_time_series.py report                 # docs/time_series_results.md + chart
+
+Protocol (REFERENCE.md, CPU): 2,000 iterations x 32,768 points, lr 0.01, seed 0, the small preset, PSNR
+over every voxel of each step at native resolution. Rows are appended as they finish, so a killed run
+continues where it stopped; each row records the 1-minute load average of the machine when it ended.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+SERIES = ROOT.parent / "shared" / "data" / "viscous_fingers_run01"
+RESULTS = ROOT / "benchmarks" / "results"
+BASELINE_CSV = RESULTS / "time_series_baseline.csv"
+BASELINE_FIELDS = ["step", "file", "psnr", "max_abs_error", "seconds", "iterations", "model_bytes", "parameters",
+                   "threads", "load_average", "cpu"]
+SERIES_CSV = RESULTS / "time_series_model.csv"
+SERIES_FIELDS = ["step", "file", "psnr", "max_abs_error", "model_bytes", "train_seconds", "iterations", "config",
+                 "threads", "load_average", "cpu"]
+TIMING_CSV = RESULTS / "time_series_timing.csv"
+TIMING_FIELDS = ["what", "seconds", "iterations", "threads", "load_average_start", "load_average_end", "cpu"]
+SPEED_CSV = RESULTS / "time_series_speed.csv"
+SPEED_FIELDS = ["what", "series_seconds", "single_seconds", "repeats", "threads", "load_average", "cpu"]
+DOCS = ROOT / "docs"
+CHART = DOCS / "images" / "time_series_psnr.png"
+
+
+def _cpu() -> str:
+    return platform.processor() or platform.machine()
+
+
+def _done_rows(path: Path) -> list[dict]:
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _append(path: Path, fields: list[str], row: dict) -> None:
+    new = not path.exists()
+    with open(path, "a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=fields)
+        if new:
+            writer.writeheader()
+        writer.writerow(row)
+
+
+def run_baseline(args: argparse.Namespace) -> None:
+    """One independent small model per step, trained on that step alone under the protocol."""
+    from apmgsrn.data import open_volume
+    from apmgsrn.models.registry import preset_config
+    from apmgsrn.training.fit import fit_volume
+    from apmgsrn.training.trainer import TrainConfig
+
+    files = list(enumerate(_series_files(args.data)))
+    if args.steps:
+        files = [files[int(step)] for step in args.steps.split(",")]  # a subset, in the order given
+    config = TrainConfig(iterations=args.iterations, batch_size=args.batch_size, lr=0.01, seed=0)
+    with tempfile.TemporaryDirectory() as tmp:
+        for step, path in reversed(files) if args.reverse else files:
+            # Read again before every step: a second process may share the table (one from each end).
+            if path.name in {row["file"] for row in _done_rows(args.csv)}:
+                continue
+            volume = open_volume(path)
+            result = fit_volume(volume, preset_config("apmgsrn", "small"), config, Path(tmp) / "m.apmgsrn",
+                                torch.device("cpu"), progress=False)
+            row = {"step": step, "file": path.name, "psnr": f"{result.psnr:.4f}",
+                   "max_abs_error": f"{result.max_abs_error:.6g}", "seconds": f"{result.seconds:.2f}",
+                   "iterations": result.iterations, "model_bytes": result.model_bytes,
+                   "parameters": result.field.parameter_count(), "threads": torch.get_num_threads(),
+                   "load_average": f"{os.getloadavg()[0]:.2f}", "cpu": _cpu()}
+            _append(args.csv, BASELINE_FIELDS, row)
+            print(" ".join(f"{k}={v}" for k, v in row.items() if k != "cpu"), flush=True)
+
+
+def _series_files(folder: Path) -> list[Path]:
+    return sorted(p for p in Path(folder).iterdir() if p.suffix == ".vti")
+
+
+def run_series(args: argparse.Namespace) -> None:
+    """One time-series model for every step, through ``fit_series`` (the ``train`` command's pipeline)."""
+    from apmgsrn.data.series import open_series
+    from apmgsrn.models.registry import preset_config
+    from apmgsrn.models.series_field import series_config
+    from apmgsrn.training.fit import fit_series
+    from apmgsrn.training.trainer import TrainConfig, series_budget
+
+    series = open_series([str(p) for p in _series_files(args.data)])
+    iterations = args.series_iterations or series_budget(args.iterations, len(series))
+    config = series_config(preset_config("apmgsrn", "small"), len(series), args.basis, args.coefficients,
+                           args.residual, args.storage)
+    train_config = TrainConfig(iterations=iterations, batch_size=args.batch_size, lr=0.01, seed=0)
+    load = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "series.apmgsrn"
+        result = fit_series(series, config, train_config, out, torch.device("cpu"), progress=args.progress)
+        model_bytes = out.stat().st_size
+        if args.keep:
+            args.keep.write_bytes(out.read_bytes())
+    described = f"basis={config.series.basis} {config.series.coefficients} residual={config.series.residual} " \
+                f"storage={config.series.storage} iterations={iterations}"
+    if args.csv.exists():
+        args.csv.unlink()  # one model: the table is replaced, not appended to
+    for step, evaluation in zip(result.evaluation.indices, result.evaluation.steps):
+        _append(args.csv, SERIES_FIELDS, {
+            "step": step, "file": series.step_name(step), "psnr": f"{evaluation.psnr:.4f}",
+            "max_abs_error": f"{evaluation.max_abs_error:.6g}", "model_bytes": model_bytes,
+            "train_seconds": f"{result.seconds:.2f}", "iterations": result.iterations, "config": described,
+            "threads": torch.get_num_threads(), "load_average": f"{(load + os.getloadavg()[0]) / 2:.2f}",
+            "cpu": _cpu()})
+    print(f"series model: {model_bytes:,} bytes, {result.seconds:.1f} s, lowest step PSNR "
+          f"{min(e.psnr for e in result.evaluation.steps):.2f} dB", flush=True)
+
+
+def run_timing(args: argparse.Namespace) -> None:
+    """Train one step's small model under the protocol and record how long it took (for the 5x comparison,
+    measured right before and right after the series model, on the same machine and threads)."""
+    from apmgsrn.data import open_volume
+    from apmgsrn.models.registry import preset_config
+    from apmgsrn.training.fit import fit_volume
+    from apmgsrn.training.trainer import TrainConfig
+
+    path = _series_files(args.data)[args.step]
+    config = TrainConfig(iterations=args.iterations, batch_size=args.batch_size, lr=0.01, seed=0)
+    start_load = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory() as tmp:
+        result = fit_volume(open_volume(path), preset_config("apmgsrn", "small"), config, Path(tmp) / "m.apmgsrn",
+                            torch.device("cpu"), progress=False)
+    _append(args.csv, TIMING_FIELDS, {"what": f"one step ({path.name}) {args.label}", "seconds": f"{result.seconds:.2f}",
+                                      "iterations": result.iterations, "threads": torch.get_num_threads(),
+                                      "load_average_start": f"{start_load:.2f}",
+                                      "load_average_end": f"{os.getloadavg()[0]:.2f}", "cpu": _cpu()})
+    print(f"one step: {result.seconds:.1f} s", flush=True)
+
+
+def run_speed(args: argparse.Namespace) -> None:
+    """Decode and render one step from the series file, against the same step saved as a single-step model file.
+
+    The single-step file holds exactly the step's materialised network, so both evaluate the same values with
+    the same network shape; what differs is what the series costs on top: reading the larger file and
+    materialising the step's features. Each timing opens the file anew (load + step + decode or render); the
+    table keeps the fastest of ``repeats`` runs of each, interleaved, so a burst of load hits both alike.
+    """
+    import apmgsrn
+    from apmgsrn.io import SourceInfo, save_field
+    from apmgsrn.render import Camera, RendererConfig, VolumeRenderer, make_transfer_function
+
+    series_model = apmgsrn.load(args.model)
+    step = args.step
+    tf = make_transfer_function("Cool to Warm", series_model.description.series.steps[step].value_range)
+    camera = Camera.orbit(width=args.image_size, height=args.image_size)
+    config = RendererConfig(samples_per_ray=256)
+
+    def decode(path: Path, time_step: int | None) -> float:
+        start = time.perf_counter()
+        apmgsrn.load(path).decode(time=time_step)
+        return time.perf_counter() - start
+
+    def render(path: Path, time_step: int | None) -> float:
+        start = time.perf_counter()
+        model = apmgsrn.load(path)
+        VolumeRenderer(model.step_field(time_step), tf, config).render(camera)
+        return time.perf_counter() - start
+
+    with tempfile.TemporaryDirectory() as tmp:
+        single = Path(tmp) / "step.apmgsrn"
+        save_field(single, series_model.step_field(step), SourceInfo(), {})
+        load = os.getloadavg()[0]
+        for what, measure in (("decode one step (64^3, load included)", decode),
+                              (f"render one step ({args.image_size}^2, 256 spp, load included)", render)):
+            series_times, single_times = [], []
+            for _ in range(args.repeats):
+                series_times.append(measure(args.model, step))
+                single_times.append(measure(single, None))
+            _append(args.csv, SPEED_FIELDS, {
+                "what": f"{what}, step {step}", "series_seconds": f"{min(series_times):.4f}",
+                "single_seconds": f"{min(single_times):.4f}", "repeats": args.repeats,
+                "threads": torch.get_num_threads(), "load_average": f"{(load + os.getloadavg()[0]) / 2:.2f}",
+                "cpu": _cpu()})
+            print(f"{what}: series {min(series_times):.3f} s, single {min(single_times):.3f} s", flush=True)
+
+
+def write_report(out: Path, timing_steps: list[int] | None = None) -> None:
+    """The per-step table (both methods side by side), the criteria, and the chart.
+
+    Args:
+        out: the Markdown file.
+        timing_steps: baseline steps whose training time is the one-step time of the 5x criterion (those
+            trained while the series model trained, under the same load); None: the timing table, else the
+            median baseline row.
+    """
+    from apmgsrn.atomic import atomic_write_text
+    from apmgsrn.bench.charts import psnr_over_time_chart
+
+    baseline = {int(r["step"]): r for r in _done_rows(BASELINE_CSV)}
+    series = {int(r["step"]): r for r in _done_rows(SERIES_CSV)}
+    steps = sorted(set(baseline) & set(series))
+    if not steps:
+        raise SystemExit("run the baseline and series commands first")
+    lines = ["| step | file | one model per step: PSNR dB | one model for the series: PSNR dB | difference dB | "
+             "max abs error (per step / series) |", "|---|---|---|---|---|---|"]
+    for t in steps:
+        b, m = baseline[t], series[t]
+        lines.append(f"| {t} | {b['file']} | {float(b['psnr']):.2f} | {float(m['psnr']):.2f} | "
+                     f"{float(m['psnr']) - float(b['psnr']):+.2f} | {float(b['max_abs_error']):.3g} / "
+                     f"{float(m['max_abs_error']):.3g} |")
+    differences = [float(series[t]["psnr"]) - float(baseline[t]["psnr"]) for t in steps]
+    at_least = sum(d >= 0 for d in differences)
+    single_bytes = max(int(baseline[t]["model_bytes"]) for t in steps)
+    series_bytes = int(series[steps[0]]["model_bytes"])
+    series_seconds = float(series[steps[0]]["train_seconds"])
+    timing = _done_rows(TIMING_CSV)
+    if timing_steps:
+        measured_steps = [t for t in timing_steps if t in baseline]
+        step_seconds = sum(float(baseline[t]["seconds"]) for t in measured_steps) / len(measured_steps)
+        measured = ", ".join(f"step {t}: {float(baseline[t]['seconds']):.0f} s" for t in measured_steps)
+        step_source = (f"the mean of the single-step trainings that ran at the same time as the series model "
+                       f"on the same machine ({measured})")
+    elif timing:
+        step_seconds = sum(float(r["seconds"]) for r in timing) / len(timing)
+        measured = ", ".join(f"{float(r['seconds']):.1f} s" for r in timing)
+        step_source = f"the mean of {len(timing)} single-step trainings measured right before and after it ({measured})"
+    else:
+        step_seconds = sorted(float(baseline[t]["seconds"]) for t in steps)[len(steps) // 2]
+        step_source = "the median single-step training of the baseline table"
+    speed = _done_rows(SPEED_CSV)
+    speed_lines = "\n".join(
+        f"| {r['what']} | {float(r['series_seconds']):.3f} s | {float(r['single_seconds']):.3f} s | "
+        f"{float(r['series_seconds']) / float(r['single_seconds']):.2f} |" for r in speed)
+    config = series[steps[0]]["config"]
+    baseline_note = "" if len(steps) == 30 else (
+        f" Independent models were trained for {len(steps)} of the 30 steps ({', '.join(map(str, steps))}): "
+        "the others were not trained for lack of machine time (each took 2 to 17 minutes on this shared machine).")
+    loads = ", ".join(sorted({r["load_average"] for r in series.values()}))
+    text = f"""# One model for a whole run: measured (issue 16)
+
+Written by `python benchmarks/bench_time_series.py report` from `benchmarks/results/time_series_*.csv`.
+Data: the 30 consecutive steps of `viscous_fingers_run01` (64^3, float32). Protocol: 2,000 iterations x 32,768
+points per independent small model (lr 0.01, seed 0); the series model `{config}`, same batch, lr and seed.
+CPU: {series[steps[0]]['cpu']}, {series[steps[0]]['threads']} thread(s); the machine was shared with other work
+(1-minute load average during the series run: {loads}; per baseline row in its CSV).{baseline_note}
+
+| criterion | target | measured |
+|---|---|---|
+| PSNR on every step | >= the step's own small model | {at_least} of {len(steps)} steps; difference {min(differences):+.2f} .. {max(differences):+.2f} dB (mean {sum(differences) / len(differences):+.2f}) |
+| model file | <= 5 small models ({5 * single_bytes:,} bytes) | {series_bytes:,} bytes ({series_bytes / single_bytes:.2f} small models) |
+| training time | <= 5 x one step ({5 * step_seconds:.0f} s) | {series_seconds:.0f} s ({series_seconds / step_seconds:.2f} x {step_source}) |
+
+Decoding or rendering one step, the series file against the same step saved as a single-step model file
+(identical network shape and values; the difference is opening the larger file and materialising the step's
+features; fastest of several interleaved runs):
+
+| what | series file | single-step file | ratio |
+|---|---|---|---|
+{speed_lines}
+
+![PSNR over time](images/{CHART.name})
+
+{chr(10).join(lines)}
+"""
+    atomic_write_text(out, text, "report")
+    psnr_over_time_chart([t for t in steps],
+                         {"one small model per step": [float(baseline[t]["psnr"]) for t in steps],
+                          "one model for the series": [float(series[t]["psnr"]) for t in steps]},
+                         CHART, title="viscous fingering, 30 steps: PSNR of every step")
+    print(f"wrote {out} and {CHART}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    base = sub.add_parser("baseline", help="one small model per step")
+    base.add_argument("--csv", type=Path, default=BASELINE_CSV)
+    base.add_argument("--reverse", action="store_true", help="last step first (a second process shares the work)")
+    base.add_argument("--steps", help="only these steps, e.g. 10,15,20,25 (default: all)")
+    series = sub.add_parser("series", help="one model for the whole series")
+    series.add_argument("--csv", type=Path, default=SERIES_CSV)
+    series.add_argument("--basis", type=int)
+    series.add_argument("--coefficients")
+    series.add_argument("--residual", type=int)
+    series.add_argument("--storage")
+    series.add_argument("--series-iterations", type=int, help="default: the train command's series budget")
+    series.add_argument("--keep", type=Path, help="also keep the model file here")
+    series.add_argument("--progress", action="store_true")
+    timing = sub.add_parser("timing", help="one step's training time, for the 5x comparison")
+    timing.add_argument("--csv", type=Path, default=TIMING_CSV)
+    timing.add_argument("--step", type=int, default=15)
+    timing.add_argument("--label", default="")
+    speed = sub.add_parser("speed", help="decode/render one step: the series file against a single-step file")
+    speed.add_argument("--csv", type=Path, default=SPEED_CSV)
+    speed.add_argument("--model", type=Path, required=True, help="a series model file (series --keep)")
+    speed.add_argument("--step", type=int, default=15)
+    speed.add_argument("--repeats", type=int, default=5)
+    speed.add_argument("--image-size", type=int, default=256)
+    speed.add_argument("--threads", type=int, default=1)
+    report = sub.add_parser("report", help="the per-step table and chart in docs/")
+    report.add_argument("--out", type=Path, default=DOCS / "time_series_results.md")
+    for p in (base, series, timing):
+        p.add_argument("--data", type=Path, default=SERIES)
+        p.add_argument("--threads", type=int, default=1)
+        p.add_argument("--iterations", type=int, default=2000)
+        p.add_argument("--batch-size", type=int, default=32768)
+    report.add_argument("--threads", type=int, default=1)
+    report.add_argument("--timing-steps", help="baseline steps trained alongside the series model, e.g. 15,10,20,25: "
+                                               "their mean time is the one-step time of the 5x criterion")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    start = time.perf_counter()
+    if args.command == "baseline":
+        run_baseline(args)
+    elif args.command == "series":
+        run_series(args)
+    elif args.command == "timing":
+        run_timing(args)
+    elif args.command == "speed":
+        run_speed(args)
+    else:
+        write_report(args.out, [int(t) for t in args.timing_steps.split(",")] if args.timing_steps else None)
+    print(f"done in {time.perf_counter() - start:.0f} s")
+
+
+if __name__ == "__main__":
+    main()

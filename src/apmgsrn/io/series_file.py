@@ -1,0 +1,179 @@
+"""The time-series model file: one network for every step of a series (kind ``series``).
+
+Layout (a :mod:`~apmgsrn.io.container` file): the tensors are the
+:class:`~apmgsrn.models.series_field.SeriesField`'s ``state_dict`` (the basis grids ``[K, M, C, D, H, W]``, the
+learned weights ``[T, M, C, K]`` unless they are keyframes, the shared grid maps and decoder); the description
+holds every entry of a single-field file (:func:`~apmgsrn.io.field_file.field_description`: the spatial
+field's config, the series' value scaling and transform, the shape of every step, source, training) plus
+``series`` (steps, basis size, kind of weights) and ``steps`` (per step: its number, file name and value range).
+
+As for single fields, the description is checked entry by entry and every declared tensor is compared with
+the shapes the configs imply before anything is allocated; non-finite weights are refused.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+
+from apmgsrn.errors import ApmgsrnError
+from apmgsrn.io.container import Header, load_tensors, read_header, save_tensors
+from apmgsrn.io.description import (
+    DescriptionError,
+    ModelDescription,
+    SeriesLayout,
+    SeriesStepInfo,
+    SourceInfo,
+    inconsistent,
+    optional_str,
+    require_dict,
+    require_int,
+    require_number,
+)
+from apmgsrn.io.field_file import check_declared_tensors, field_description, parse_field_description
+from apmgsrn.models.encoders.adaptive_multigrid import MAX_RESOLUTION
+from apmgsrn.models.series_field import SeriesConfig, SeriesField, SeriesFieldConfig
+from apmgsrn.models.series_options import COEFFICIENT_KINDS, MAX_BASIS, MAX_STEPS, STORAGE_KINDS
+
+#: The safetensors name of each dtype a series file stores.
+SAFETENSORS_DTYPES = {torch.float32: "F32", torch.float16: "F16"}
+
+SERIES_KIND = "series"
+
+
+def save_series(path: str | os.PathLike, field: SeriesField, source: SourceInfo, training: dict,
+                steps: list[SeriesStepInfo]) -> int:
+    """Save a time-series field, atomically.
+
+    Args:
+        path: the model file.
+        field: the trained series field.
+        source: where the data came from.
+        training: the training summary (JSON-able).
+        steps: one entry per step, in order.
+
+    Returns:
+        Bytes written.
+    """
+    if len(steps) != field.steps:
+        raise ValueError(f"{len(steps)} step entries for a series of {field.steps} steps")
+    description = field_description(field, source, training)
+    description["field"] = field.config.field.to_dict()  # the spatial field; the series part beside it
+    description["series"] = field.config.series.to_dict()
+    description["steps"] = [step.to_dict() for step in steps]
+    stored = field.config.stored_dtypes()
+    tensors = {name: tensor.to(stored[name]) for name, tensor in field.state_dict().items()}
+    return save_tensors(path, tensors, SERIES_KIND, description)
+
+
+def _series_config(value) -> SeriesConfig:
+    data = require_dict(value, "series")
+    if set(data) - {"steps", "basis", "coefficients", "residual", "storage", "mixing"}:
+        raise DescriptionError("series holds unknown entries")
+    coefficients, storage = data.get("coefficients"), data.get("storage", "float32")
+    if coefficients not in COEFFICIENT_KINDS:
+        raise DescriptionError("series.coefficients is not a known kind")
+    if storage not in STORAGE_KINDS:
+        raise DescriptionError("series.storage is not a known dtype")
+    return SeriesConfig(
+        steps=require_int(data.get("steps"), "series.steps", 1, MAX_STEPS),
+        basis=require_int(data.get("basis"), "series.basis", 1, MAX_BASIS),
+        coefficients=coefficients,
+        residual=require_int(data.get("residual", 0), "series.residual", 0, MAX_RESOLUTION),
+        storage=storage,
+        mixing=require_int(data.get("mixing", 1), "series.mixing", 1, MAX_RESOLUTION),
+    )
+
+
+def _step_entries(value, count: int) -> tuple[SeriesStepInfo, ...]:
+    if not isinstance(value, list) or len(value) != count:
+        raise DescriptionError(f"steps is not a list of {count} entries")
+    entries = []
+    for index, item in enumerate(value):
+        item = require_dict(item, f"steps[{index}]")
+        low = require_number(item.get("value_min"), f"steps[{index}].value_min")
+        high = require_number(item.get("value_max"), f"steps[{index}].value_max")
+        if low > high:
+            raise DescriptionError(f"steps[{index}] has min > max")
+        entries.append(SeriesStepInfo(
+            label=require_number(item.get("label"), f"steps[{index}].label"),
+            name=optional_str(item.get("name"), f"steps[{index}].name") or "",
+            value_range=(low, high),
+        ))
+    return tuple(entries)
+
+
+def declared_steps(path: str | os.PathLike) -> int:
+    """Number of steps a time-series model file declares, from its header alone (no tensor is read).
+
+    Raises:
+        ApmgsrnError: not a readable time-series model file.
+    """
+    header = read_header(path)
+    if header.kind != SERIES_KIND:
+        raise ApmgsrnError(f"{path}: is a {header.kind or 'unknown'} file, not a time-series model")
+    try:
+        return _series_config(header.description.get("series")).steps
+    except (DescriptionError, ValueError, TypeError) as exc:
+        raise inconsistent(path, exc) from None
+
+
+def load_series(path: str | os.PathLike, device: torch.device | str = "cpu",
+                header: Header | None = None) -> tuple[SeriesField, ModelDescription]:
+    """Load a time-series model file.
+
+    Args:
+        path: the file.
+        device: where to put the field.
+        header: its header if already read.
+
+    Returns:
+        The series field (eval mode) and its description (with :attr:`ModelDescription.series`).
+
+    Raises:
+        ApmgsrnError: unreadable, foreign, newer, inconsistent or hostile file.
+    """
+    path = Path(path)
+    header = header or read_header(path)
+    if header.kind != SERIES_KIND:
+        raise ApmgsrnError(f"{path}: is a {header.kind or 'unknown'} file, not a time-series model")
+    try:
+        parsed = parse_field_description(header.description)
+        config = SeriesFieldConfig(parsed.config, _series_config(header.description.get("series")))
+        steps = _step_entries(header.description.get("steps"), config.series.steps)
+        check_declared_tensors(header, config, SAFETENSORS_DTYPES)
+    except (DescriptionError, ValueError, TypeError) as exc:
+        raise inconsistent(path, exc) from None
+    tensors = {name: tensor.float() for name, tensor in load_tensors(path).items()}
+    try:
+        field = SeriesField(
+            config,
+            fit_min=parsed.fit_range[0],
+            fit_max=parsed.fit_range[1],
+            value_min=parsed.value_range[0],
+            value_max=parsed.value_range[1],
+            transform=parsed.transform,
+            volume_shape=parsed.volume_shape,
+        )
+        field.load_state_dict(tensors, strict=True)
+        problem = field.check_parameters()
+        if problem is not None:
+            raise DescriptionError(problem)
+    except (DescriptionError, ValueError, RuntimeError) as exc:
+        raise inconsistent(path, exc) from None
+    description = ModelDescription(
+        kind=SERIES_KIND,
+        config=parsed.config,
+        volume_shape=parsed.volume_shape,
+        value_range=parsed.value_range,
+        transform=parsed.transform.kind,
+        source=parsed.source,
+        training=parsed.training,
+        parameters=field.parameter_count(),
+        file_bytes=path.stat().st_size,
+        format_version=header.version,
+        series=SeriesLayout(config.series, steps),
+    )
+    return field.to(device).eval(), description

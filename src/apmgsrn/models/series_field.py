@@ -1,0 +1,386 @@
+"""A time-varying field: one network for T steps of a simulation run (SPEC section 10).
+
+The adaptive grids extend into time through a small basis. Every grid ``i`` holds ``K`` basis grids
+``B_ik`` (``[K, M, C, D, H, W]`` in all); the features of step ``t`` are the per-grid combination
+``F_i(t) = sum_k w_tik B_ik`` with weights ``w`` ``[T, M, C, K]``. The grid placement (``A_i``, ``t_i``) and
+the decoder are shared by every step. Two ways to set the weights:
+
+- ``"keyframes"``: fixed hat functions over ``K`` evenly spaced keyframes: the grids are 4-D and step ``t``
+  interpolates its two neighbouring keyframes linearly in time (the paper's future-work grids).
+- ``"learned"``: the weights are parameters (initialised to those hat functions), so every step and
+  every grid chooses its own mix of the basis; with ``K = T`` this is one small grid set per step.
+
+Step ``t`` of ``T`` sits at time coordinate ``-1 + 2 t / (T - 1)``, corner-aligned like space; between two
+steps the weights are interpolated linearly. Because a step's features are one ordinary ``[M, C, D, H, W]``
+grid set, :meth:`SeriesField.step_field` materialises them once into a plain
+:class:`~apmgsrn.models.field.NeuralField`: decoding or rendering a step costs what a single-step model costs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from apmgsrn.arguments import check_choice, check_int
+from apmgsrn.errors import InvalidArgument
+from apmgsrn.models.decoder import Decoder
+from apmgsrn.models.encoders.adaptive_multigrid import MAX_RESOLUTION, AdaptiveMultiGridConfig, AdaptiveMultiGridEncoder
+from apmgsrn.models.encoders.base import Encoder
+from apmgsrn.models.field import NeuralField
+from apmgsrn.models.registry import FieldConfig
+from apmgsrn.models.series_options import COEFFICIENT_KINDS, MAX_BASIS, MAX_STEPS, SERIES_DEFAULTS, STORAGE_KINDS
+from apmgsrn.models.value_transform import ValueTransform
+from apmgsrn.ops.multigrid import multigrid_features
+
+STORAGE_DTYPES = {"float32": torch.float32, "float16": torch.float16}
+#: The parameters stored in ``SeriesConfig.storage`` (the rest is float32).
+GRID_PARAMETERS = ("encoder.grids", "encoder.residuals", "encoder.coefficients")
+
+
+@dataclass(frozen=True)
+class SeriesConfig:
+    """How a field extends over the steps of a series.
+
+    Attributes:
+        steps: number of time steps ``T``.
+        basis: basis grids per grid ``K`` (at most ``T``; ``K = T`` gives every step its own grids).
+        coefficients: ``"learned"`` (per step, grid and channel), ``"keyframes"`` (fixed hat functions:
+            linear interpolation in time between ``K`` evenly spaced keyframes) or ``"cumulative"`` (the same
+            interpolation parametrised by what changes at each keyframe; residuals summed over the steps).
+        residual: resolution ``r`` of per-step residual grids ``[T, M, C, r, r, r]``, upsampled to the grids
+            and added (0: none).
+        storage: dtype the grids (and learned weights) are stored in (``"float32"`` or ``"float16"``).
+        mixing: learned weights only: an ``r^3`` lattice of weights over each grid (trilinear between its nodes),
+            so that each part of a grid mixes the basis its own way; 1: one weight per grid.
+    """
+
+    steps: int
+    basis: int = 4
+    coefficients: str = "learned"
+    residual: int = 0
+    storage: str = "float32"
+    mixing: int = 1
+
+    def __post_init__(self) -> None:
+        """Refuse sizes and kinds the model cannot be built with (:class:`~apmgsrn.errors.InvalidArgument`)."""
+        check_int("steps", self.steps, 1, MAX_STEPS)
+        check_int("basis", self.basis, 1, min(self.steps, MAX_BASIS))
+        check_choice("coefficients", self.coefficients, COEFFICIENT_KINDS)
+        check_choice("storage", self.storage, STORAGE_KINDS)
+        if self.basis == 1 and self.steps > 1 and self.coefficients == "keyframes":
+            raise InvalidArgument("basis=1: keyframes need at least 2 basis grids for a series of several steps",
+                                  arguments=("basis",))
+        if check_int("residual", self.residual, 0, MAX_RESOLUTION) == 1:
+            raise InvalidArgument(f"residual=1: must be 0 (none) or 2..{MAX_RESOLUTION}", arguments=("residual",))
+        if check_int("mixing", self.mixing, 1, MAX_RESOLUTION) > 1 and self.coefficients != "learned":
+            raise InvalidArgument(f"mixing={self.mixing}: a lattice of weights needs coefficients=learned",
+                                  arguments=("mixing", "coefficients"))
+
+    def to_dict(self) -> dict:
+        return {"steps": self.steps, "basis": self.basis, "coefficients": self.coefficients, "residual": self.residual,
+                "storage": self.storage, "mixing": self.mixing}
+
+
+@dataclass(frozen=True)
+class SeriesFieldConfig:
+    """What to build for a series: the spatial field (an ``apmgsrn`` model) and its extension in time."""
+
+    field: FieldConfig
+    series: SeriesConfig
+
+    def __post_init__(self) -> None:
+        if self.field.model != "apmgsrn":
+            raise ValueError(f"a time-series model extends adaptive grids (apmgsrn), not {self.field.model!r}")
+
+    def to_dict(self) -> dict:
+        return {"field": self.field.to_dict(), "series": self.series.to_dict()}
+
+    def parameter_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Shape of every stored parameter, named as in the field's ``state_dict``."""
+        shapes = self.field.parameter_shapes()
+        grids = shapes["encoder.grids"]
+        shapes["encoder.grids"] = (self.series.basis, *grids)  # [K, M, C, D, H, W]
+        m, c = grids[:2]
+        if self.series.coefficients == "learned":
+            lattice = (self.series.mixing,) * 3 if self.series.mixing > 1 else ()
+            shapes["encoder.coefficients"] = (self.series.steps, m, c, self.series.basis, *lattice)  # [T, M, C, K(, r^3)]
+        if self.series.residual:
+            shapes["encoder.residuals"] = (self.series.steps, m, c, *(self.series.residual,) * 3)  # [T, M, C, r, r, r]
+        return shapes
+
+    def stored_dtypes(self) -> dict[str, torch.dtype]:
+        """The dtype every parameter is stored in: the grids (basis and residuals) in ``series.storage``, the
+        rest (weights, maps, decoder) in float32."""
+        grids = STORAGE_DTYPES[self.series.storage]
+        return {name: grids if name in GRID_PARAMETERS else torch.float32 for name in self.parameter_shapes()}
+
+
+def series_config(field: FieldConfig, steps: int, basis: int | None = None, coefficients: str | None = None,
+                  residual: int | None = None, storage: str | None = None) -> SeriesFieldConfig:
+    """A series model's config: the spatial field extended over ``steps`` steps, defaults where None.
+
+    The basis never exceeds the steps (a short series gets one basis grid per step).
+
+    Raises:
+        ValueError: options out of range, or a field that is not an ``apmgsrn`` model.
+    """
+    chosen = {"basis": basis, "coefficients": coefficients, "residual": residual, "storage": storage}
+    options = {k: SERIES_DEFAULTS[k] if v is None else v for k, v in chosen.items()}
+    if basis is None:
+        options["basis"] = min(options["basis"], steps)
+    return SeriesFieldConfig(field, SeriesConfig(steps=steps, **options))
+
+
+def step_time(step: int | float, steps: int) -> float:
+    """Time coordinate of step ``step`` of ``steps``: ``-1 + 2 t / (T - 1)`` (0 for a single step)."""
+    return 0.0 if steps <= 1 else -1.0 + 2.0 * float(step) / (steps - 1)
+
+
+def time_position(time: float, steps: int) -> float:
+    """Fractional step index ``(time + 1) / 2 * (T - 1)`` of a time coordinate, clamped to the series."""
+    return min(max((float(time) + 1.0) * 0.5 * (steps - 1), 0.0), float(steps - 1))
+
+
+def keyframe_weights(steps: int, keyframes: int) -> torch.Tensor:
+    """Hat functions over evenly spaced keyframes: the linear-in-time interpolation weights ``[T, K]``.
+
+    Keyframe ``k`` sits at fractional step ``k (T - 1) / (K - 1)``; each row sums to 1 and has at most two
+    non-zero entries (the two keyframes around the step). With ``K = T`` it is the identity.
+    """
+    if keyframes == 1:
+        return torch.ones(steps, 1)
+    position = torch.arange(steps, dtype=torch.float64) * (keyframes - 1) / max(steps - 1, 1)  # [T] in keyframes
+    knots = torch.arange(keyframes, dtype=torch.float64)  # [K]
+    return (1.0 - (position[:, None] - knots[None, :]).abs()).clamp(min=0.0).float()  # [T, K]
+
+
+def cumulative(weights: torch.Tensor, dim: int) -> torch.Tensor:
+    """Sums from the end along ``dim``: entry ``k`` becomes the sum of entries ``k, k+1, ...``.
+
+    Applied to keyframe weights ``[T, K]`` it gives step ``t`` every keyframe increment up to it (1 for the
+    keyframes before, the interpolation weight for the next): the same interpolation, parametrised by what
+    changes at each keyframe. Applied to per-step residuals over ``T`` (dim 0) read the other way, step ``t``
+    holds the sum of the increments of steps ``0 .. t``.
+    """
+    if dim == 0:
+        return torch.cumsum(weights, dim=0)
+    return torch.flip(torch.cumsum(torch.flip(weights, (dim,)), dim), (dim,))
+
+
+class SeriesMultiGridEncoder(AdaptiveMultiGridEncoder):
+    """Adaptive grids whose features vary over the steps of a series (see the module docstring).
+
+    Parameters: ``grids`` ``[K, M, C, D, H, W]`` (the basis), ``coefficients`` ``[T, M, C, K]`` when learned
+    (a buffer of hat functions for keyframes), ``matrices`` ``[M, 3, 3]`` and ``translations`` ``[M, 3]``
+    shared by every step. Initialisation is the SPEC's (the basis grids like one grid set), the weights
+    start as the keyframe hat functions.
+    """
+
+    def __init__(self, config: AdaptiveMultiGridConfig, series: SeriesConfig, generator: torch.Generator | None = None):
+        Encoder.__init__(self)  # the parameters' shapes differ from a single grid set's
+        self.config = config
+        self.series = series
+        self.out_features = config.out_features
+        shapes = config.parameter_shapes()
+        self.grids = nn.Parameter(torch.empty((series.basis, *shapes["grids"])))  # [K, M, C, D, H, W]
+        self.matrices = nn.Parameter(torch.empty(shapes["matrices"]))
+        self.translations = nn.Parameter(torch.empty(shapes["translations"]))
+        self.reset_parameters(generator)
+        if series.residual:
+            # Zero: a step starts as its basis mix; the residual learns what the basis cannot share.
+            self.residuals = nn.Parameter(torch.zeros(series.steps, *shapes["grids"][:2], *(series.residual,) * 3))
+        weights = keyframe_weights(series.steps, series.basis)  # [T, K]
+        if series.coefficients == "cumulative":
+            weights = cumulative(weights, dim=1)
+        weights = weights[:, None, None, :].expand(series.steps, config.grids, config.features, series.basis)
+        if series.mixing > 1:  # the same weights at every node of the lattice
+            weights = weights[..., None, None, None].expand(*weights.shape, *(series.mixing,) * 3)
+        if series.coefficients == "learned":
+            self.coefficients = nn.Parameter(weights.clone())  # [T, M, C, K] or [T, M, C, K, r, r, r]
+        else:
+            self.register_buffer("coefficients", weights.clone(), persistent=False)
+
+    def _upsampled(self, lattices: torch.Tensor) -> torch.Tensor:
+        """Lattices at the grid resolution: ``[G, ..., r, r, r]`` -> ``[G, ..., D, H, W]`` (residuals, weights).
+
+        Trilinear and corner-aligned, like the grids themselves, so a lattice node sits where a grid node does.
+        """
+        lead = lattices.shape[:-3]
+        flat = lattices.reshape(lead[0], -1, *lattices.shape[-3:])  # [G, channels, r, r, r]
+        up = nn.functional.interpolate(flat, size=self.config.resolution, mode="trilinear", align_corners=True)
+        return up.view(*lead, *self.config.resolution)
+
+    def step_grids(self, steps: torch.Tensor) -> torch.Tensor:
+        """Feature grids of whole steps: ``steps`` ``[G]`` indices -> ``[G, M, C, D, H, W]``."""
+        weights = self.coefficients[steps]  # [G, M, C, K] or [G, M, C, K, r, r, r]
+        if self.series.mixing == 1:
+            grids = torch.einsum("gmck,kmcdhw->gmcdhw", weights, self.grids)
+        else:
+            # Every node mixes the basis with the weights of the lattice around it.
+            grids = (self._upsampled(weights) * self.grids.permute(1, 2, 0, 3, 4, 5)).sum(3)  # [G, M, C, D, H, W]
+        if self.series.residual:
+            residuals = cumulative(self.residuals, dim=0) if self.series.coefficients == "cumulative" else self.residuals
+            grids = grids + self._upsampled(residuals[steps])
+        return grids
+
+    def grids_at(self, position: float) -> torch.Tensor:
+        """Feature grids ``[M, C, D, H, W]`` at a fractional step index: the two steps around it, mixed linearly
+        (everything a step's grids are made of is linear in its weights and residuals)."""
+        low = min(int(position), self.series.steps - 1)
+        high = min(low + 1, self.series.steps - 1)
+        fraction = position - low
+        steps = torch.tensor([low, high] if fraction > 0 and high > low else [low], device=self.grids.device)
+        grids = self.step_grids(steps)  # [1 or 2, M, C, D, H, W]
+        return grids[0] if len(grids) == 1 else torch.lerp(grids[0], grids[1], fraction)
+
+    def forward(self, points: torch.Tensor, steps: torch.Tensor, detach_placement: bool = False) -> torch.Tensor:
+        """Features of groups of points, each group at one step.
+
+        Args:
+            points: ``[G * n, 3]`` global coordinates, group ``g`` in rows ``g n .. (g + 1) n``.
+            steps: ``[G]`` step index of each group.
+            detach_placement: as for :class:`AdaptiveMultiGridEncoder`.
+
+        Returns:
+            ``[G * n, M * C]`` features.
+        """
+        matrices, translations = self.matrices, self.translations
+        if detach_placement:
+            matrices, translations = matrices.detach(), translations.detach()
+        grids = self.step_grids(steps)  # [G, M, C, D, H, W]
+        groups = points.view(len(steps), -1, 3)  # [G, n, 3]
+        return torch.cat([
+            multigrid_features(group, matrices, translations, grid, backend=self.config.backend)
+            for group, grid in zip(groups, grids)
+        ])  # [G * n, M * C]
+
+    def feature_parameters(self) -> list[nn.Parameter]:
+        """The parameters the reconstruction loss moves."""
+        return [p for p in (self.grids, self.coefficients, getattr(self, "residuals", None)) if isinstance(p, nn.Parameter)]
+
+    def check_parameters(self) -> str | None:
+        """As for a single grid set, plus finite keyframe weights (a buffer, not among the parameters)."""
+        problem = super().check_parameters()
+        if problem is None and not bool(torch.isfinite(self.coefficients).all()):
+            problem = "basis weights hold NaN or Inf"
+        return problem
+
+
+class SeriesField(nn.Module):
+    """Maps points and a step to values: the field of every step of a series in one network.
+
+    ``forward`` takes ``[N, 4]`` points ``(x, y, z, t)`` with the time coordinate ``t`` in ``[-1, 1]``; the
+    trainer calls :meth:`normalized` with groups of points at whole steps; decoding and rendering use
+    :meth:`step_field` / :meth:`time_field`, which materialise one step as a plain
+    :class:`~apmgsrn.models.field.NeuralField`.
+
+    Attributes:
+        config: what was built.
+        fit_min, fit_max: value range of the whole series in fitted units (after the value transform).
+        value_min, value_max: value range of the whole series in data units.
+        volume_shape: ``(D, H, W)`` of every step.
+        transform: the value transform (one for the series).
+    """
+
+    def __init__(
+        self,
+        config: SeriesFieldConfig,
+        fit_min: float = 0.0,
+        fit_max: float = 1.0,
+        value_min: float | None = None,
+        value_max: float | None = None,
+        transform: ValueTransform = ValueTransform(),
+        volume_shape: tuple[int, int, int] = (0, 0, 0),
+        generator: torch.Generator | None = None,
+    ):
+        super().__init__()
+        self.config = config
+        self.encoder = SeriesMultiGridEncoder(config.field.encoder, config.series, generator=generator)
+        self.decoder = Decoder(self.encoder.out_features, config.field.decoder, generator=generator)
+        self.fit_min, self.fit_max = float(fit_min), float(fit_max)
+        self.value_min = float(fit_min if value_min is None else value_min)
+        self.value_max = float(fit_max if value_max is None else value_max)
+        self.transform = transform
+        self.volume_shape = tuple(int(s) for s in volume_shape)
+
+    @property
+    def steps(self) -> int:
+        """Number of time steps ``T``."""
+        return self.config.series.steps
+
+    def normalized(
+        self,
+        points: torch.Tensor,
+        steps: torch.Tensor,
+        detach_placement: bool = False,
+        hidden_dtype: torch.dtype | None = None,
+    ) -> torch.Tensor:
+        """Decoder output ``m(y)`` ``[G * n, 1]`` for groups of points at steps ``[G]`` (see the encoder)."""
+        return self.decoder(self.encoder(points, steps, detach_placement=detach_placement), hidden_dtype)
+
+    def _materialise(self, grids: torch.Tensor) -> NeuralField:
+        """A single-step field with these feature grids ``[M, C, D, H, W]`` and the shared maps and decoder."""
+        # Building the shell initialises weights it then overwrites; nn.Linear draws from the global random
+        # generator, so fork it: decoding a step must not change what a caller's seed gives.
+        with torch.random.fork_rng(devices=[]):
+            field = NeuralField(
+                self.config.field,
+                fit_min=self.fit_min,
+                fit_max=self.fit_max,
+                value_min=self.value_min,
+                value_max=self.value_max,
+                transform=self.transform,
+                volume_shape=self.volume_shape,
+                generator=torch.Generator(),
+            )
+        device = self.decoder[0].weight.device
+        with torch.no_grad():
+            field.encoder.grids.copy_(grids)
+            field.encoder.matrices.copy_(self.encoder.matrices)
+            field.encoder.translations.copy_(self.encoder.translations)
+            field.decoder.load_state_dict(self.decoder.state_dict())
+        return field.to(device).eval().requires_grad_(False)
+
+    def step_field(self, step: int) -> NeuralField:
+        """Step ``step`` (``0 .. T-1``) as a single-step field, its features materialised once.
+
+        Raises:
+            IndexError: ``step`` outside the series.
+        """
+        if not 0 <= int(step) < self.steps:
+            raise IndexError(f"step {step} is outside the series of {self.steps} steps")
+        with torch.no_grad():
+            return self._materialise(self.encoder.step_grids(torch.tensor([int(step)], device=self.decoder[0].weight.device))[0])
+
+    def time_field(self, time: float) -> NeuralField:
+        """The field at time coordinate ``time`` in ``[-1, 1]`` (between steps: grids interpolated linearly)."""
+        with torch.no_grad():
+            return self._materialise(self.encoder.grids_at(time_position(time, self.steps)))
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        """Values in data units ``[N, 1]`` at ``[N, 4]`` points ``(x, y, z, t)``, all in ``[-1, 1]``."""
+        if points.dim() != 2 or points.shape[1] != 4:
+            raise ValueError(f"a series field takes [N, 4] points (x, y, z, t), got {list(points.shape)}")
+        out = torch.empty(points.shape[0], 1, dtype=points.dtype, device=points.device)
+        times, inverse = torch.unique(points[:, 3], return_inverse=True)
+        for index, time in enumerate(times.tolist()):
+            rows = inverse == index
+            out[rows] = self.time_field(time)(points[rows, :3].contiguous())
+        return out
+
+    def parameter_count(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+    # The same checks as a single field's: they read only the encoder and the decoder.
+    check_parameters = NeuralField.check_parameters
+
+    @torch.no_grad()
+    def round_to_storage(self) -> None:
+        """Round the grids to the precision they are stored in (a no-op for float32), in place, so that what
+        is measured after training is what the model file gives back."""
+        stored = self.config.stored_dtypes()
+        for name, parameter in self.named_parameters():
+            if stored[name] != torch.float32:
+                parameter.copy_(parameter.to(stored[name]).to(parameter.dtype))

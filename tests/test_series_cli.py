@@ -1,0 +1,199 @@
+"""Every command on a time series, through the command line (issue 16): train on several files, eval per step
+and over the series, decode one step, every step to one file or one file each, render a step and an animation
+over time, info, resume after a kill. Real data: the four consecutive viscous-fingering steps of tests/data."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from safetensors.torch import load_file
+
+import apmgsrn
+from apmgsrn.cli.main import main
+from apmgsrn.data import open_volume
+from apmgsrn.data.series import open_series
+from apmgsrn.inference.decode import decode_array
+from apmgsrn.inference.evaluate import evaluate
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+FAST = ["--iterations", "150", "--batch-size", "2048", "--device", "cpu", "--resolution", "8", "--width", "32"]
+
+
+def run_json(capsys, argv):
+    assert main(argv) == 0
+    return json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def pattern(test_data) -> str:
+    return str(test_data / "viscous_fingers_run01" / "*.vti")
+
+
+@pytest.fixture(scope="module")
+def truth(pattern) -> np.ndarray:
+    return open_series(pattern).to_numpy()  # [4, 32, 32, 32]
+
+
+@pytest.fixture(scope="module")
+def series_model(tmp_path_factory, pattern):
+    out = tmp_path_factory.mktemp("series") / "series.apmgsrn"
+    assert main(["train", pattern, "--out", str(out), "--basis", "2", "--residual", "4", *FAST]) == 0
+    return out
+
+
+def test_train_on_a_glob_reports_every_step(pattern, tmp_path, capsys, truth):
+    out = tmp_path / "m.apmgsrn"
+    summary = run_json(capsys, ["train", pattern, "--out", str(out), "--json", *FAST])
+    assert summary["steps"] == 4 and [row["label"] for row in summary["per_step"]] == [30, 31, 32, 33]
+    model = apmgsrn.load(out)
+    assert model.description.kind == "series" and summary["model_bytes"] == out.stat().st_size
+    assert summary["raw_bytes"] == truth.nbytes
+    for row in summary["per_step"]:
+        assert row["psnr"] == pytest.approx(evaluate(model.field.step_field(row["step"]), truth[row["step"]]).psnr,
+                                            abs=1e-6)
+    assert summary["min_step_psnr"] == min(row["psnr"] for row in summary["per_step"])
+
+
+def test_eval_per_step_and_over_the_series(series_model, pattern, capsys, truth):
+    figures = run_json(capsys, ["eval", str(series_model), pattern, "--json"])
+    model = apmgsrn.load(series_model)
+    decoded = np.stack([decode_array(model.field.step_field(t), truth.shape[1:]) for t in range(4)])
+    errors = decoded.astype(np.float64) - truth
+    assert figures["mse"] == pytest.approx(float(np.mean(errors**2)), rel=1e-6)
+    assert figures["max_abs_error"] == pytest.approx(float(np.abs(errors).max()), rel=1e-6)
+    for t, row in enumerate(figures["per_step"]):
+        assert row["max_abs_error"] == pytest.approx(float(np.abs(errors[t]).max()), rel=1e-6)
+        assert row["mse"] == pytest.approx(float(np.mean(errors[t] ** 2)), rel=1e-6)
+    assert figures["steps"] == 4 and figures["raw_bytes"] == truth.nbytes
+    # The same series named another way: the list of files.
+    files = sorted(Path(pattern).parent.glob("*.vti"))
+    again = run_json(capsys, ["eval", str(series_model), *map(str, files), "--json"])
+    assert again["psnr"] == figures["psnr"]
+
+
+def test_eval_against_a_series_of_another_length_is_refused(series_model, pattern, capsys):
+    files = sorted(Path(pattern).parent.glob("*.vti"))[:3]
+    assert main(["eval", str(series_model), *map(str, files)]) == 2
+    err = capsys.readouterr().err
+    assert "holds 4 steps but the data names 3" in err and err.count("\n") == 1
+
+
+def test_decode_one_step_every_step_to_one_file_and_one_file_each(series_model, tmp_path, capsys):
+    model = apmgsrn.load(series_model)
+    expected = [decode_array(model.field.step_field(t), (32, 32, 32)) for t in range(4)]
+    assert main(["decode", str(series_model), "--time", "2", "--out", str(tmp_path / "two.npy")]) == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "two.npy"), expected[2])
+
+    assert main(["decode", str(series_model), "--time", "all", "--out", str(tmp_path / "all.nc")]) == 0
+    every = open_series(tmp_path / "all.nc", time=apmgsrn.data.series.parse_time("all"))
+    assert len(every) == 4
+    for t in range(4):
+        np.testing.assert_array_equal(every.read(t), expected[t])
+    import netCDF4
+
+    with netCDF4.Dataset(tmp_path / "all.nc") as dataset:
+        # The source's variable name, as decoding one volume writes it.
+        assert dataset[model.plan_decode(time=0).variable].dimensions == ("time", "z", "y", "x")
+        assert list(dataset["time"][:]) == [30, 31, 32, 33]
+
+    assert main(["decode", str(series_model), "--time", "1:4:2", "--out", str(tmp_path / "s{step}.npy")]) == 0
+    assert sorted(p.name for p in tmp_path.glob("s*.npy")) == ["s1.npy", "s3.npy"]
+    np.testing.assert_array_equal(np.load(tmp_path / "s3.npy"), expected[3])
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["decode", "{model}", "--out", "{tmp}/x.npy"], "holds 4 time steps; pass --time K"),
+    (["decode", "{model}", "--time", "4", "--out", "{tmp}/x.npy"], "--time 4 is outside the model's series of 4"),
+    (["decode", "{model}", "--time", "all", "--out", "{tmp}/x.vti"], "a VTK ImageData file holds one step"),
+    (["render", "{model}", "--time", "9", "--out", "{tmp}/x.png"], "step 9 is outside the series of 4"),
+    (["render", "{model}", "--time", "all", "--out", "{tmp}/x.png"], "must be a .gif or .mp4"),
+])
+def test_time_errors_exit_2_with_one_line(series_model, tmp_path, capsys, argv, message):
+    argv = [a.format(model=series_model, tmp=tmp_path) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
+
+
+def test_series_options_on_one_volume_and_time_on_a_single_model_are_refused(test_data, tmp_path, capsys):
+    volume = test_data / "neghip_64x64x64_uint8.raw"
+    assert main(["train", str(volume), "--out", str(tmp_path / "m.apmgsrn"), "--basis", "3", *FAST]) == 2
+    assert "--basis applies to a time series" in capsys.readouterr().err
+    assert main(["train", str(volume), "--out", str(tmp_path / "m.apmgsrn"), *FAST]) == 0
+    capsys.readouterr()
+    # A single model holds one time step: --time 0 is that step, anything else is refused.
+    assert main(["decode", str(tmp_path / "m.apmgsrn"), "--time", "1", "--out", str(tmp_path / "d.npy")]) == 2
+    assert "--time 1: the model holds one time step" in capsys.readouterr().err
+    assert main(["decode", str(tmp_path / "m.apmgsrn"), "--time", "all", "--out", str(tmp_path / "d.npy")]) == 2
+    assert "holds one volume; drop --time" in capsys.readouterr().err
+    assert main(["train", str(volume), "--time", "all", "--out", str(tmp_path / "n.apmgsrn"), *FAST]) == 2
+    assert "--time does not apply to raw files" in capsys.readouterr().err
+
+
+def test_render_a_step_and_an_animation_over_time(series_model, tmp_path, capsys):
+    common = ["--width", "40", "--height", "32", "--spp", "48", "--device", "cpu", "--json"]
+    one = run_json(capsys, ["render", str(series_model), "--time", "3", "--out", str(tmp_path / "t3.png"), *common])
+    assert one["step"] == 3
+    first = run_json(capsys, ["render", str(series_model), "--out", str(tmp_path / "t0.png"), *common])
+    assert first["step"] == 0
+    image3, image0 = np.asarray(Image.open(tmp_path / "t3.png")), np.asarray(Image.open(tmp_path / "t0.png"))
+    assert image3.shape == (32, 40, 3) and not np.array_equal(image3, image0)
+    movie = run_json(capsys, ["render", str(series_model), "--time", "all", "--out", str(tmp_path / "run.gif"),
+                              *common])
+    assert movie["frames"] == 4 and movie["steps"] == [0, 1, 2, 3]
+    with Image.open(tmp_path / "run.gif") as gif:
+        assert gif.n_frames == 4
+        gif.seek(3)
+        last = np.asarray(gif.convert("RGB"))
+    # The last frame is step 3 (GIF palettes round colours: compare loosely).
+    assert np.abs(last.astype(int) - image3.astype(int)).mean() < np.abs(last.astype(int) - image0.astype(int)).mean()
+
+
+def test_info_describes_the_time_axis(series_model, capsys):
+    info = run_json(capsys, ["info", str(series_model), "--json"])
+    series = info["series"]
+    assert series["steps"] == 4 and series["basis"] == 2 and series["residual"] == 4
+    assert [s["label"] for s in series["per_step"]] == [30, 31, 32, 33]
+    assert all(isinstance(s["psnr"], float) for s in series["per_step"])
+    # Compression counts every step the file holds: 4 steps of 32^3 float32 values.
+    assert info["compression_ratio_float32"] == pytest.approx(4 * 32**3 * 4 / info["file_bytes"])
+    assert main(["info", str(series_model)]) == 0
+    text = capsys.readouterr().out
+    assert "time        4 steps; 2 basis grids per grid" in text and "031_density_031_064_2.0.vti" in text
+
+
+def _train_command(pattern, out, *extra):
+    return [sys.executable, "-m", "apmgsrn", "train", pattern, "--out", str(out), "--iterations", "120",
+            "--batch-size", "1024", "--checkpoint-every", "20", "--device", "cpu", "--resolution", "8",
+            "--basis", "2", "--residual", "4", *extra]
+
+
+def test_resume_after_kill_reaches_the_same_series_model(pattern, tmp_path):
+    env = {**__import__("os").environ, "OMP_NUM_THREADS": "1"}
+    full = tmp_path / "full.apmgsrn"
+    subprocess.run(_train_command(pattern, full), check=True, capture_output=True, env=env)
+    out = tmp_path / "killed.apmgsrn"
+    checkpoint = Path(str(out) + ".ckpt")
+    process = subprocess.Popen(_train_command(pattern, out), stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    import time
+
+    deadline = time.time() + 300
+    while not checkpoint.exists():
+        assert process.poll() is None, process.stderr.read().decode()
+        assert time.time() < deadline
+        time.sleep(0.05)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    assert not out.exists()
+    subprocess.run(_train_command(pattern, out, "--resume"), check=True, capture_output=True, env=env)
+    a, b = load_file(str(full)), load_file(str(out))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert not checkpoint.exists()
