@@ -4,7 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from apmgsrn.data.hdf5 import HDF5Volume
+from apmgsrn.data.netcdf import open_netcdf
+from apmgsrn.data.numpy_file import NumpyVolume
+from apmgsrn.data.raw import RawVolume
 from apmgsrn.data.volume import Volume, parse_shape
+from apmgsrn.data.vtk_xml import VTKVolume
+from apmgsrn.data.zarr_store import ZarrVolume, is_zarr_directory
 from apmgsrn.errors import ApmgsrnError
 
 #: Suffixes per format, as listed to users.
@@ -70,8 +76,6 @@ def open_volume(
         _refuse(path, "files with their own header (only raw .raw/.bin files)", "dtype", dtype)
 
     if path.is_dir():
-        from apmgsrn.data.zarr_store import ZarrVolume, is_zarr_directory
-
         if suffix != ".zarr" and not is_zarr_directory(path):
             raise ApmgsrnError(
                 f"{path}: is a directory but not a Zarr store (no zarr.json, .zarray or .zgroup); "
@@ -82,34 +86,22 @@ def open_volume(
         raise ApmgsrnError(f"{path}: not a regular file; give a volume file: {supported_formats()}")
 
     if suffix in SUPPORTED_SUFFIXES["NetCDF"]:
-        from apmgsrn.data.netcdf import open_netcdf
-
         return open_netcdf(path, variable, time, fill_nonfinite)
     if suffix in SUPPORTED_SUFFIXES["HDF5"]:
-        from apmgsrn.data.hdf5 import HDF5Volume
-
         return HDF5Volume(path, variable, time, fill_nonfinite)
     if suffix in SUPPORTED_SUFFIXES["Zarr"]:
-        from apmgsrn.data.zarr_store import ZarrVolume
-
         return ZarrVolume(path, variable, time, fill_nonfinite)
     if suffix in SUPPORTED_SUFFIXES["raw"]:
-        from apmgsrn.data.raw import RawVolume
-
         _refuse(path, "raw files (they hold a single array)", "variable", variable)
         _refuse(path, "raw files (they have no time dimension)", "time", time)
         if isinstance(shape, str):
             shape = parse_shape(shape)
         return RawVolume(path, shape, dtype, fill_nonfinite)
     if suffix in SUPPORTED_SUFFIXES["NumPy"]:
-        from apmgsrn.data.numpy_file import NumpyVolume
-
         _refuse(path, ".npy files (they hold a single array)", "variable", variable)
         _refuse(path, ".npy files (they have no time dimension)", "time", time)
         return NumpyVolume(path, fill_nonfinite)
     if suffix in SUPPORTED_SUFFIXES["VTK XML"]:
-        from apmgsrn.data.vtk_xml import VTKVolume
-
         _refuse(path, "VTK XML files (they have no time dimension)", "time", time)
         return VTKVolume(path, variable, fill_nonfinite)
     raise ApmgsrnError(
