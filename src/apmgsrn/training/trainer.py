@@ -30,7 +30,13 @@ from apmgsrn.training.checkpoint import (
     optimizer_layout,
     state_from_json,
 )
+from apmgsrn.threads import ThreadGovernor
 from apmgsrn.training.losses import feature_density_loss
+
+#: ATen sums at most this many elements on one thread (its grain size) whatever the thread count; a larger
+#: batch is summed in per-thread parts, so its loss, and the density target built from it, would change
+#: with the number of threads.
+SERIAL_REDUCTION_ELEMENTS = 32768
 
 
 @dataclass(frozen=True)
@@ -177,6 +183,19 @@ class TrainingCallback:
         """The loop stopped: budget spent, early stop, Ctrl-C or an error."""
 
 
+class _GovernThreads(TrainingCallback):
+    """Runs the loop under the trainer's :class:`~apmgsrn.threads.ThreadGovernor`, one unit per step."""
+
+    def on_start(self, trainer: Trainer) -> None:
+        trainer.thread_governor.__enter__()
+
+    def after_step(self, trainer: Trainer, iteration: int, losses: StepLosses) -> None:
+        trainer.thread_governor.tick()
+
+    def on_end(self, trainer: Trainer) -> None:
+        trainer.thread_governor.__exit__(None, None, None)
+
+
 class Trainer:
     """Fits a :class:`NeuralField` to a volume of values already scaled to ``[0, 1]``.
 
@@ -216,12 +235,25 @@ class Trainer:
             else None
         )
         self.hidden_dtype = decoder_hidden_dtype(config.decoder_precision, self.device)
+        # CPU threads chosen by timing the steps, where that cannot change the numbers (exact resume).
+        self.thread_governor = ThreadGovernor(enabled=self.device.type == "cpu" and self._thread_invariant())
+        self.callbacks = (_GovernThreads(), *self.callbacks)
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(config.seed)
         self.state = TrainingState()
         self._pending_density: list[torch.Tensor] = []
         if self.transform_optimizer is None:
             self.state.frozen_at = 0
+
+    def _thread_invariant(self) -> bool:
+        """Whether a step gives the same numbers on any thread count up to the current one: a batch that
+        ATen reduces serially, float32 decoder products (MKL's are the same on 1 and 2 threads for these
+        shapes; oneDNN's bfloat16 ones are not known to be), and an encoder that says so."""
+        return (
+            self.config.batch_size <= SERIAL_REDUCTION_ELEMENTS
+            and self.hidden_dtype is None
+            and self.field.encoder.thread_invariant(torch.get_num_threads())
+        )
 
     # ----------------------------------------------------------------------------- schedule
     def learning_rate(self, iteration: int) -> float:

@@ -116,6 +116,12 @@ class AdaptiveMultiGridEncoder(Encoder):
         """Mean density over the domain ``[-1, 1]^3`` (volume 8) if every grid lay inside it."""
         return self.config.grids * feature_mass(power) / 8.0
 
+    def thread_invariant(self, threads: int) -> bool:
+        """Every kernel splits its work by point or by grid, never by thread, except the fused backward
+        with fewer grids than threads (per-thread partial gradients); the density backward sums fixed runs
+        of points in order."""
+        return self.config.grids >= threads
+
     def transform_parameters(self) -> list[nn.Parameter]:
         """The parameters the density loss moves."""
         return [self.matrices, self.translations]

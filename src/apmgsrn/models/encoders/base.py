@@ -24,6 +24,12 @@ class Encoder(nn.Module):
         """Corners ``[M, 8, 3]`` of placed grids in global coordinates, or None when nothing is placed."""
         return None
 
+    def thread_invariant(self, threads: int) -> bool:
+        """Whether forward and backward give the same numbers on any CPU thread count up to ``threads``
+        (the trainer then lets :class:`apmgsrn.threads.ThreadGovernor` change it mid-run). False unless an
+        encoder knows better."""
+        return False
+
     def check_parameters(self) -> str | None:
         """Why these parameters cannot be a trained model (NaN/Inf, ...), or None when they can."""
         for name, tensor in self.named_parameters():
