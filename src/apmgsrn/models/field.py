@@ -53,7 +53,14 @@ class NeuralField(nn.Module):
         """Decoder output ``m(y)`` ``[N, 1]`` (about ``[0, 1]``), the quantity the trainer fits.
 
         ``hidden_dtype``: see :meth:`~apmgsrn.models.decoder.Decoder.forward` (training only).
+        Without gradients, in float32, an encoder's fused inference kernel runs where it has one
+        (:meth:`~apmgsrn.models.encoders.base.Encoder.decoded`); ``backend="torch"`` in the encoder's
+        config keeps the reference.
         """
+        if hidden_dtype is None and not torch.is_grad_enabled():
+            fused = self.encoder.decoded(points, self.decoder.weights())  # [N] or None
+            if fused is not None:
+                return fused.view(-1, 1)
         return self.decoder(self.encoder(points, detach_transforms=detach_transforms), hidden_dtype)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:

@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from apmgsrn.models.encoders.base import Encoder
-from apmgsrn.ops.multigrid import feature_density, feature_mass, multigrid_features
+from apmgsrn.ops.multigrid import feature_density, feature_mass, multigrid_decoded, multigrid_features
 
 GRID_INITS = ("default", "large", "small")
 #: Sanity bounds of a config (a model file claiming more is refused before anything is allocated).
@@ -107,6 +107,11 @@ class AdaptiveMultiGridEncoder(Encoder):
         if detach_transforms:
             matrices, translations = matrices.detach(), translations.detach()
         return multigrid_features(points, matrices, translations, self.grids, backend=self.config.backend)
+
+    def decoded(self, points: torch.Tensor, weights: list[torch.Tensor]) -> torch.Tensor | None:
+        """Encoder and decoder in one pass on the CPU when no gradient is wanted (see
+        :func:`~apmgsrn.ops.multigrid.multigrid_decoded`); None elsewhere."""
+        return multigrid_decoded(points, self.matrices, self.translations, self.grids, weights, self.config.backend)
 
     def feature_density(self, points: torch.Tensor, power: int = 10) -> torch.Tensor:
         """Unnormalised feature density ``rho`` at ``points`` ``[N, 3]`` -> ``[N]`` (SPEC section 3)."""

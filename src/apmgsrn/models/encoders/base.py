@@ -30,6 +30,16 @@ class Encoder(nn.Module):
         encoder knows better."""
         return False
 
+    def decoded(self, points: torch.Tensor, weights: list[torch.Tensor]) -> torch.Tensor | None:
+        """``decoder(self(points))`` ``[N]`` by a fused inference kernel, or None where there is none (the
+        field then runs encoder and decoder itself).
+
+        Args:
+            points: ``[N, 3]``.
+            weights: the decoder's linear layers (see :meth:`apmgsrn.models.decoder.Decoder.weights`).
+        """
+        return None
+
     def check_parameters(self) -> str | None:
         """Why these parameters cannot be a trained model (NaN/Inf, ...), or None when they can."""
         for name, tensor in self.named_parameters():
