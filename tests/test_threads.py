@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import torch
@@ -139,3 +140,29 @@ def test_import_sets_a_short_openmp_spin_unless_the_user_chose_or_torch_came_fir
     assert _spin_count_in_fresh_process(f"import apmgsrn; {show}", GOMP_SPINCOUNT="77") == "77"
     assert _spin_count_in_fresh_process(f"import apmgsrn; {show}", OMP_WAIT_POLICY="active") == "None"
     assert _spin_count_in_fresh_process(f"import torch, apmgsrn; {show}") == "None"
+
+
+def test_inference_loops_on_the_cpu_try_thread_counts_and_restore_the_callers():
+    """query() (decode, eval) runs its batches under the process's inference governor."""
+    from apmgsrn.inference.query import query
+    from apmgsrn.threads import INFERENCE_THREADS, inference_governor
+
+    seen = []
+
+    class SlowField(torch.nn.Module):
+        def forward(self, points):
+            seen.append(torch.get_num_threads())
+            time.sleep(0.004)
+            return points[:, :1] * 2
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        points = torch.rand(100 * 64, 3)
+        values = query(SlowField(), points, batch_size=64)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(values, points[:, 0] * 2)
+    assert set(seen) == {1, 2} and INFERENCE_THREADS.history  # both timed, one chosen
+    assert not inference_governor("cuda").enabled

@@ -197,3 +197,19 @@ class ThreadGovernor:
         self._hold_until = now + self._hold
         self._set(choice)
         self._mark = None
+
+
+#: The governor of inference loops (decode, eval, render): one per process, so what it learns carries over
+#: from one slab, evaluation or frame to the next. Loops on a GPU use :data:`NO_GOVERNOR`.
+INFERENCE_THREADS = ThreadGovernor()
+#: A governor that does nothing (GPU loops).
+NO_GOVERNOR = ThreadGovernor(enabled=False)
+
+
+def inference_governor(device_type: str) -> ThreadGovernor:
+    """:data:`INFERENCE_THREADS` for a loop on the CPU, :data:`NO_GOVERNOR` elsewhere.
+
+    Args:
+        device_type: ``torch.device.type`` of the loop's tensors.
+    """
+    return INFERENCE_THREADS if device_type == "cpu" else NO_GOVERNOR

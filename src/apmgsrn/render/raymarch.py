@@ -29,6 +29,7 @@ from apmgsrn.render.field import Field, VolumeField, evaluate_field, field_devic
 from apmgsrn.render.images import as_uint8
 from apmgsrn.render.sampling import RaySamples, sample_offsets
 from apmgsrn.render.transfer_function import TransferFunction, TransferTable
+from apmgsrn.threads import inference_governor
 
 #: Most samples per ray across the box (a 2^16-voxel axis), and macro cells per axis (their value bounds
 #: take ``cells^3`` floats).
@@ -287,12 +288,14 @@ class VolumeRenderer:
         chunk = self.rays_per_chunk
         out = torch.empty((origins.shape[0], 3), dtype=torch.float32, device=self.device)
         stats = RenderStatistics()
-        with torch.inference_mode():
+        governor = inference_governor(self.device.type)  # CPU threads by timing the chunks (apmgsrn.threads)
+        with torch.inference_mode(), governor:
             for start in range(0, origins.shape[0], chunk):
                 end = start + chunk
                 colors, chunk_stats = self._march(origins[start:end], directions[start:end], ray_ids[start:end])
                 out[start:end] = colors
                 stats.add(chunk_stats)
+                governor.tick(chunk_stats.samples_in_box + chunk_stats.rays)
         return out, stats
 
     def _march(
