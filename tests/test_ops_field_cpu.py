@@ -127,3 +127,27 @@ def test_fused_kernel_runs_only_where_no_gradient_is_wanted_and_inputs_are_float
     trained_small.zero_grad(set_to_none=True)
     with torch.no_grad():
         assert multigrid_decoded(torch.empty(0, 3), *args, weights).shape == (0,)
+
+
+def test_bfloat16_inference_is_close_to_float32_and_auto_follows_the_cpu(test_data, monkeypatch):
+    """load(precision=...) on a real trained model: bfloat16 hidden layers agree with float32 to bfloat16's
+    precision; "auto" picks bfloat16 only on CPUs that multiply it natively."""
+    from apmgsrn import device
+    from apmgsrn.arguments import InvalidArgument
+
+    path = test_data / "reference_field.apmgsrn"
+    pts = points(5000, seed=11)
+    exact = apmgsrn.load(path, precision="float32")
+    low = apmgsrn.load(path, precision="bfloat16")
+    assert low.field.inference_dtype is torch.bfloat16 and exact.field.inference_dtype is None
+    with torch.no_grad():
+        a, b = exact(pts).view(-1), low(pts).view(-1)
+    value_range = exact.field.value_max - exact.field.value_min
+    error = (a - b).abs().max() / value_range
+    assert 0 < error < 0.02  # really rounded, and only to bfloat16's 8-bit mantissa
+    monkeypatch.setattr(device, "cpu_has_native_bfloat16", lambda: True)
+    assert apmgsrn.load(path).field.inference_dtype is torch.bfloat16
+    monkeypatch.setattr(device, "cpu_has_native_bfloat16", lambda: False)
+    assert apmgsrn.load(path).field.inference_dtype is None
+    with pytest.raises(InvalidArgument, match="precision"):
+        apmgsrn.load(path, precision="int4")

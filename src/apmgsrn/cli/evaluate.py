@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     from apmgsrn.inference.evaluate import evaluate
 
     device = resolve_device(args.device)
-    model = apmgsrn.load(args.model, device=device)
+    model = apmgsrn.load(args.model, device=device, precision="float32")  # PSNR in float32 (decode: auto)
     volume = open_data(args, args.data)
     result = evaluate(model.field, volume, trained_shape=model.description.volume_shape, progress=True,
                       batch_size=args.batch_size)

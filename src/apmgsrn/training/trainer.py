@@ -18,11 +18,13 @@ import torch
 
 from apmgsrn.arguments import MAX_BATCH_SIZE, check_choice, check_int, check_number, check_optional_int
 from apmgsrn.choices import DECODER_PRECISIONS, DENSITY_NORMALIZATIONS, LR_SCHEDULES
+from apmgsrn.device import inference_dtype
 from apmgsrn.errors import ApmgsrnError, InvalidArgument
 from apmgsrn.io.container import load_tensors, read_header, save_tensors
 from apmgsrn.io.description import DescriptionError
 from apmgsrn.models.field import NeuralField
 from apmgsrn.ops.trilinear import sample_volume
+from apmgsrn.threads import ThreadGovernor
 from apmgsrn.training.checkpoint import (
     CHECKPOINT_KIND,
     TrainingState,
@@ -30,7 +32,6 @@ from apmgsrn.training.checkpoint import (
     optimizer_layout,
     state_from_json,
 )
-from apmgsrn.threads import ThreadGovernor
 from apmgsrn.training.losses import feature_density_loss
 
 #: ATen sums at most this many elements on one thread (its grain size) whatever the thread count; a larger
@@ -124,25 +125,12 @@ class TrainConfig:
 
 
 def decoder_hidden_dtype(precision: str, device: torch.device) -> torch.dtype | None:
-    """The decoder's hidden-layer dtype for a :attr:`TrainConfig.decoder_precision` on ``device``."""
-    if precision == "bfloat16":
-        return torch.bfloat16
-    if precision == "auto" and device.type == "cpu" and _cpu_has_native_bfloat16():
-        return torch.bfloat16
-    return None
+    """The decoder's hidden-layer dtype for a :attr:`TrainConfig.decoder_precision` on ``device`` (the
+    rule of inference: :func:`apmgsrn.device.inference_dtype`)."""
+    return inference_dtype(precision, device)
 
 
 @functools.cache
-def _cpu_has_native_bfloat16() -> bool:
-    """Whether this CPU has bfloat16 dot-product instructions (elsewhere oneDNN emulates them, slowly)."""
-    try:
-        with open("/proc/cpuinfo") as cpuinfo:
-            flags = next((line.split() for line in cpuinfo if line.startswith("flags")), [])
-    except OSError:
-        return False
-    return "avx512_bf16" in flags or "amx_bf16" in flags
-
-
 def default_budget(device: torch.device) -> tuple[int, int]:
     """(iterations, batch size) sized for the device: minutes on a 2-core CPU, the paper's on a GPU."""
     if device.type == "cuda":
