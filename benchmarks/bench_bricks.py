@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from apmgsrn.api import load
 from apmgsrn.data import open_volume
 from apmgsrn.decomposition.coordinator import BrickProgress, train_bricks
 from apmgsrn.decomposition.executor import ExecutorConfig, open_job_queue
@@ -50,7 +51,6 @@ from apmgsrn.inference.query import query
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config
 from apmgsrn.ops.trilinear import voxel_coordinates
-from apmgsrn.training.checkpoint import load_model
 from apmgsrn.training.fit import fit_volume
 from apmgsrn.training.trainer import TrainConfig
 
@@ -171,15 +171,16 @@ def quality_section(args, device: torch.device, work: Path) -> list[str]:
             for workers in (args.workers if schedule == args.schedules[0] else [max(args.workers)]):
                 out = work / f"{name}_bricks_{schedule}_{workers}"
                 summary = run_bricks(volume, brick_field, train, out, workers, args.device_name)
-                model = load_model(out, device=device)
+                opened = load(out, device=device)
+                model = opened.field
                 result = evaluate(model, volume)
                 stops = sum(r.stopped_early for r in summary.trained)
                 label = f"{schedule}" + (" (stop after 3rd cut)" if schedule == "plateau" else "")
                 if workers == max(args.workers):
                     quality.append(f"| {name} | 2x2x2 bricks, {args.preset} each | {label} | {model.parameter_count():,} | "
-                                   f"{model.file_bytes:,} | {result.psnr:.2f} | {summary.seconds:.1f} |"
+                                   f"{opened.description.file_bytes:,} | {result.psnr:.2f} | {summary.seconds:.1f} |"
                                    + (f" ({stops} of 8 stopped early)" if stops else ""))
-                if schedule == args.schedules[0]:
+                if schedule == args.schedules[0] and not args.quality_only:
                     walls[workers] = summary.seconds
                     # The coordinator's high-water mark is only its own before this script evaluates
                     # anything in-process: the first run's figure is the coordinator's.
@@ -205,12 +206,14 @@ def quality_section(args, device: torch.device, work: Path) -> list[str]:
         quality.append(f"| {name} | one model {single_field.encoder.grids} x {single_field.encoder.resolution[0]}^3 "
                        f"| cosine | {single_parameters:,} | {single.model_bytes:,} | {single.psnr:.2f} | "
                        f"{single.seconds:.1f} |")
-        first = walls[min(walls)]
         for workers, wall in sorted(walls.items()):
+            first = walls[min(walls)]
             scaling.append(f"| {name} | {workers} | {wall:.1f} | {first / wall:.2f} |")
     iterations = f"{args.iterations} iterations x {args.batch_size} points per model"
-    lines += [f"### Bricks against one model ({iterations})", "", *quality, "",
-              "### Scaling (wall time of the 2x2x2 brick run)", "", *scaling, "",
+    lines += [f"### Bricks against one model ({iterations})", "", *quality, ""]
+    if args.quality_only:
+        return lines
+    lines += ["### Scaling (wall time of the 2x2x2 brick run)", "", *scaling, "",
               "### Peak memory", "", *memory, "",
               "### Seams: PSNR on brick-border voxels (within one voxel of a cut) and on the others", "", *seams, "",
               "### Evaluation speed (uniform random points, batches of 262,144)", "", *speed, ""]
@@ -283,6 +286,8 @@ def main() -> None:
     parser.add_argument("--schedules", nargs="+", default=["cosine", "plateau"],
                         help="brick learning-rate schedules; the first is used for scaling, memory and seams")
     parser.add_argument("--skip-quality", action="store_true")
+    parser.add_argument("--quality-only", action="store_true",
+                        help="only bricks against one model (no scaling, memory, seam or speed tables)")
     parser.add_argument("--memory", action="store_true", help="also train a raw volume larger than a worker's memory")
     parser.add_argument("--memory-factor", type=int, default=4, help="repeat RM 256^3 this many times per axis")
     parser.add_argument("--memory-limit", default="1GiB", help="Dask memory limit per worker for --memory")
@@ -298,6 +303,8 @@ def main() -> None:
         title = f"GPU: {torch.cuda.get_device_name(device)}"
     else:
         title = f"CPU: {os.cpu_count()} cores ({platform.processor() or platform.machine()})"
+    if args.quality_only:
+        title += ", bricks against one model"  # its own section: the full run's tables stay
     lines.append(f"Run: `python benchmarks/bench_bricks.py {' '.join(sys.argv[1:])}`; torch {torch.__version__}.")
     lines.append("")
     if not args.skip_quality:

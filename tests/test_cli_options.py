@@ -87,7 +87,8 @@ def test_choice_lists_are_the_librarys():
         "--transform": choices.VALUE_TRANSFORMS, "--lr-schedule": choices.LR_SCHEDULES,
         "--density-normalization": choices.DENSITY_NORMALIZATIONS,
         "--decoder-precision": choices.DECODER_PRECISIONS, "--preset-units": choices.PRESET_UNITS,
-        "--compressors": choices.COMPRESSORS,
+        "--compressors": choices.COMPRESSORS, "--region-units": choices.REGION_UNITS,
+        "--format": choices.EXPORT_FORMATS,
         "--vtk-coordinates": ("index", "normalized"),  # the grids command's own: no library list behind it
     }
     seen = set()
@@ -119,7 +120,7 @@ def test_translation_rewrites_only_the_arguments_an_error_names():
 #: Arguments of library configs that no command-line option sets (their errors reach Python callers only).
 LIBRARY_ONLY = {
     "betas", "density_window", "density_tolerance", "density_power", "final_lr_fraction", "history_every",
-    "stop_after_lr_cuts", "samples_per_cell", "table_size",
+    "stop_after_lr_cuts", "samples_per_cell", "table_size", "points",
 }
 CHECKS = {"check_int", "check_optional_int", "check_number", "check_choice"}
 
@@ -161,7 +162,7 @@ def test_library_errors_name_arguments_not_options():
     assert unmapped == set()
 
 
-@pytest.mark.parametrize("command", [["train"], ["decode"], ["render"], ["info"], ["bench", "quality"]])
+@pytest.mark.parametrize("command", [["train"], ["decode"], ["export"], ["render"], ["info"], ["bench", "quality"]])
 def test_help_says_what_an_output_may_replace(command, capsys):
     from apmgsrn.cli.main import main
 

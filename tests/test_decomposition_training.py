@@ -311,6 +311,13 @@ def test_constant_bricks_need_no_training_and_the_cli_handles_brick_models(test_
     import numpy as np
 
     assert np.load(decoded).shape == (32, 32, 88)
+    # The armour's uneven x coordinates: the whole model's in the manifest, each brick's own slice in its file.
+    whole_x = np.asarray(model.description.source.metadata.coordinates[2].values)
+    assert np.ptp(np.diff(whole_x)) > 0.01
+    entry = model.description.bricks.entries[1]
+    brick = apmgsrn.load(out / entry.file)
+    np.testing.assert_allclose(brick.description.source.metadata.axis(2).at(np.arange(entry.stop[2] - entry.start[2])),
+                               whole_x[entry.start[2]:entry.stop[2]])
     # The same command again trains nothing.
     assert main(args) == 0
     assert json.loads(capsys.readouterr().out)["trained"] == 0

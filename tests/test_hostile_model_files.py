@@ -179,3 +179,37 @@ def test_the_container_format_constants_are_what_files_carry(good_model):
         meta = json.loads(f.read(length))["__metadata__"]
     assert meta["format"] == FORMAT and int(meta["format_version"]) == FORMAT_VERSION and meta["kind"] == "field"
     assert "backend" not in json.loads(meta["description"])["field"]["encoder"]
+
+
+HOSTILE_SOURCES = {
+    "attributes not an object": ("attributes", ["units"]),
+    "an attribute of another type": ("attributes", {"units": {"nested": 1}}),
+    "a NaN attribute": ("attributes", {"scale": float("nan")}),
+    "too many attributes": ("attributes", {f"a{i}": i for i in range(300)}),
+    "two dimension names": ("dimensions", ["z", "y"]),
+    "coordinates of two axes": ("coordinates", [None, None]),
+    "a coordinate without a name": ("coordinates", [None, None, {"start": 0, "step": 1}]),
+    "an infinite step": ("coordinates", [None, None, {"name": "x", "start": 0, "step": float("inf")}]),
+    "uneven values of the wrong count": ("coordinates", [None, None, {"name": "x", "start": 0, "step": 1,
+                                                                       "values": [0, 1, 3]}]),
+    "a compression level of 12": ("compression", {"zlib": True, "complevel": 12, "shuffle": True}),
+}
+
+
+@pytest.mark.parametrize("case", sorted(HOSTILE_SOURCES))
+def test_malformed_source_metadata_is_refused(good_model, tmp_path, case, no_module_built):
+    key, value = HOSTILE_SOURCES[case]
+    # json.dumps writes NaN and Infinity as Python's reader takes them back: the checks must catch them.
+    hostile = rewrite(good_model, tmp_path / "h.apmgsrn", set_path(["source", key], value))
+    with pytest.raises(ApmgsrnError, match="model file is inconsistent"):
+        apmgsrn.load(hostile)
+
+
+def test_source_metadata_round_trips(good_model, tmp_path):
+    coordinates = [None, {"name": "lat", "start": 90.0, "step": -1.0, "attributes": {"units": "degrees_north"}},
+                   {"name": "x", "start": 0.0, "step": 0.5, "values": [0, 0.1, 0.3, 0.6, 1.0, 1.5, 2.1, 3.5]}]
+    path = rewrite(good_model, tmp_path / "m.apmgsrn", set_path(["source", "coordinates"], coordinates))
+    source = apmgsrn.load(path).description.source
+    assert source.metadata.coordinates[1].attributes == {"units": "degrees_north"}
+    assert source.metadata.coordinates[2].values[-1] == 3.5 and source.metadata.coordinates[0] is None
+    assert SourceInfo.from_dict(source.to_dict()) == source

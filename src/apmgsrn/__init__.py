@@ -11,13 +11,22 @@ from apmgsrn.threads import set_openmp_wait_policy
 set_openmp_wait_policy()
 
 __version__ = "0.1.0"
-__all__ = ["ApmgsrnError", "Model", "load", "__version__"]
+__all__ = ["ApmgsrnError", "Model", "Region", "fit", "load", "render", "__version__"]
+
+#: Names resolved on first use: torch comes with them, not with `import apmgsrn` (the CLI's start-up path).
+_LAZY = {"Model": "apmgsrn.api", "fit": "apmgsrn.api", "load": "apmgsrn.api", "Region": "apmgsrn.data.grid"}
 
 
 def __getattr__(name: str):
-    # torch is imported on first use of the API, not by `import apmgsrn` (the CLI's start-up path).
-    if name in ("Model", "load"):
-        from apmgsrn import api
+    import importlib
 
-        return getattr(api, name)
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    if name == "render":
+        # The subpackage apmgsrn.render, which is callable: apmgsrn.render(model, ...) renders (api.render).
+        return importlib.import_module("apmgsrn.render")
     raise AttributeError(f"module 'apmgsrn' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

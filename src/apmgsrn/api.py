@@ -1,34 +1,76 @@
-"""The public Python API: open a model file as a module that knows what it is."""
+"""The public Python API: fit a volume, open a model file, query, decode, save, render and export it.
+
+Made for notebooks: numpy in, numpy (or an xarray DataArray) out, device names as strings, no output path
+needed to fit, progress through ``tqdm.auto`` inside Jupyter (:mod:`apmgsrn.progress`)::
+
+    model = apmgsrn.fit(volume, preset="small")          # a numpy array, an xarray DataArray or a file
+    values = model.predict(points)                        # [N, 3] in [-1, 1]^3 -> [N]
+    decoded = model.decode(shape=(64, 64, 64))            # xarray.DataArray (numpy without xarray)
+"""
 
 from __future__ import annotations
 
 import os
+import tempfile
+from dataclasses import fields as dataclass_fields
+from pathlib import Path
+from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
 
 import apmgsrn.decomposition.brick_model  # noqa: F401 - registers the brick-model loader
-from apmgsrn.device import inference_dtype
-from apmgsrn.io import ModelDescription, open_model
+from apmgsrn.data import ArrayVolume, Volume, open_volume
+from apmgsrn.data.grid import AxisCoordinates, Region, VolumeMetadata, plain_attributes
+from apmgsrn.device import inference_dtype, resolve_device
+from apmgsrn.errors import ApmgsrnError
+from apmgsrn.export import export_onnx
+from apmgsrn.inference.decode import decode_array, decode_volume
+from apmgsrn.inference.query import query
+from apmgsrn.inference.slabs import QUERY_BATCH
+from apmgsrn.io import ModelDescription, SourceInfo, open_model, save_field
+from apmgsrn.io.container import check_replaceable
+from apmgsrn.io.decode_plan import DecodePlan, plan_decode
+from apmgsrn.io.field_file import FIELD_KIND
 from apmgsrn.models.field import NeuralField
+from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
+from apmgsrn.render import Camera, RendererConfig, VolumeRenderer, extent_from_shape, make_transfer_function
+from apmgsrn.render.images import as_uint8
+from apmgsrn.render.raymarch import default_batch_size
+from apmgsrn.training.callbacks import TrainingProgress
+from apmgsrn.training.fit import fit as fit_prepared
+from apmgsrn.training.fit import prepare_values
+from apmgsrn.training.trainer import TrainConfig, default_budget
 
 
 class Model(nn.Module):
     """A model opened from a file: ``model(points)`` maps ``[N, 3]`` points in ``[-1, 1]^3`` to ``[N, 1]``
     values in data units.
 
+    Points are ``(x, y, z)``; voxel ``i`` of an axis with ``n`` voxels sits at ``-1 + 2 i / (n - 1)``.
+
     Attributes:
         field: the network (a single field or a routed brick model).
         description: what its file says (volume shape, value range, source, training summary, bricks...).
+        path: the file or folder it was opened from (None for a model fitted in memory).
     """
 
-    def __init__(self, field: nn.Module, description: ModelDescription):
+    def __init__(self, field: nn.Module, description: ModelDescription, path: str | os.PathLike | None = None):
         super().__init__()
         self.field = field
         self.description = description
+        self.path = None if path is None else Path(path)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         return self.field(points)
+
+    @property
+    def device(self) -> torch.device:
+        """Where the network evaluates."""
+        for parameter in self.parameters():
+            return parameter.device
+        return torch.device("cpu")
 
     def set_precision(self, precision: str) -> Model:
         """Choose the arithmetic of inference (decode, eval, render); training is not affected.
@@ -45,12 +87,114 @@ class Model(nn.Module):
         Raises:
             InvalidArgument: an unknown precision.
         """
-        device = next((p.device for p in self.parameters()), torch.device("cpu"))
-        dtype = inference_dtype(precision, device)
+        dtype = inference_dtype(precision, self.device)
         for module in self.modules():
             if isinstance(module, NeuralField):
                 module.inference_dtype = dtype
         return self
+
+    def predict(self, points, batch_size: int = QUERY_BATCH) -> np.ndarray:
+        """Values at points, without gradients, in bounded-memory batches.
+
+        Args:
+            points: ``[..., 3]`` ``(x, y, z)`` in ``[-1, 1]^3`` (numpy, a list or a tensor).
+            batch_size: points per forward pass.
+
+        Returns:
+            float32 numpy array ``[...]`` of values in data units.
+
+        Raises:
+            ApmgsrnError: ``points`` is not ``[..., 3]`` numbers.
+        """
+        array = points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else np.asarray(points)
+        if array.ndim < 1 or array.shape[-1] != 3 or array.dtype.kind not in "uif":
+            raise ApmgsrnError(f"points of shape {array.shape} ({array.dtype}): give [..., 3] numbers (x, y, z) "
+                               "in [-1, 1]", arguments=("points",))
+        flat = torch.from_numpy(np.ascontiguousarray(array.reshape(-1, 3), dtype=np.float32))  # [N, 3]
+        return query(self.field, flat, batch_size).numpy().reshape(array.shape[:-1])
+
+    def plan_decode(self, shape: tuple[int, int, int] | None = None, region: Region | str | dict | None = None,
+                    time: int | None = None, region_units: str = "index") -> DecodePlan:
+        """What :meth:`decode` samples and writes (lattice, names, coordinates), without evaluating anything.
+
+        Args: as :meth:`decode`.
+        """
+        return plan_decode(self.description, _shape(shape), _region(region, region_units), time)
+
+    def decode(self, shape: tuple[int, int, int] | None = None, region: Region | str | dict | None = None,
+               time: int | None = None, region_units: str = "index", batch_size: int = QUERY_BATCH) -> Any:
+        """The model sampled on a lattice, with the names, attributes and coordinates of its source.
+
+        Args:
+            shape: ``(D, H, W)`` samples in array order (z, y, x), as the returned array's shape (default: the
+                training volume's voxel spacing over the region).
+            region: a box of the training volume: a :class:`~apmgsrn.data.grid.Region`, a text
+                ``"X0:X1,Y0:Y1,Z0:Z1"`` or a dict ``{"x": (start, stop), ...}`` (default: the whole volume).
+            time: the time step (default: the first).
+            region_units: ``"index"`` (half-open voxel indices) or ``"coordinates"`` (a closed box in the
+                source's coordinates) for a text or dict region.
+            batch_size: points per forward pass.
+
+        Returns:
+            An ``xarray.DataArray`` ``[D, H, W]`` named after the source's variable, with its attributes, its
+            dimension names and a coordinate per axis (the source's coordinates at the samples; voxel indices of
+            the training volume where it had none); a float32 numpy array when xarray is not installed.
+
+        Raises:
+            ApmgsrnError: a region outside the volume, a bad shape or time step.
+        """
+        plan = self.plan_decode(shape, region, time, region_units)
+        values = decode_array(self.field, plan.shape, batch_size=batch_size, box=plan.grid.box())  # [D, H, W]
+        try:
+            import xarray
+        except ImportError:
+            return values
+        coordinates = {axis.name: (axis.name, axis.values, axis.attributes) for axis in plan.axes}
+        return xarray.DataArray(values, dims=tuple(axis.name for axis in plan.axes), coords=coordinates,
+                                name=plan.variable, attrs=plan.variable_attributes)
+
+    def save_decoded(self, out: str | os.PathLike, shape: tuple[int, int, int] | None = None,
+                     region: Region | str | dict | None = None, time: int | None = None,
+                     region_units: str = "index", batch_size: int = QUERY_BATCH, progress: bool = False) -> DecodePlan:
+        """Decode to a file (``.nc``, ``.vti``, ``.raw``, ``.npy``), slab by slab, written atomically.
+
+        Args:
+            out: the volume file.
+            shape, region, time, region_units, batch_size: as :meth:`decode`.
+            progress: show progress.
+
+        Returns:
+            The plan that was written (shape, variable, coordinates).
+        """
+        plan = self.plan_decode(shape, region, time, region_units)
+        options = plan.writer_options()
+        if self.path is not None:
+            options["attributes"] = {"source_model": self.path.name}
+        decode_volume(self.field, Path(out), plan.shape, batch_size=batch_size, progress=progress,
+                      box=plan.grid.box(), **options)
+        return plan
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the model to a ``.apmgsrn`` file, atomically (an older model there is replaced; any other
+        file is refused).
+
+        Raises:
+            ApmgsrnError: a brick model (a folder: copy it), or a file there that is not an apmgsrn model.
+        """
+        if self.description.kind != FIELD_KIND:
+            raise ApmgsrnError(f"{path}: a {self.description.kind} model is a folder written by brick training; "
+                               "copy the folder instead of saving it")
+        path = Path(path)
+        check_replaceable(path, FIELD_KIND)
+        save_field(path, self.field, self.description.source, self.description.training)
+        return path
+
+    def export_onnx(self, path: str | os.PathLike) -> Path:
+        """Write the network as an ONNX graph (input ``points`` ``[N, 3]``, output ``values`` ``[N, 1]``).
+
+        See :func:`apmgsrn.export.export_onnx`.
+        """
+        return export_onnx(self.field, path)
 
 
 def load(path: str | os.PathLike, device: torch.device | str = "cpu", precision: str = "auto") -> Model:
@@ -58,12 +202,208 @@ def load(path: str | os.PathLike, device: torch.device | str = "cpu", precision:
 
     Args:
         path: the ``.apmgsrn`` file or brick-model folder.
-        device: where to put the network.
+        device: where to put the network: ``"cpu"``, ``"cuda"``, ``"cuda:1"``, ``"auto"`` or a torch device.
         precision: arithmetic of inference, see :meth:`Model.set_precision` (``"auto"``: bfloat16 on CPUs
             with native bfloat16, float32 elsewhere).
 
     Raises:
-        ApmgsrnError: the file is missing, corrupt, foreign, hostile or from a newer version.
+        ApmgsrnError: the file is missing, corrupt, foreign, hostile or from a newer version; an unknown device.
     """
-    loaded = open_model(path, device)
-    return Model(loaded.field, loaded.description).eval().set_precision(precision)
+    loaded = open_model(path, _device(device))
+    return Model(loaded.field, loaded.description, path).eval().set_precision(precision)
+
+
+def fit(
+    data,
+    preset: str = "small",
+    model: str = "apmgsrn",
+    iterations: int | None = None,
+    batch_size: int | None = None,
+    device: torch.device | str = "auto",
+    transform: str = "none",
+    log_offset: float = 0.0,
+    variable: str | None = None,
+    time: int | None = None,
+    fill_nonfinite: float | None = None,
+    progress: bool = True,
+    **options,
+) -> Model:
+    """Fit a model to a volume and return it, ready to query (nothing is written anywhere you see).
+
+    Args:
+        data: a 3-D numpy array ``[D, H, W]`` (z, y, x; x fastest), an ``xarray.DataArray`` (its name,
+            attributes, dimensions and coordinates are kept for decoding) or a volume file path.
+        preset: size preset, ``small``, ``medium`` or ``large``.
+        model: model kind, ``apmgsrn``, ``fvsrn`` or ``ngp``.
+        iterations: training iterations (default: 3000 on a CPU, 50000 on a GPU).
+        batch_size: points per iteration (default: 32768 on a CPU, 100000 on a GPU).
+        device: ``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:I"`` or a torch device.
+        transform: value transform before fitting (``none``, ``log10``, ``zscore``).
+        log_offset: offset added before ``log10``.
+        variable: the variable of a file holding several.
+        time: the time step of a file or DataArray with a leading time dimension.
+        fill_nonfinite: replace NaN/Inf voxels by this value instead of refusing them.
+        progress: show training progress (a widget in Jupyter).
+        options: model options (``grids``, ``features``, ``resolution`` as an integer or three,
+            ``hidden_layers``, ``width``, ...) and training options (``lr``, ``seed``, ``lr_schedule``, ...:
+            fields of :class:`~apmgsrn.training.trainer.TrainConfig`).
+
+    Returns:
+        The fitted :class:`Model`; its ``description.training`` holds the PSNR and the largest error.
+
+    Raises:
+        ApmgsrnError: unreadable data, NaN/Inf voxels without ``fill_nonfinite``, an invalid option.
+    """
+    device = _device(device)
+    volume = _as_volume(data, variable=variable, time=time, fill_nonfinite=fill_nonfinite)
+    train_names = {f.name for f in dataclass_fields(TrainConfig)}
+    train_options = {k: v for k, v in options.items() if k in train_names}
+    model_options = {k: v for k, v in options.items() if k not in train_names}
+    if isinstance(model_options.get("resolution"), (int, np.integer)):
+        model_options["resolution"] = (int(model_options["resolution"]),) * 3  # R -> (R, R, R), as --resolution
+    default_iterations, default_batch = default_budget(device)
+    train_options.setdefault("lr_schedule", DEFAULT_LR_SCHEDULES.get(model, "cosine"))
+    train_config = TrainConfig(iterations=default_iterations if iterations is None else iterations,
+                               batch_size=default_batch if batch_size is None else batch_size, **train_options)
+    try:
+        field_config = preset_config(model, preset, **model_options)
+    except ApmgsrnError:
+        raise  # names the argument already
+    except (TypeError, ValueError) as exc:
+        raise ApmgsrnError(f"invalid model options: {exc}") from None
+    truth = volume.to_numpy()  # [D, H, W] float32, data units
+    prepared = prepare_values(truth, transform, log_offset, str(volume.path), device)
+    with tempfile.TemporaryDirectory(prefix="apmgsrn-fit-") as folder:
+        # The pipeline every fit goes through writes a file; loading it back gives exactly what save() writes.
+        out = Path(folder) / "model.apmgsrn"
+        fit_prepared(prepared, truth, field_config, train_config, out, SourceInfo.of_volume(volume), {},
+                     callbacks=[TrainingProgress(enabled=progress)])
+        fitted = load(out, device)
+    fitted.path = None  # the file was a temporary one
+    return fitted
+
+
+def render(
+    model: Model,
+    width: int = 512,
+    height: int = 512,
+    colormap: str = "Cool to Warm",
+    value_range: tuple[float, float] | None = None,
+    opacity: tuple[tuple[float, float], ...] | None = None,
+    azimuth: float = 30.0,
+    elevation: float = 20.0,
+    distance: float | None = None,
+    fov: float = 30.0,
+    samples_per_ray: int = 256,
+    preset_name: str | None = None,
+    preset_units: str = "normalized",
+) -> np.ndarray:
+    """Volume-render a model (SPEC section 7) to an RGBA image.
+
+    Args:
+        model: the model (:func:`fit` or :func:`load`).
+        width, height: image size in pixels.
+        colormap: a built-in name (``Cool to Warm``, ``viridis``...), a matplotlib name or a ParaView preset
+            ``.json``/``.xml`` file.
+        value_range: ``(min, max)`` of the transfer function (default: the model's value range).
+        opacity: ``(position, alpha)`` pairs on 0..1 of the range (default: a preset's own, else a ramp).
+        azimuth, elevation: camera angles in degrees (0 azimuth looks from -y; elevation above the xy plane).
+        distance: camera distance from the centre (default: fit the box).
+        fov: vertical field of view, degrees.
+        samples_per_ray: samples across the box's longest side.
+        preset_name: which preset of a file holding several.
+        preset_units: ``normalized`` (stretch a preset over the range, as ParaView does) or ``data``.
+
+    Returns:
+        ``[height, width, 4]`` uint8 RGBA (colour not premultiplied; alpha is the ray's opacity).
+    """
+    device = model.device
+    value_range = tuple(model.description.value_range) if value_range is None else tuple(value_range)
+    transfer_function = make_transfer_function(colormap, value_range, opacity=opacity, preset_name=preset_name,
+                                               preset_units=preset_units)
+    extent = extent_from_shape(model.description.volume_shape)
+    config = RendererConfig(samples_per_ray=samples_per_ray, batch_size=default_batch_size(device))
+    renderer = VolumeRenderer(model.field, transfer_function, config, extent=extent, device=device)
+    camera = Camera.orbit(azimuth, elevation, distance, fov, width, height, extent)
+    return as_uint8(renderer.render(camera, alpha=True).image)  # [H, W, 4]
+
+
+def _as_volume(data, variable: str | None = None, time: int | None = None,
+              fill_nonfinite: float | None = None) -> Volume:
+    """A volume from what a notebook holds: a numpy array, an xarray DataArray or a file path.
+
+    Raises:
+        ApmgsrnError: data of another type, or not 3-D.
+    """
+    if isinstance(data, (str, os.PathLike)):
+        return open_volume(data, variable=variable, time=time, fill_nonfinite=fill_nonfinite)
+    if type(data).__name__ == "DataArray" and hasattr(data, "dims"):  # xarray, without importing it
+        return _data_array_volume(data, time, fill_nonfinite)
+    if variable is not None or time is not None:
+        raise ApmgsrnError("variable= and time= choose within a file or DataArray; a numpy array is one volume: "
+                           "drop them", arguments=("variable", "time"))
+    if isinstance(data, torch.Tensor):
+        data = data.detach().cpu().numpy()
+    array = np.asarray(data)
+    if array.dtype.kind not in "uifb":
+        raise ApmgsrnError(f"data of type {type(data).__name__} ({array.dtype}): give a 3-D numeric numpy array, "
+                           "an xarray DataArray or a volume file path")
+    return ArrayVolume(array, "array", fill_nonfinite=fill_nonfinite)
+
+
+def _data_array_volume(array, time: int | None, fill_nonfinite: float | None) -> ArrayVolume:
+    """An xarray DataArray as a volume that keeps its name, attributes, dimensions and coordinates."""
+    if array.ndim == 4:
+        if time is None and array.shape[0] != 1:
+            raise ApmgsrnError(f"DataArray {array.name!r} has a {array.dims[0]} dimension of {array.shape[0]}; pass "
+                               f"time=INDEX (0..{array.shape[0] - 1})", arguments=("time",))
+        array = array.isel({array.dims[0]: time or 0})
+    elif time is not None:
+        raise ApmgsrnError(f"DataArray {array.name!r} has no time dimension; drop time=", arguments=("time",))
+    dims = tuple(str(d) for d in array.dims)
+    coordinates = []
+    for dim in dims[-3:]:
+        coordinate = array.coords.get(dim)
+        values = None if coordinate is None else np.asarray(coordinate.values)
+        if values is None or values.ndim != 1 or values.dtype.kind not in "uif" or not np.all(np.isfinite(values)):
+            coordinates.append(None)  # no coordinate, or one that places nothing (dates, labels)
+        else:
+            coordinates.append(AxisCoordinates.from_values(dim, values, plain_attributes(dict(coordinate.attrs))))
+    encoding = getattr(array, "encoding", {}) or {}
+    compression = ({"zlib": True, "complevel": int(encoding.get("complevel") or 4),
+                    "shuffle": bool(encoding.get("shuffle", True))} if encoding.get("zlib") else None)
+    metadata = VolumeMetadata(
+        attributes=plain_attributes(dict(array.attrs)),
+        dimensions=dims if len(dims) == 3 else None,
+        coordinates=tuple(coordinates) if any(c is not None for c in coordinates) else None,
+        compression=compression,
+    )
+    name = None if array.name is None else str(array.name)
+    return ArrayVolume(np.asarray(array.values), "DataArray", name, fill_nonfinite, metadata)
+
+
+def _device(device: torch.device | str) -> torch.device:
+    return device if isinstance(device, torch.device) else resolve_device(str(device))
+
+
+def _shape(shape) -> tuple[int, int, int] | None:
+    if shape is None:
+        return None
+    if len(tuple(shape)) != 3:
+        raise ApmgsrnError(f"shape={shape!r}: give (D, H, W), three sizes in array order (z, y, x)",
+                           arguments=("shape",))
+    return tuple(shape)
+
+
+def _region(region, units: str) -> Region | None:
+    if region is None or isinstance(region, Region):
+        return region
+    if isinstance(region, str):
+        return Region.parse(region, units)
+    if isinstance(region, dict):
+        unknown = set(region) - {"x", "y", "z"}
+        if unknown:
+            raise ApmgsrnError(f"region={region!r}: keys are x, y and z", arguments=("region",))
+        return Region(**region, units=units)
+    raise ApmgsrnError(f"region={region!r}: give a Region, a text X0:X1,Y0:Y1,Z0:Z1 or a dict of (start, stop)",
+                       arguments=("region",))

@@ -43,3 +43,9 @@ PRESET_UNITS = ("normalized", "data")
 
 #: Lossy compressors of ``bench compress`` (:data:`apmgsrn.bench.compressors.COMPRESSORS`).
 COMPRESSORS = ("sz3", "zfp")
+
+#: Units of a decode region (:class:`apmgsrn.data.grid.Region`): voxel indices or the source's coordinates.
+REGION_UNITS = ("index", "coordinates")
+
+#: Formats of ``apmgsrn export``.
+EXPORT_FORMATS = ("onnx",)

@@ -49,6 +49,7 @@ def parse_data_spec(text: str) -> DataSpec:
 
 def open_spec(spec: DataSpec, fill_nonfinite: float | None = None):
     """Open the volume of ``spec`` lazily (raw files take their dims and type from the file name)."""
+    # Imported here: the CLI imports this module to parse arguments, and --help loads no numpy.
     from apmgsrn.data import open_volume
 
     return open_volume(spec.path, variable=spec.variable, fill_nonfinite=fill_nonfinite)

@@ -15,10 +15,15 @@ import torch
 
 from apmgsrn.arguments import MAX_BATCH_SIZE, check_choice, check_int, check_number
 from apmgsrn.atomic import atomic_write_text
+from apmgsrn.bench.charts import quality_chart
 from apmgsrn.bench.datasets import DataSpec, open_spec
 from apmgsrn.bench.results import QualityRow, append_row, read_rows
+from apmgsrn.bench.tables import quality_tables
 from apmgsrn.choices import LR_SCHEDULES, MODEL_KINDS, SIZE_PRESETS, VALUE_TRANSFORMS
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
+from apmgsrn.training.fit import fit_volume
+from apmgsrn.training.trainer import TrainConfig
 
 
 @dataclass(frozen=True)
@@ -86,10 +91,6 @@ def run_quality(
     Returns:
         Every row of the CSV (earlier runs included).
     """
-    from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
-    from apmgsrn.training.fit import fit_volume
-    from apmgsrn.training.trainer import TrainConfig
-
     paths = prepare_folder(out)
     rows = read_rows(paths["csv"], QualityRow)
     done = {row.key() for row in rows}
@@ -168,9 +169,6 @@ def prepare_folder(out: Path) -> dict[str, Path]:
 
 def write_quality_report(rows: list[QualityRow], out: Path) -> None:
     """Write ``quality.md`` (tables) and ``quality.png`` (chart) into ``out`` from ``rows``."""
-    from apmgsrn.bench.charts import quality_chart
-    from apmgsrn.bench.tables import quality_tables
-
     if not rows:
         return
     paths = quality_paths(Path(out))

@@ -19,6 +19,10 @@ FLAGS = {
     "shape": "--shape",
     "dtype": "--dtype",
     "fill_nonfinite": "--fill-nonfinite",
+    # decoding and export
+    "region": "--region",
+    "region_units": "--region-units",
+    "format": "--format",
     # fitting
     "out": "--out",
     "resume": "--resume",

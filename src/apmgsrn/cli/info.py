@@ -127,6 +127,7 @@ def run(args: argparse.Namespace) -> int:
     x, y, z = info["volume_shape_xyz"]
     print(f"volume          {x}x{y}x{z} (x*y*z) from {info['source'].get('description') or '?'}")
     print(f"value range     [{info['value_range'][0]:.6g}, {info['value_range'][1]:.6g}], transform {info['transform']['kind']}")
+    _print_source_metadata(model.description)
     print(f"compression     {compression_text(info)}")
     if t:
         print(f"training        {t.get('iterations')} iterations x {t.get('batch_size')} points, "
@@ -144,6 +145,24 @@ def run(args: argparse.Namespace) -> int:
         c, e = grid["center"], grid["extent"]
         print(f"  grid {i:2d}  center ({c[0]:+.3f}, {c[1]:+.3f}, {c[2]:+.3f})  extent ({e[0]:.3f}, {e[1]:.3f}, {e[2]:.3f})")
     return 0
+
+
+def _print_source_metadata(description) -> None:
+    """The variable's units and the coordinates of its axes, as the input had them (what decode writes back)."""
+    source = description.source
+    metadata = source.metadata
+    if metadata.units is not None:
+        print(f"variable        {source.variable or 'value'} in {metadata.units}")
+    if metadata.coordinates is None:
+        return
+    parts = []
+    for axis in (2, 1, 0):
+        coordinates = metadata.axis(axis)
+        first, last = coordinates.at([0.0, description.volume_shape[axis] - 1.0])
+        units = coordinates.attributes.get("units")
+        spacing = "even" if coordinates.even else "uneven"
+        parts.append(f"{coordinates.name} {first:.6g}..{last:.6g}{f' {units}' if units else ''} ({spacing})")
+    print(f"coordinates     {', '.join(parts)}")
 
 
 def describe_bricks(model) -> dict:
@@ -200,6 +219,7 @@ def _run_bricks(args: argparse.Namespace, model) -> int:
     x, y, z = info["volume_shape_xyz"]
     print(f"volume          {x}x{y}x{z} (x*y*z) from {info['source'].get('description') or '?'}")
     print(f"value range     [{info['value_range'][0]:.6g}, {info['value_range'][1]:.6g}]")
+    _print_source_metadata(model.description)
     print(f"compression     {compression_text(info)}")
     t = info["training"] or {}
     if t:

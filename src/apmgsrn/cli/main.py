@@ -9,14 +9,14 @@ from __future__ import annotations
 import argparse
 import sys
 
-from apmgsrn.cli import bench, decode, evaluate, grids, info, render, train, view
+from apmgsrn.cli import bench, decode, evaluate, export, grids, info, render, train, view
 from apmgsrn.cli.flags import cli_message
 from apmgsrn.cli.paths import CommandPaths, check_paths
 from apmgsrn.errors import ApmgsrnError
 
 # Each module defines ``register(subparsers)``, which adds its parser and sets ``func=run`` (and ``paths``,
 # what the command reads and writes, for the commands that write).
-COMMAND_MODULES = (train, evaluate, decode, info, render, bench, grids, view)
+COMMAND_MODULES = (train, evaluate, decode, export, info, render, bench, grids, view)
 
 
 class ArgumentParser(argparse.ArgumentParser):

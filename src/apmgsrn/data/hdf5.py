@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from apmgsrn.data.grid import VolumeMetadata, plain_attributes
 from apmgsrn.data.variables import ArrayInfo, choose_array, select_time
 from apmgsrn.data.volume import Volume
 from apmgsrn.errors import ApmgsrnError
@@ -78,6 +79,13 @@ class HDF5Volume(Volume):
             time_index, shape = select_time(path, info, time, self.kind)
             self._dataset_attributes = {k: _plain(v) for k, v in handle[info.name].attrs.items()}
             super().__init__(path, info.name, shape, info.dtype, fill_nonfinite, time=time_index)
+            dataset = handle[info.name]
+            compression = None
+            if dataset.compression == "gzip":
+                compression = {"zlib": True, "complevel": int(dataset.compression_opts or 4),
+                               "shuffle": bool(dataset.shuffle)}
+            self.metadata = VolumeMetadata(attributes=plain_attributes(self._dataset_attributes),
+                                           compression=compression)
         except BaseException:
             handle.close()
             raise

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from apmgsrn.data.grid import AxisCoordinates, VolumeMetadata, plain_attributes
 from apmgsrn.data.hdf5 import HDF5Volume
 from apmgsrn.data.variables import ArrayInfo, choose_array, select_time
 from apmgsrn.data.volume import Volume
@@ -88,6 +89,7 @@ class NetCDFVolume(Volume):
             time_index, shape = select_time(path, info, time, "variable")
             self.dimensions = info.dims
             super().__init__(path, info.name, shape, info.dtype, fill_nonfinite, time=time_index)
+            self.metadata = netcdf_metadata(handle, info.name)
         except BaseException:
             handle.close()
             raise
@@ -101,6 +103,48 @@ class NetCDFVolume(Volume):
         if self.time is not None:
             return var[self.time, z, y, x]
         return var[z, y, x]
+
+
+def netcdf_metadata(handle: Any, name: str) -> VolumeMetadata:
+    """Attributes, dimension names, coordinate variables and compression of the variable ``name``.
+
+    A dimension's coordinate variable is the 1-D variable of the same name over that dimension, in the
+    variable's group or a parent group (the NetCDF convention); uneven coordinates are kept value by value.
+    """
+    variable = handle[name]
+    dimensions = tuple(variable.dimensions[-3:])
+    coordinates = []
+    for dimension, length in zip(dimensions, variable.shape[-3:]):
+        coordinate = _coordinate_variable(variable.group(), dimension)
+        if coordinate is None or coordinate.shape != (length,) or coordinate.dtype.kind not in "uif":
+            coordinates.append(None)
+            continue
+        values = np.ma.filled(np.ma.asarray(coordinate[:]).astype(np.float64), np.nan)
+        if not np.all(np.isfinite(values)):  # missing coordinates place nothing
+            coordinates.append(None)
+            continue
+        attributes = plain_attributes({k: coordinate.getncattr(k) for k in coordinate.ncattrs()})
+        coordinates.append(AxisCoordinates.from_values(dimension, values, attributes))
+    filters = variable.filters() or {}
+    compression = None
+    if filters.get("zlib"):
+        compression = {"zlib": True, "complevel": int(filters.get("complevel") or 4),
+                       "shuffle": bool(filters.get("shuffle"))}
+    return VolumeMetadata(
+        attributes=plain_attributes({k: variable.getncattr(k) for k in variable.ncattrs()}),
+        dimensions=dimensions if len(dimensions) == 3 else None,
+        coordinates=tuple(coordinates) if any(c is not None for c in coordinates) else None,
+        compression=compression,
+    )
+
+
+def _coordinate_variable(group: Any, dimension: str) -> Any:
+    """The coordinate variable of ``dimension`` seen from ``group`` (searching up to the root), or None."""
+    while group is not None:
+        if dimension in group.variables:
+            return group.variables[dimension]
+        group = group.parent
+    return None
 
 
 class NetCDFThroughHDF5Volume(HDF5Volume):

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from apmgsrn.data.grid import VolumeMetadata
 from apmgsrn.errors import ApmgsrnError
 
 #: Voxels per z-slab when streaming statistics: 2**24 float32 voxels are 64 MiB.
@@ -100,6 +101,8 @@ class Volume:
         shape: ``(D, H, W) = (z, y, x)``, C order, x fastest.
         dtype: The stored dtype (``uint8``, ``float32``, ...); reads always return float32.
         fill_nonfinite: If set, reads replace NaN/Inf by this value.
+        metadata: What the file says beside the voxels (attributes, units, dimension names, coordinates,
+            compression); readers of formats that say nothing leave it empty.
 
     Subclasses implement `_read_stored` (and, for file-backed data, `_open_handle`).
     """
@@ -126,6 +129,7 @@ class Volume:
                     arguments=("fill_nonfinite",),
                 )
         self.fill_nonfinite = fill_nonfinite
+        self.metadata = VolumeMetadata()
         self._stats: VolumeStats | None = None
         self._lock = threading.RLock()
         self._handle: Any = None
@@ -367,6 +371,7 @@ class ArrayVolume(Volume):
         path: Name to report in messages (nothing is read from it).
         variable: Optional variable name to report.
         fill_nonfinite: If set, reads replace NaN/Inf by this value.
+        metadata: attributes, dimension names and coordinates of the array (e.g. an xarray DataArray's).
     """
 
     def __init__(
@@ -375,12 +380,15 @@ class ArrayVolume(Volume):
         path: str | Path = "array",
         variable: str | None = None,
         fill_nonfinite: float | None = None,
+        metadata: VolumeMetadata | None = None,
     ) -> None:
         array = np.asarray(array)
         if array.ndim != 3:
             raise ApmgsrnError(f"{path}: data is {array.ndim}-D with shape {array.shape}; apmgsrn needs a 3-D volume")
         self._array = array
         super().__init__(Path(path), variable, array.shape, array.dtype, fill_nonfinite)
+        if metadata is not None:
+            self.metadata = metadata
 
     def _read_stored(self, z: slice, y: slice, x: slice) -> np.ndarray:
         # Always a fresh float32 array: never hand out a view of the caller's array or of a

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from apmgsrn.data.grid import AxisCoordinates, VolumeMetadata
 from apmgsrn.data.variables import ArrayInfo, choose_array
 from apmgsrn.data.volume import ArrayVolume
 from apmgsrn.errors import ApmgsrnError
@@ -80,8 +81,9 @@ def check_declared_size(path: Path) -> None:
         )
 
 
-def _read_vtk_arrays(path: Path) -> dict[str, tuple[ArrayInfo, np.ndarray]]:
-    """Every point and cell array of a VTK XML file, reshaped to C order (z, y, x[, components])."""
+def _read_vtk_arrays(path: Path) -> tuple[dict[str, tuple[ArrayInfo, np.ndarray, bool]], object]:
+    """Every point and cell array of a VTK XML file, reshaped to C order (z, y, x[, components]), each with
+    whether it is a cell array; and the grid (for its geometry)."""
     try:
         from vtkmodules import vtkIOXML
         from vtkmodules.util.numpy_support import vtk_to_numpy
@@ -111,8 +113,8 @@ def _read_vtk_arrays(path: Path) -> dict[str, tuple[ArrayInfo, np.ndarray]]:
         raise ApmgsrnError(f"{path}: VTK could not read the data (damaged or truncated {label} file)")
     # A cell spans two points, except along an axis with a single point (a flat grid).
     cells = tuple(max(n - 1, 1) for n in (nz, ny, nx))
-    arrays: dict[str, tuple[ArrayInfo, np.ndarray]] = {}
-    for attributes, dims in ((grid.GetPointData(), (nz, ny, nx)), (grid.GetCellData(), cells)):
+    arrays: dict[str, tuple[ArrayInfo, np.ndarray, bool]] = {}
+    for attributes, dims, cell in ((grid.GetPointData(), (nz, ny, nx), False), (grid.GetCellData(), cells, True)):
         for index in range(attributes.GetNumberOfArrays()):
             vtk_array = attributes.GetArray(index)
             name = attributes.GetArrayName(index)
@@ -125,15 +127,48 @@ def _read_vtk_arrays(path: Path) -> dict[str, tuple[ArrayInfo, np.ndarray]]:
             values = np.array(vtk_to_numpy(vtk_array), copy=True)
             shape = dims + ((components,) if components > 1 else ())
             values = values.reshape(shape)  # [Z, Y, X] or [Z, Y, X, C]
-            arrays[name] = (ArrayInfo(name=name, shape=shape, dtype=values.dtype), values)
-    return arrays
+            arrays[name] = (ArrayInfo(name=name, shape=shape, dtype=values.dtype), values, cell)
+    return arrays, grid
+
+
+def _grid_coordinates(path: Path, grid, cell: bool) -> tuple[AxisCoordinates, AxisCoordinates, AxisCoordinates]:
+    """Where the points (or cell centres) of a VTK grid lie, per (z, y, x) axis: ImageData's origin and
+    spacing, RectilinearGrid's coordinate arrays (uneven ones kept value by value).
+
+    Raises:
+        ApmgsrnError: ImageData turned by a direction matrix (its axes are not x, y and z).
+    """
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+
+    if hasattr(grid, "GetXCoordinates"):
+        corners = [vtk_to_numpy(c).astype(np.float64) for c in
+                   (grid.GetZCoordinates(), grid.GetYCoordinates(), grid.GetXCoordinates())]
+    else:
+        if hasattr(grid, "GetDirectionMatrix"):
+            matrix = grid.GetDirectionMatrix()
+            direction = np.array([[matrix.GetElement(i, j) for j in range(3)] for i in range(3)])
+            if not np.allclose(direction, np.eye(3)):
+                raise ApmgsrnError(
+                    f"{path}: its image axes are turned (Direction is not the identity); apmgsrn reads axis-aligned "
+                    "grids only: resample the image onto x, y and z first"
+                )
+        nx, ny, nz = grid.GetDimensions()
+        origin, spacing = grid.GetOrigin(), grid.GetSpacing()
+        corners = [origin[a] + spacing[a] * np.arange(n, dtype=np.float64) for a, n in ((2, nz), (1, ny), (0, nx))]
+    axes = []
+    for name, values in zip(("z", "y", "x"), corners):
+        if cell and values.size > 1:
+            values = 0.5 * (values[:-1] + values[1:])  # a cell array's voxels sit at the cell centres
+        axes.append(AxisCoordinates.from_values(name, values))
+    return tuple(axes)
 
 
 class VTKVolume(ArrayVolume):
     """A scalar point or cell array of a ``.vti``/``.vtr`` file, held in memory.
 
-    Rectilinear coordinates are not used: voxels are treated as a regular grid, like every
-    other format.
+    The grid's geometry is kept (``metadata.coordinates``): ImageData's origin and spacing, RectilinearGrid's
+    coordinates, uneven ones value by value (the network is fitted on voxel indices; a decode writes the
+    coordinates back, and refuses formats that cannot hold uneven ones).
 
     Args:
         path: The ``.vti`` or ``.vtr`` file.
@@ -143,11 +178,13 @@ class VTKVolume(ArrayVolume):
 
     def __init__(self, path: Path, variable: str | None = None, fill_nonfinite: float | None = None) -> None:
         path = Path(path)
-        arrays = _read_vtk_arrays(path)
-        info = choose_array(path, [info for info, _ in arrays.values()], variable, "array", default_ndims=(3, 4))
+        arrays, grid = _read_vtk_arrays(path)
+        info = choose_array(path, [entry[0] for entry in arrays.values()], variable, "array", default_ndims=(3, 4))
         if len(info.shape) == 4:
             raise ApmgsrnError(
                 f"{path}: array {info.summary()} has {info.shape[3]} components; "
                 "apmgsrn needs a scalar array: pass variable= with a 1-component array", arguments=("variable",)
             )
-        super().__init__(arrays[info.name][1], path, info.name, fill_nonfinite)
+        _, values, cell = arrays[info.name]
+        metadata = VolumeMetadata(coordinates=_grid_coordinates(path, grid, cell))
+        super().__init__(values, path, info.name, fill_nonfinite, metadata=metadata)

@@ -1,4 +1,4 @@
-"""`VolumeWriter`: write a float32 volume slab by slab (``.nc``, ``.raw``/``.bin``, ``.npy``).
+"""`VolumeWriter`: write a float32 volume slab by slab (``.nc``, ``.vti``, ``.raw``/``.bin``, ``.npy``).
 
 Used by ``apmgsrn decode``, which produces the volume chunk by chunk, so outputs larger than
 memory work. The file is written under a temporary name beside the target and renamed into place
@@ -13,15 +13,43 @@ import json
 import os
 import shutil
 import uuid
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from apmgsrn.data.grid import AXES, AxisCoordinates
 from apmgsrn.errors import ApmgsrnError
 
 #: Output suffixes and their format names, as listed to users.
-WRITABLE_SUFFIXES = {".nc": "NetCDF-4", ".raw": "raw float32", ".bin": "raw float32", ".npy": "NumPy"}
+WRITABLE_SUFFIXES = {".nc": "NetCDF-4", ".vti": "VTK ImageData", ".raw": "raw float32", ".bin": "raw float32",
+                     ".npy": "NumPy"}
+
+
+@dataclass(frozen=True)
+class OutputAxis:
+    """One axis of a written volume: its name and where its samples lie.
+
+    Attributes:
+        name: the dimension's name (NetCDF).
+        values: ``[n]`` coordinate of every sample.
+        attributes: the coordinate variable's attributes (``units``...).
+        recorded: the values are the source's coordinates (a NetCDF output writes them as a coordinate
+            variable); False: voxel indices of the training volume, which only place a ``.vti``'s origin and
+            spacing.
+    """
+
+    name: str
+    values: np.ndarray
+    attributes: dict = field(default_factory=dict)
+    recorded: bool = False
+
+
+def index_axes(shape: tuple[int, int, int]) -> tuple[OutputAxis, OutputAxis, OutputAxis]:
+    """Axes ``z, y, x`` placed at voxel indices 0..n-1 (a volume nothing else is known about)."""
+    return tuple(OutputAxis(name, np.arange(n, dtype=np.float64)) for name, n in zip(AXES, shape))
 
 
 def _attribute_value(value: Any) -> Any:
@@ -38,23 +66,81 @@ def _attribute_value(value: Any) -> Any:
     return json.dumps(value, default=str)
 
 
+def check_axes_writable(path: str | Path, axes) -> None:
+    """Refuse, before anything is written, axes the output format cannot place (uneven ones in ``.vti``).
+
+    Raises:
+        ApmgsrnError: naming the uneven axis and the format that keeps it.
+    """
+    if Path(path).suffix.lower() == ".vti":
+        _even_geometry(Path(path), axes)
+
+
+def _even_geometry(path: Path, axes) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """Origin and spacing ``(x, y, z)`` of evenly spaced axes.
+
+    Raises:
+        ApmgsrnError: an axis is uneven (VTK ImageData cannot place it).
+    """
+    origin, spacing = [], []
+    for axis in reversed(axes):  # x, y, z
+        placed = AxisCoordinates.from_values(axis.name, axis.values)
+        if not placed.even:
+            raise ApmgsrnError(
+                f"{path}: the {axis.name} coordinates of this volume are uneven, and VTK ImageData (.vti) holds "
+                "evenly spaced points only; write .nc instead (it keeps every coordinate)"
+            )
+        origin.append(placed.start)
+        spacing.append(placed.step if len(axis.values) > 1 else 1.0)
+    return tuple(origin), tuple(spacing)
+
+
+def _vti_frame(name: str, shape: tuple[int, int, int], origin, spacing) -> tuple[bytes, bytes]:
+    """The XML before and after the raw appended float32 data of a ``.vti`` file (x fastest, as VTK)."""
+    depth, height, width = shape
+    extent = f"0 {width - 1} 0 {height - 1} 0 {depth - 1}"
+
+    def numbers(values) -> str:
+        return " ".join(repr(float(v)) for v in values)  # repr: every digit, read back exactly
+
+    header = (
+        '<?xml version="1.0"?>\n'
+        '<VTKFile type="ImageData" version="1.0" byte_order="LittleEndian" header_type="UInt64">\n'
+        f'  <ImageData WholeExtent="{extent}" Origin="{numbers(origin)}" Spacing="{numbers(spacing)}">\n'
+        f'    <Piece Extent="{extent}">\n'
+        f'      <PointData Scalars={quoteattr(name)}>\n'
+        f'        <DataArray type="Float32" Name={quoteattr(name)} format="appended" offset="0"/>\n'
+        '      </PointData>\n'
+        '    </Piece>\n'
+        '  </ImageData>\n'
+        '  <AppendedData encoding="raw">\n   _'
+    ).encode("utf-8")
+    size = np.array([depth * height * width * 4], dtype="<u8").tobytes()  # the block's byte count (UInt64)
+    return header + size, b"\n  </AppendedData>\n</VTKFile>\n"
+
+
 class VolumeWriter:
-    """Write a ``[D, H, W]`` float32 volume to ``.nc``, ``.raw``/``.bin`` or ``.npy``, by z-slabs.
+    """Write a ``[D, H, W]`` float32 volume to ``.nc``, ``.vti``, ``.raw``/``.bin`` or ``.npy``, by z-slabs.
 
     Use it as a context manager; slabs may come in any order, but all of z must be written
     before a clean exit, which renames the temporary file into place. An exception inside the
     ``with`` block removes the temporary file and leaves any existing target untouched.
 
-    Formats: ``.nc`` NetCDF-4 with dims ``(z, y, x)``, one float32 variable and `attributes`
-    as global attributes; ``.raw``/``.bin`` headerless little-endian float32, x fastest (no
-    attributes); ``.npy`` a float32 array (no attributes).
+    Formats: ``.nc`` NetCDF-4 with the axes' dimension names, one float32 variable with its attributes
+    (compressed as asked), coordinate variables for the axes that have recorded coordinates and `attributes`
+    as global attributes; ``.vti`` VTK ImageData (raw appended float32 point data named `variable`, origin
+    and spacing from the axes, which must be evenly spaced); ``.raw``/``.bin`` headerless little-endian
+    float32, x fastest; ``.npy`` a float32 array (the last two hold no names, coordinates or attributes).
 
     Args:
         path: Output file; its folder must exist.
         shape: ``(D, H, W) = (z, y, x)``, as `Volume.shape`.
-        variable: Variable name in a NetCDF output.
+        variable: Variable (NetCDF) or point array (VTK) name.
         attributes: Global attributes of a NetCDF output (numbers, strings, numeric lists;
             anything else is stored as JSON text).
+        variable_attributes: The variable's attributes in a NetCDF output (``units``, ``long_name``...).
+        axes: The ``(z, y, x)`` axes (default: voxel indices named z, y, x).
+        compression: ``{"zlib": bool, "complevel": int, "shuffle": bool}`` for a NetCDF output, or None.
 
     Raises:
         ApmgsrnError: For an unknown suffix, a missing or unwritable output folder, or a
@@ -67,12 +153,20 @@ class VolumeWriter:
         shape: tuple[int, int, int],
         variable: str = "value",
         attributes: dict | None = None,
+        variable_attributes: dict | None = None,
+        axes: tuple[OutputAxis, OutputAxis, OutputAxis] | None = None,
+        compression: dict | None = None,
     ) -> None:
         self.path = Path(path).expanduser()
         self.shape = tuple(int(n) for n in shape)
         if len(self.shape) != 3 or min(self.shape) <= 0:
             raise ValueError(f"VolumeWriter needs a shape (D, H, W) of positive sizes, got {shape}")
+        self.axes = index_axes(self.shape) if axes is None else tuple(axes)
+        if tuple(len(a.values) for a in self.axes) != self.shape:
+            raise ValueError(f"VolumeWriter: axes of {[len(a.values) for a in self.axes]} values for shape {shape}")
         self.variable = variable
+        self.variable_attributes = dict(variable_attributes or {})
+        self.compression = compression
         self.suffix = self.path.suffix.lower()
         if self.suffix not in WRITABLE_SUFFIXES:
             listed = ", ".join(f"{s} ({name})" for s, name in WRITABLE_SUFFIXES.items())
@@ -85,6 +179,8 @@ class VolumeWriter:
         if self.path.is_dir():
             example = self.path / ("volume" + self.suffix)
             raise ApmgsrnError(f"{self.path}: is a directory; give a file name such as {example}")
+        if self.suffix == ".vti":
+            self._origin, self._spacing = _even_geometry(self.path, self.axes)
         # Same folder as the target, so the final rename is atomic (same file system); the real
         # suffix is kept so libraries that look at it behave.
         self._temporary = folder / f".{self.path.stem}.{uuid.uuid4().hex[:12]}.partial{self.suffix}"
@@ -112,9 +208,22 @@ class VolumeWriter:
             try:
                 # Every voxel gets written, so skip netCDF's pre-fill (it would write the file twice).
                 dataset.set_fill_off()
-                for name, size in zip(("z", "y", "x"), self.shape):
-                    dataset.createDimension(name, size)
-                dataset.createVariable(self.variable, "f4", ("z", "y", "x"), contiguous=True)
+                names = tuple(axis.name for axis in self.axes)
+                for axis, size in zip(self.axes, self.shape):
+                    dataset.createDimension(axis.name, size)
+                    if axis.recorded:
+                        coordinate = dataset.createVariable(axis.name, "f8", (axis.name,))
+                        coordinate.setncatts({str(k): _attribute_value(v) for k, v in axis.attributes.items()})
+                        coordinate[:] = axis.values
+                if self.compression and self.compression.get("zlib"):
+                    # One chunk per z-slice: every slab write fills whole chunks, none is compressed twice.
+                    options = dict(zlib=True, complevel=int(self.compression.get("complevel", 4)),
+                                   shuffle=bool(self.compression.get("shuffle", True)),
+                                   chunksizes=(1, height, width))
+                else:
+                    options = dict(contiguous=True)
+                variable = dataset.createVariable(self.variable, "f4", names, **options)
+                variable.setncatts({str(k): _attribute_value(v) for k, v in self.variable_attributes.items()})
                 for key, value in attributes.items():
                     dataset.setncattr(str(key), _attribute_value(value))
             except BaseException:
@@ -129,12 +238,18 @@ class VolumeWriter:
             raise OSError(errno.ENOSPC, f"needs {needed:,} bytes, {free:,} free")
         handle = open(self._temporary, "wb")
         try:
+            footer = b""
             if self.suffix == ".npy":
                 header = {"descr": "<f4", "fortran_order": False, "shape": self.shape}
                 np.lib.format.write_array_header_1_0(handle, header)
+            elif self.suffix == ".vti":
+                header, footer = _vti_frame(self.variable, self.shape, self._origin, self._spacing)
+                handle.write(header)
             self._data_offset = handle.tell()
             # Size the file up front (sparse) so slabs can be written in any order.
             handle.truncate(self._data_offset + needed)
+            handle.seek(self._data_offset + needed)
+            handle.write(footer)
         except BaseException:
             handle.close()
             raise

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from apmgsrn.data.grid import AxisCoordinates, VolumeMetadata, plain_attributes
 from apmgsrn.data.variables import ArrayInfo, choose_array, select_time
 from apmgsrn.data.volume import Volume
 from apmgsrn.errors import ApmgsrnError
@@ -43,6 +44,34 @@ def _numpy_dtype(array: Any) -> np.dtype | None:
         return None
 
 
+def _zarr_metadata(node: Any, array: Any) -> VolumeMetadata:
+    """Attributes of a Zarr array, and its dimension names and coordinate arrays where xarray wrote them
+    (``_ARRAY_DIMENSIONS`` or Zarr 3's ``dimension_names``; a dimension's coordinates are the 1-D array of its
+    name in the same group)."""
+    import zarr
+
+    attributes = dict(array.attrs)
+    # Zarr 2 stores: xarray's _ARRAY_DIMENSIONS attribute; Zarr 3: the array's own dimension_names.
+    dimensions = attributes.pop("_ARRAY_DIMENSIONS", None) or getattr(getattr(array, "metadata", None),
+                                                                      "dimension_names", None)
+    dimensions = list(dimensions) if isinstance(dimensions, (list, tuple)) else None
+    if not (isinstance(dimensions, list) and len(dimensions) >= 3 and all(isinstance(d, str) for d in dimensions)):
+        return VolumeMetadata(attributes=plain_attributes(attributes))
+    dimensions = tuple(dimensions[-3:])
+    coordinates = []
+    for dimension, length in zip(dimensions, array.shape[-3:]):
+        member = node[dimension] if isinstance(node, zarr.Group) and dimension in node else None
+        if isinstance(member, zarr.Array) and member.shape == (length,) and _numpy_dtype(member).kind in "uif":
+            values = np.asarray(member[:], dtype=np.float64)
+            attrs = {k: v for k, v in member.attrs.items() if k != "_ARRAY_DIMENSIONS"}
+            coordinates.append(AxisCoordinates.from_values(dimension, values, plain_attributes(attrs))
+                               if np.all(np.isfinite(values)) else None)
+        else:
+            coordinates.append(None)
+    return VolumeMetadata(attributes=plain_attributes(attributes), dimensions=dimensions,
+                          coordinates=tuple(coordinates) if any(c is not None for c in coordinates) else None)
+
+
 class ZarrVolume(Volume):
     """A 3-D Zarr array, read chunk-wise (only the chunks of the requested region).
 
@@ -77,6 +106,7 @@ class ZarrVolume(Volume):
             name = info.name
         time_index, shape = select_time(path, info, time, "array")
         super().__init__(path, name, shape, info.dtype, fill_nonfinite, time=time_index)
+        self.metadata = _zarr_metadata(node, node if name is None else node[name])
 
     def _open_handle(self) -> Any:
         node = _open_zarr_node(self.path)

@@ -290,7 +290,7 @@ def train_bricks(
             log_offset=log_offset,
             device=device,
             threads=queue.threads_per_job,
-            source=source,
+            source=source.crop(brick.start, brick.stop),  # the brick file describes its own voxels
             psnr_voxels=psnr_voxels,
         )
         futures[queue.submit(train_brick, job, key=f"{brick.name}-{token}")] = brick

@@ -1,4 +1,4 @@
-"""Reconstruct a whole volume from a field, slab by slab, at its own or another resolution."""
+"""Reconstruct a volume from a field, slab by slab, at its own or another resolution, whole or a region."""
 
 from __future__ import annotations
 
@@ -11,10 +11,14 @@ from apmgsrn.data.writers import VolumeWriter
 from apmgsrn.inference.slabs import QUERY_BATCH, SLAB_VOXELS, field_slabs
 from apmgsrn.progress import Progress
 
+#: A box in the field's ``[-1, 1]^3``, ``((x0, x1), (y0, y1), (z0, z1))``.
+Box = tuple[tuple[float, float], tuple[float, float], tuple[float, float]]
+
 
 def decode_volume(field, out: Path, shape: tuple[int, int, int], batch_size: int = QUERY_BATCH,
-                  slab_voxels: int = SLAB_VOXELS, progress: bool = False, attributes: dict | None = None) -> None:
-    """Write the field sampled on a corner-aligned ``(D, H, W)`` grid to ``out`` (.nc, .raw or .npy).
+                  slab_voxels: int = SLAB_VOXELS, progress: bool = False, box: Box | None = None,
+                  **writer_options) -> None:
+    """Write the field sampled on a corner-aligned ``(D, H, W)`` lattice to ``out`` (.nc, .vti, .raw, .npy).
 
     Only one z-slab of the output is in memory at a time; the file appears atomically when complete.
 
@@ -25,19 +29,22 @@ def decode_volume(field, out: Path, shape: tuple[int, int, int], batch_size: int
         batch_size: points per forward pass.
         slab_voxels: voxels per slab.
         progress: show progress (see :mod:`apmgsrn.progress`).
-        attributes: global attributes of a NetCDF output.
+        box: the lattice spans this box of ``[-1, 1]^3`` (default: all of it).
+        writer_options: keyword arguments of :class:`~apmgsrn.data.writers.VolumeWriter` (``variable``,
+            ``attributes``, ``variable_attributes``, ``axes``, ``compression``).
     """
-    with VolumeWriter(out, shape, attributes=attributes) as writer, \
+    with VolumeWriter(out, shape, **writer_options) as writer, \
             Progress(math.prod(shape), unit="voxel", description="decode", enabled=progress) as shown:
-        for z, values in field_slabs(field, shape, slab_voxels, batch_size=batch_size):
+        for z, values in field_slabs(field, shape, slab_voxels, batch_size=batch_size, box=box):
             writer.write(z, values.numpy())
             shown.update(values.numel())
 
 
 def decode_array(field, shape: tuple[int, int, int], batch_size: int = QUERY_BATCH,
-                 slab_voxels: int = SLAB_VOXELS) -> np.ndarray:
-    """The field sampled on a corner-aligned ``(D, H, W)`` grid, as one float32 array in memory."""
+                 slab_voxels: int = SLAB_VOXELS, box: Box | None = None) -> np.ndarray:
+    """The field sampled on a corner-aligned ``(D, H, W)`` lattice over ``box`` (default ``[-1, 1]^3``), as one
+    float32 array in memory."""
     decoded = np.empty(shape, dtype=np.float32)
-    for z, values in field_slabs(field, shape, slab_voxels, batch_size=batch_size):
+    for z, values in field_slabs(field, shape, slab_voxels, batch_size=batch_size, box=box):
         decoded[z] = values.numpy()
     return decoded

@@ -44,6 +44,7 @@ def field_slabs(
     slab_voxels: int = SLAB_VOXELS,
     stride: int = 1,
     batch_size: int = QUERY_BATCH,
+    box: tuple[tuple[float, float], tuple[float, float], tuple[float, float]] | None = None,
 ) -> Iterator[tuple[slice, torch.Tensor]]:
     """The field's values on the corner-aligned voxel lattice of ``shape``, slab by slab.
 
@@ -53,6 +54,8 @@ def field_slabs(
         slab_voxels: evaluated voxels per slab.
         stride: evaluate every ``stride``-th voxel along each axis (see :func:`z_slabs`).
         batch_size: points per forward pass.
+        box: ``((x0, x1), (y0, y1), (z0, z1))`` in ``[-1, 1]``: the lattice spans this box (a region) instead
+            of the whole cube.
 
     Returns:
         Iterator of ``(z slice, float32 CPU tensor [dz, h, w])``, where the tensor holds the values at
@@ -61,6 +64,6 @@ def field_slabs(
     _, h, w = shape
     rows, columns = len(range(0, h, stride)), len(range(0, w, stride))
     for z in z_slabs(shape, slab_voxels, stride):
-        points = voxel_coordinates(shape, z, stride=stride)  # [dz * rows * columns, 3]
+        points = voxel_coordinates(shape, z, stride=stride, box=box)  # [dz * rows * columns, 3]
         values = query(field, points, batch_size)  # [dz * rows * columns]
         yield z, values.view(-1, rows, columns)

@@ -142,7 +142,7 @@ def read_manifest(directory: str | os.PathLike) -> dict:
 
 
 def _check_manifest(manifest: dict) -> None:
-    require_ints(manifest.get("volume_shape"), "volume_shape", 3, 2, MAX_VOLUME_AXIS)
+    volume_shape = require_ints(manifest.get("volume_shape"), "volume_shape", 3, 2, MAX_VOLUME_AXIS)
     grid = require_ints(manifest.get("grid"), "grid", 3, 1, MAX_BRICKS)
     require_int(manifest.get("ghost_cells"), "ghost_cells", 0, MAX_VOLUME_AXIS)
     for flag in ("blend", "complete"):
@@ -151,7 +151,7 @@ def _check_manifest(manifest: dict) -> None:
     for key in ("settings", "training"):
         if manifest.get(key) is not None:
             require_dict(manifest[key], key)
-    SourceInfo.from_dict(manifest.get("source", {}))
+    SourceInfo.from_dict(manifest.get("source", {})).check_shape(volume_shape)
     value_range = manifest.get("value_range")
     if value_range is not None and not (
         isinstance(value_range, list) and len(value_range) == 2

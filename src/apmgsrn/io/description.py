@@ -8,13 +8,20 @@ description is refused with one message before anything is built from it.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from apmgsrn.data.grid import AxisCoordinates, VolumeMetadata
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.models.registry import FieldConfig
+
+#: Bounds of the source's recorded metadata: more is not a variable's description but a way to bloat a file.
+MAX_ATTRIBUTES = 256
+MAX_TEXT = 65536
+MAX_LIST = 4096
+MAX_COORDINATES = 1 << 24
 
 
 class DescriptionError(ValueError):
@@ -31,15 +38,28 @@ class SourceInfo:
         text: one line describing the volume as the reader saw it.
         dtype: the stored data type (``uint8``, ``float32``, ...), for compression ratios against the
             stored bytes; None in files written before it was recorded.
+        metadata: the variable's attributes (units...), dimension names, coordinates and compression, which a
+            decode writes back; empty in files written before they were recorded.
     """
 
     path: str = ""
     variable: str | None = None
     text: str = ""
     dtype: str | None = None
+    metadata: VolumeMetadata = VolumeMetadata()
 
     def to_dict(self) -> dict:
-        return {"path": self.path, "variable": self.variable, "description": self.text, "dtype": self.dtype}
+        data = {"path": self.path, "variable": self.variable, "description": self.text, "dtype": self.dtype}
+        metadata = self.metadata
+        if metadata.attributes:
+            data["attributes"] = dict(metadata.attributes)
+        if metadata.dimensions is not None:
+            data["dimensions"] = list(metadata.dimensions)
+        if metadata.coordinates is not None:
+            data["coordinates"] = [None if axis is None else _axis_to_dict(axis) for axis in metadata.coordinates]
+        if metadata.compression is not None:
+            data["compression"] = dict(metadata.compression)
+        return data
 
     @property
     def itemsize(self) -> int | None:
@@ -49,8 +69,9 @@ class SourceInfo:
     @staticmethod
     def of_volume(volume) -> "SourceInfo":
         """What a :class:`apmgsrn.data.Volume` (anything with ``path``, ``variable``, ``describe()``,
-        ``dtype``) was."""
-        return SourceInfo(Path(str(volume.path)).name, volume.variable, volume.describe(), str(volume.dtype))
+        ``dtype`` and, optionally, ``metadata``) was."""
+        return SourceInfo(Path(str(volume.path)).name, volume.variable, volume.describe(), str(volume.dtype),
+                          getattr(volume, "metadata", VolumeMetadata()))
 
     @staticmethod
     def from_dict(data) -> "SourceInfo":
@@ -60,7 +81,108 @@ class SourceInfo:
             variable=optional_str(data.get("variable"), "source.variable"),
             text=optional_str(data.get("description"), "source.description") or "",
             dtype=_numeric_dtype(data.get("dtype")),
+            metadata=VolumeMetadata(
+                attributes=_attributes(data.get("attributes"), "source.attributes"),
+                dimensions=_dimensions(data.get("dimensions")),
+                coordinates=_coordinates(data.get("coordinates")),
+                compression=_compression(data.get("compression")),
+            ),
         )
+
+    def crop(self, start: tuple[int, int, int], stop: tuple[int, int, int]) -> SourceInfo:
+        """The source of the voxels ``[start, stop)`` per ``(z, y, x)`` axis (a brick's): coordinates sliced."""
+        return replace(self, metadata=self.metadata.crop(start, stop))
+
+    def check_shape(self, volume_shape: tuple[int, int, int]) -> None:
+        """Uneven coordinates must give one value per voxel of the volume.
+
+        Raises:
+            DescriptionError: an axis' coordinate count differs from the volume's.
+        """
+        for axis, coordinates in enumerate(self.metadata.coordinates or ()):
+            uneven = coordinates is not None and coordinates.values is not None
+            if uneven and len(coordinates.values) != volume_shape[axis]:
+                raise DescriptionError(f"source.coordinates of {coordinates.name} do not match the volume shape")
+
+
+def _axis_to_dict(axis: AxisCoordinates) -> dict:
+    data = {"name": axis.name, "start": axis.start, "step": axis.step}
+    if axis.values is not None:
+        data["values"] = list(axis.values)
+    if axis.attributes:
+        data["attributes"] = dict(axis.attributes)
+    return data
+
+
+def _attributes(value, name: str) -> dict:
+    """Attributes: an object of at most :data:`MAX_ATTRIBUTES` strings, finite numbers and number lists."""
+    if value is None:
+        return {}
+    attributes = require_dict(value, name)
+    if len(attributes) > MAX_ATTRIBUTES:
+        raise DescriptionError(f"{name} has more than {MAX_ATTRIBUTES} entries")
+    for key, item in attributes.items():
+        if len(key) > 256:
+            raise DescriptionError(f"{name} has a key longer than 256 characters")
+        if isinstance(item, str):
+            if len(item) > MAX_TEXT:
+                raise DescriptionError(f"{name}.{key} is longer than {MAX_TEXT} characters")
+        elif isinstance(item, list):
+            if len(item) > MAX_LIST:
+                raise DescriptionError(f"{name}.{key} has more than {MAX_LIST} values")
+            for v in item:
+                require_number(v, f"{name}.{key}")
+        else:
+            require_number(item, f"{name}.{key}")
+    return dict(attributes)
+
+
+def _dimensions(value) -> tuple[str, str, str] | None:
+    if value is None:
+        return None
+    names = isinstance(value, list) and all(isinstance(v, str) and 0 < len(v) <= 256 for v in value)
+    if not names or len(value) != 3:
+        raise DescriptionError("source.dimensions is not a list of three names")
+    return tuple(value)
+
+
+def _coordinates(value) -> tuple | None:
+    if value is None:
+        return None
+    if not isinstance(value, list) or len(value) != 3:
+        raise DescriptionError("source.coordinates is not a list of three axes")
+    axes = []
+    for axis in value:
+        if axis is None:
+            axes.append(None)
+            continue
+        axis = require_dict(axis, "source.coordinates")
+        name = optional_str(axis.get("name"), "source.coordinates.name")
+        if not name or len(name) > 256:
+            raise DescriptionError("source.coordinates.name is not a name")
+        values = axis.get("values")
+        if values is not None:
+            if not isinstance(values, list) or not 2 <= len(values) <= MAX_COORDINATES:
+                raise DescriptionError(f"source.coordinates.values of {name} is not a list of coordinates")
+            values = tuple(require_number(v, f"source.coordinates.values of {name}") for v in values)
+        axes.append(AxisCoordinates(
+            name=name,
+            start=require_number(axis.get("start"), f"source.coordinates.start of {name}"),
+            step=require_number(axis.get("step"), f"source.coordinates.step of {name}"),
+            values=values,
+            attributes=_attributes(axis.get("attributes"), f"source.coordinates.attributes of {name}"),
+        ))
+    return tuple(axes)
+
+
+def _compression(value) -> dict | None:
+    if value is None:
+        return None
+    value = require_dict(value, "source.compression")
+    if not isinstance(value.get("zlib"), bool) or not isinstance(value.get("shuffle"), bool):
+        raise DescriptionError("source.compression is not a zlib setting")
+    level = require_int(value.get("complevel"), "source.compression.complevel", 0, 9)
+    return {"zlib": value["zlib"], "complevel": level, "shuffle": value["shuffle"]}
 
 
 def _numeric_dtype(value) -> str | None:
@@ -190,3 +312,27 @@ def inconsistent(path, error: Exception) -> ApmgsrnError:
     """The one message for a model file whose contents do not fit together."""
     first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
     return ApmgsrnError(f"{path}: model file is inconsistent ({first}); re-train or re-download it")
+
+
+def time_steps(description: ModelDescription) -> int:
+    """How many time steps a model holds: 1 for a model of one volume (every kind today).
+
+    The one place consumers (decode, the notebook API, the ParaView reader) ask; a time-varying model kind
+    answers here.
+    """
+    return 1
+
+
+def check_time(description: ModelDescription, time: int | None) -> int:
+    """The time step to evaluate: ``time``, or 0 when None.
+
+    Raises:
+        ApmgsrnError: ``time`` is not a step of the model.
+    """
+    steps = time_steps(description)
+    if time is None:
+        return 0
+    if isinstance(time, bool) or not isinstance(time, (int, np.integer)) or not 0 <= int(time) < steps:
+        held = "one time step (time=0)" if steps == 1 else f"{steps} time steps (time=0..{steps - 1})"
+        raise ApmgsrnError(f"time={time!r}: the model holds {held}", arguments=("time",))
+    return int(time)

@@ -97,13 +97,15 @@ def parse_field_description(description: dict) -> FieldDescription:
         raise DescriptionError("transform is not a known value transform")
     numbers = {k: require_number(v, f"transform.{k}") for k, v in transform.items() if k != "kind"}
     volume_shape = require_ints(description.get("volume_shape"), "volume_shape", 3, 1, MAX_VOLUME_AXIS)
+    source = SourceInfo.from_dict(description.get("source", {}))
+    source.check_shape(volume_shape)
     return FieldDescription(
         config=config,
         fit_range=fit_range,
         value_range=value_range,
         transform=ValueTransform(transform["kind"], **numbers),
         volume_shape=volume_shape,
-        source=SourceInfo.from_dict(description.get("source", {})),
+        source=source,
         training=training_summary(description.get("training", {})),
     )
 

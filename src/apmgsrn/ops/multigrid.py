@@ -6,11 +6,11 @@ outside the grid contributes zero, so a feature fades to zero over the half cell
 and is exactly zero one cell beyond it. Accelerated backends must match this function in forward and
 backward.
 
-:func:`multigrid_features` dispatches to the fused backends, loaded lazily on first use (importing this
-module builds, compiles and initialises nothing): ``"cpu"`` (C/OpenMP, :mod:`.multigrid_cpu`) and
-``"triton"`` (CUDA, :mod:`.multigrid_triton`). They compute transform, bounds test, trilinear weights,
-gather and concatenation in one pass per point and skip the grids that do not cover it, so beyond the
-``[N, M * C]`` output their memory does not grow with ``M``.
+:func:`multigrid_features` dispatches to the fused backends: ``"cpu"`` (C/OpenMP, :mod:`.multigrid_cpu`,
+built on first use) and ``"triton"`` (CUDA, :mod:`.multigrid_triton`, imported only for CUDA tensors since
+importing Triton takes a second); importing this module builds, compiles and initialises nothing. They
+compute the grid map, bounds test, trilinear weights, gather and concatenation in one pass per point and skip
+the grids that do not cover it, so beyond the ``[N, M * C]`` output their memory does not grow with ``M``.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import torch
 import torch.nn.functional as F
 
 from apmgsrn.choices import MULTIGRID_BACKENDS
+from apmgsrn.ops import multigrid_cpu
 
 
 def local_coordinates(
@@ -85,8 +86,6 @@ def backend_available(name: str, device: torch.device | str = "cpu") -> bool:
     if name == "cpu":
         if device.type != "cpu":
             return False
-        from apmgsrn.ops import multigrid_cpu
-
         return multigrid_cpu.is_available()
     if name == "triton":
         if device.type != "cuda":
@@ -121,8 +120,6 @@ def resolve_backend(name: str, device: torch.device | str) -> str:
     if not backend_available(name, device):
         reason = ""
         if name == "cpu" and device.type == "cpu":
-            from apmgsrn.ops import multigrid_cpu
-
             reason = f": {multigrid_cpu.load_error()}"
         elif name == "triton" and device.type == "cuda":
             from apmgsrn.ops import multigrid_triton
@@ -186,9 +183,7 @@ def multigrid_features(
         return multigrid_features_triton(points, matrices, translations, grids)
     if _needs_reference(points, matrices, translations) or grids.dtype != torch.float32:
         return multigrid_features_reference(points, matrices, translations, grids)
-    from apmgsrn.ops.multigrid_cpu import multigrid_features_cpu
-
-    return multigrid_features_cpu(points, matrices, translations, grids)
+    return multigrid_cpu.multigrid_features_cpu(points, matrices, translations, grids)
 
 
 def multigrid_decoded(
@@ -280,9 +275,7 @@ def feature_density(
             resolve_backend("cpu", "cpu")  # raises with the reason
     if not fused:
         return feature_density_reference(points, matrices, translations, power)
-    from apmgsrn.ops.multigrid_cpu import feature_density_cpu
-
-    return feature_density_cpu(points, matrices, translations, power)
+    return multigrid_cpu.feature_density_cpu(points, matrices, translations, power)
 
 
 def feature_mass(power: int = 10) -> float:

@@ -49,22 +49,40 @@ def _fused(volume: torch.Tensor, points: torch.Tensor) -> bool:
     return LIBRARY.available()
 
 
-def voxel_coordinates(shape: tuple[int, int, int], z: slice | None = None, stride: int = 1) -> torch.Tensor:
+def voxel_coordinates(
+    shape: tuple[int, int, int],
+    z: slice | None = None,
+    stride: int = 1,
+    box: tuple[tuple[float, float], tuple[float, float], tuple[float, float]] | None = None,
+) -> torch.Tensor:
     """Coordinates in ``[-1, 1]^3`` of every voxel of a ``(D, H, W)`` volume (or of z-slab ``z``), or of
     every ``stride``-th voxel along each axis.
+
+    Args:
+        shape: ``(D, H, W)`` voxels.
+        z: a z-slab (default: all of z).
+        stride: every ``stride``-th voxel along each axis.
+        box: ``((x0, x1), (y0, y1), (z0, z1))``: the lattice spans this box instead of ``[-1, 1]^3`` (a
+            decoded region), first and last voxel on its faces.
 
     Returns:
         ``[n, 3]`` points ``(x, y, z)``, C order (x fastest), matching
         ``volume[z][::stride, ::stride, ::stride].reshape(-1)``.
     """
     d, h, w = shape
+    box = box or ((-1.0, 1.0),) * 3
     zs = torch.arange(d)[z if z is not None else slice(None)][::stride]
-    axes = [_axis(zs, d), _axis(torch.arange(h)[::stride], h), _axis(torch.arange(w)[::stride], w)]
+    axes = [_axis(zs, d, *box[2]), _axis(torch.arange(h)[::stride], h, *box[1]),
+            _axis(torch.arange(w)[::stride], w, *box[0])]
     gz, gy, gx = torch.meshgrid(*axes, indexing="ij")
     return torch.stack([gx, gy, gz], dim=-1).reshape(-1, 3)
 
 
-def _axis(index: torch.Tensor, n: int) -> torch.Tensor:
-    if n == 1:
-        return torch.zeros(len(index))
-    return index.to(torch.float32) * (2.0 / (n - 1)) - 1.0
+def _axis(index: torch.Tensor, n: int, low: float = -1.0, high: float = 1.0) -> torch.Tensor:
+    if n == 1:  # one voxel: the middle of the span
+        return torch.full((len(index),), 0.5 * (low + high))
+    if (low, high) == (-1.0, 1.0):
+        return index.to(torch.float32) * (2.0 / (n - 1)) - 1.0
+    # float64 on the way: a region's bounds are not multiples of the step, and float32 would round each
+    # point twice.
+    return (low + index.to(torch.float64) * ((high - low) / (n - 1))).to(torch.float32)

@@ -12,7 +12,15 @@ Typical use::
     from apmgsrn.render import Camera, VolumeRenderer, make_transfer_function
     tf = make_transfer_function("viridis", (vmin, vmax), opacity=((0, 0), (1, 0.5)))
     image = VolumeRenderer(field, tf).render(Camera.orbit(width=512, height=512)).image  # [H, W, 3]
+
+The package is also callable: ``apmgsrn.render(model, ...)`` is the notebook API's :func:`apmgsrn.api.render`
+(an RGBA image of a model). Python sets ``apmgsrn.render`` to this package once it is imported, so the
+function users type and the package must be one object.
 """
+
+import importlib
+import sys
+import types
 
 from apmgsrn.render.bounds import Occupancy, ValueBounds
 from apmgsrn.render.camera import Camera, extent_from_shape
@@ -53,3 +61,14 @@ __all__ = [
     "render_progressive",
     "save_transfer_function",
 ]
+
+
+class _CallablePackage(types.ModuleType):
+    """This package, callable as :func:`apmgsrn.api.render`."""
+
+    def __call__(self, *args, **kwargs):
+        # Looked up at call time: the renderer knows fields only and imports nothing of the layers above it.
+        return importlib.import_module("apmgsrn.api").render(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallablePackage

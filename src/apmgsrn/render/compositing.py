@@ -75,15 +75,3 @@ class FrontToBack:
         ray_t = torch.where(keep, after, torch.full_like(after, math.inf)).amin(dim=1)
         self.transmittance[rays] = ray_t
         return ray_t
-
-    def over(self, background: tuple[float, float, float]) -> torch.Tensor:
-        """The rays' colours over a background.
-
-        Args:
-            background: RGB in [0, 1].
-
-        Returns:
-            ``[R, 3]`` ``C + T * background``.
-        """
-        color = torch.tensor(background, dtype=torch.float32, device=self.color.device)
-        return self.color + self.transmittance[:, None] * color

@@ -15,7 +15,7 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 
 
 def as_uint8(image: torch.Tensor | np.ndarray) -> np.ndarray:
-    """``[H, W, 3]`` uint8 from a float image in [0, 1] (tensor or array) or a uint8 array."""
+    """``[H, W, 3]`` (or ``[H, W, 4]``) uint8 from a float image in [0, 1] (tensor or array) or a uint8 array."""
     if isinstance(image, torch.Tensor):
         image = image.detach().cpu().numpy()
     if image.dtype == np.uint8:

@@ -226,37 +226,41 @@ class VolumeRenderer:
         """Slab thickness the transfer function's opacities refer to, world units."""
         return 2.0 * max(self.extent) / self.config.reference_samples
 
-    def render(self, camera: Camera) -> RenderResult:
+    def render(self, camera: Camera, alpha: bool = False) -> RenderResult:
         """Render a full image.
 
         Args:
             camera: the view and the image size.
+            alpha: return RGBA ``[H, W, 4]``, colour not premultiplied, instead of RGB over the background.
 
         Returns:
-            The image ``[H, W, 3]`` (CPU, float32) and work counts.
+            The image ``[H, W, 3]`` (or ``[H, W, 4]``; CPU, float32) and work counts.
         """
         pixels = torch.arange(camera.width * camera.height, device=self.device)
-        colors, stats = self.render_pixels(camera, pixels)
-        return RenderResult(colors.view(camera.height, camera.width, 3).cpu(), stats)
+        colors, stats = self.render_pixels(camera, pixels, alpha)
+        return RenderResult(colors.view(camera.height, camera.width, colors.shape[1]).cpu(), stats)
 
-    def render_pixels(self, camera: Camera, pixels: torch.Tensor) -> tuple[torch.Tensor, RenderStatistics]:
+    def render_pixels(
+        self, camera: Camera, pixels: torch.Tensor, alpha: bool = False
+    ) -> tuple[torch.Tensor, RenderStatistics]:
         """Render some pixels of a camera's image.
 
         Args:
             camera: the view.
             pixels: ``[N]`` int64 linear pixel indices (``row * width + column``).
+            alpha: RGBA (see :meth:`render_rays`).
 
         Returns:
-            ``([N, 3] colours on the renderer's device, work counts)``.
+            ``([N, 3] colours (``[N, 4]`` with alpha) on the renderer's device, work counts)``.
         """
         pixels = pixels.to(self.device)
         chunk = self.rays_per_chunk
-        out = torch.empty((pixels.numel(), 3), dtype=torch.float32, device=self.device)
+        out = torch.empty((pixels.numel(), 4 if alpha else 3), dtype=torch.float32, device=self.device)
         stats = RenderStatistics()
         for start in range(0, pixels.numel(), chunk):
             ids = pixels[start : start + chunk]
             origins, directions = camera.rays(ids, self.device)
-            colors, chunk_stats = self.render_rays(origins, directions, ids)
+            colors, chunk_stats = self.render_rays(origins, directions, ids, alpha)
             out[start : start + chunk] = colors
             stats.add(chunk_stats)
         return out, stats
@@ -267,7 +271,8 @@ class VolumeRenderer:
         return max(1, self.config.batch_size // 16)
 
     def render_rays(
-        self, origins: torch.Tensor, directions: torch.Tensor, ray_ids: torch.Tensor | None = None
+        self, origins: torch.Tensor, directions: torch.Tensor, ray_ids: torch.Tensor | None = None,
+        alpha: bool = False,
     ) -> tuple[torch.Tensor, RenderStatistics]:
         """Composite arbitrary rays (world space), in chunks of :attr:`rays_per_chunk`.
 
@@ -275,9 +280,11 @@ class VolumeRenderer:
             origins: ``[R, 3]`` ray origins.
             directions: ``[R, 3]`` unit directions.
             ray_ids: ``[R]`` int64 ids that seed the jitter (default ``0..R-1``).
+            alpha: return ``[R, 4]`` RGBA: the accumulated colour divided by the ray's opacity (straight, not
+                premultiplied; 0 where nothing was hit) and the opacity ``1 - T``; no background.
 
         Returns:
-            ``([R, 3] colours, background included, work counts)``.
+            ``([R, 3] colours, background included (or ``[R, 4]`` RGBA), work counts)``.
         """
         self.ensure_bounds()
         origins = origins.to(self.device, torch.float32)
@@ -286,22 +293,30 @@ class VolumeRenderer:
             ray_ids = torch.arange(origins.shape[0], device=self.device)
         ray_ids = ray_ids.to(self.device)
         chunk = self.rays_per_chunk
-        out = torch.empty((origins.shape[0], 3), dtype=torch.float32, device=self.device)
+        out = torch.empty((origins.shape[0], 4 if alpha else 3), dtype=torch.float32, device=self.device)
         stats = RenderStatistics()
+        background = torch.tensor(self.config.background, dtype=torch.float32, device=self.device)
         governor = inference_governor(self.device.type)  # CPU threads by timing the chunks (apmgsrn.threads)
         with torch.inference_mode(), governor:
             for start in range(0, origins.shape[0], chunk):
                 end = start + chunk
-                colors, chunk_stats = self._march(origins[start:end], directions[start:end], ray_ids[start:end])
-                out[start:end] = colors
+                color, transmittance, chunk_stats = self._march(origins[start:end], directions[start:end],
+                                                                ray_ids[start:end])
+                if alpha:
+                    opacity = 1.0 - transmittance
+                    straight = torch.where(opacity[:, None] > 0, color / opacity.clamp(min=1e-12)[:, None], 0.0)
+                    out[start:end] = torch.cat([straight.clamp(0.0, 1.0), opacity[:, None]], 1)
+                else:
+                    out[start:end] = color + transmittance[:, None] * background  # C + T * background
                 stats.add(chunk_stats)
                 governor.tick(chunk_stats.samples_in_box + chunk_stats.rays)
         return out, stats
 
     def _march(
         self, origins: torch.Tensor, directions: torch.Tensor, ray_ids: torch.Tensor
-    ) -> tuple[torch.Tensor, RenderStatistics]:
-        """March a chunk of rays. Args: origins, directions ``[R, 3]``; ray_ids ``[R]``. Returns: ``[R, 3]``."""
+    ) -> tuple[torch.Tensor, torch.Tensor, RenderStatistics]:
+        """March a chunk of rays. Args: origins, directions ``[R, 3]``; ray_ids ``[R]``. Returns: the accumulated
+        (premultiplied) colour ``[R, 3]``, the transmittance left ``[R]`` and the work counts."""
         config = self.config
         extent = torch.tensor(self.extent, dtype=torch.float32, device=self.device)
         offsets = sample_offsets(ray_ids, config.jitter, config.seed)
@@ -348,4 +363,4 @@ class VolumeRenderer:
             cursor[active] = ray_cursor
             still = (ray_cursor < samples.last[active]) & (ray_t >= config.early_termination) & (ray_t > 0)
             active = active[still]
-        return compositor.over(config.background), stats
+        return compositor.color, compositor.transmittance, stats
