@@ -120,7 +120,7 @@ def test_translation_rewrites_only_the_arguments_an_error_names():
 #: Arguments of library configs that no command-line option sets (their errors reach Python callers only).
 LIBRARY_ONLY = {
     "betas", "density_window", "density_tolerance", "density_power", "final_lr_fraction", "history_every",
-    "stop_after_lr_cuts", "samples_per_cell", "table_size", "points",
+    "stop_after_lr_cuts", "samples_per_cell", "table_size", "points", "precision",
 }
 CHECKS = {"check_int", "check_optional_int", "check_number", "check_choice"}
 
