@@ -7,9 +7,9 @@ process. Two measures, both here so that training, decoding, evaluation and rend
 1. **Spin briefly, then sleep.** libgomp (PyTorch's OpenMP runtime on Linux) lets a thread that waits for
    the next parallel region spin 300,000 rounds before it sleeps, about 10 ms on the 2-core development
    machine (37 ns per ``pause``). A spinning thread keeps its core busy, so the thread it waits for, queued
-   behind another process on the other core, cannot move there. Measured with other jobs on both cores:
-   2-thread training steps 3-4x slower than 1-thread ones with the default, as fast or faster with a
-   spin of 1,000-3,000 rounds. :func:`set_openmp_wait_policy` makes :data:`SPIN_COUNT` the default; it runs
+   behind another process on the other core, cannot move there. Measured with other jobs on both cores
+   (docs/benchmarks_contention.md): 300 training iterations took 3-4x longer with the default spin and
+   two threads than with this module's settings. :func:`set_openmp_wait_policy` makes :data:`SPIN_COUNT` the default; it runs
    on ``import apmgsrn`` (libgomp reads its settings once, when torch loads it, so it has an effect only
    when apmgsrn is imported before torch, as the command line and a fresh script do).
 2. **Measure, keep the fastest.** :class:`ThreadGovernor` times a loop's work units (training iterations,
