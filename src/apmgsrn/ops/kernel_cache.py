@@ -190,6 +190,11 @@ class CompiledLibrary:
         self._library: ctypes.CDLL | None = None
         self.error: str | None = None
 
+    @property
+    def tried(self) -> bool:
+        """Whether this process has tried to build or load the library."""
+        return self._tried
+
     def load(self) -> ctypes.CDLL | None:
         """The loaded library, built first if no trusted cached build exists; ``None`` if it cannot be."""
         with self._lock:
