@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 from apmgsrn.errors import ApmgsrnError
@@ -50,6 +52,7 @@ def keep_large_allocations_cached() -> None:
         pass
 
 
+@functools.cache
 def cpu_has_native_bfloat16() -> bool:
     """Whether this CPU has bfloat16 dot-product instructions (elsewhere oneDNN emulates them, slowly)."""
     try:

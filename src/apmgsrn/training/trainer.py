@@ -3,7 +3,6 @@ a learning rate that follows the iteration budget, atomic checkpoints and exact 
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 import signal
@@ -130,7 +129,6 @@ def decoder_hidden_dtype(precision: str, device: torch.device) -> torch.dtype | 
     return inference_dtype(precision, device)
 
 
-@functools.cache
 def default_budget(device: torch.device) -> tuple[int, int]:
     """(iterations, batch size) sized for the device: minutes on a 2-core CPU, the paper's on a GPU."""
     if device.type == "cuda":
