@@ -122,7 +122,7 @@ def test_translation_rewrites_only_the_arguments_an_error_names():
 LIBRARY_ONLY = {
     "betas", "density_window", "density_tolerance", "density_power", "final_lr_fraction", "history_every",
     "stop_after_lr_cuts", "samples_per_cell", "table_size", "points", "qat_lr", "sensitivity_points",
-    "measure_voxels",
+    "measure_voxels", "precision",
     "steps", "mixing",  # a series' step count comes from its data; weight lattices are a library option
 }
 CHECKS = {"check_int", "check_optional_int", "check_number", "check_choice"}

@@ -20,6 +20,7 @@ import pytest
 import torch
 
 from apmgsrn.ops import multigrid
+from apmgsrn.ops.kernel_cache import CompiledLibrary
 from apmgsrn.ops.multigrid import (
     feature_density,
     feature_density_reference,
@@ -210,6 +211,27 @@ def test_cpu_feature_density_matches_reference(cpu_kernel, power, threads):
     torch.testing.assert_close(gt / scale, ref_gt / scale, rtol=0, atol=2e-5)
 
 
+def test_cpu_kernels_give_the_same_numbers_on_one_and_two_threads(cpu_kernel):
+    """What lets the trainer change its thread count mid-run: with at least as many grids as threads, the
+    features, the grid gradient and the density gradients do not depend on the thread count, bit for bit."""
+    points, matrices, translations, grids = random_case(16, 1, (16, 16, 16), n=40000, seed=3)
+    upstream = torch.rand(40000, generator=torch.Generator().manual_seed(4))
+    results = []
+    before = torch.get_num_threads()
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            features, grid_grad = forward_backward(cpu_backend, points, matrices, translations, grids, fused=True)
+            a = matrices.clone().requires_grad_(True)
+            t = translations.clone().requires_grad_(True)
+            (feature_density(points, a, t, 10) * upstream).sum().backward()
+            results.append((features, grid_grad, a.grad, t.grad))
+    finally:
+        torch.set_num_threads(before)
+    for one, two in zip(*results):
+        assert torch.equal(one, two)
+
+
 def test_cpu_feature_density_far_points_give_zero_not_nan(cpu_kernel):
     matrices, translations = torch.eye(3)[None] * 3, torch.zeros(1, 3)
     points = torch.tensor([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [1e20, 1e20, 0.0]])
@@ -247,10 +269,11 @@ def test_import_builds_nothing():
         import apmgsrn.ops.multigrid
         import apmgsrn.models.encoders.adaptive_multigrid
         import apmgsrn.models.encoders.hybrid_grid
-        from apmgsrn.ops import level_grids_cpu, multigrid_cpu
+        from apmgsrn.ops import field_cpu, level_grids_cpu, multigrid_cpu, trilinear_cpu
         # The CPU kernel modules are imported (plain Python), but nothing is compiled or loaded until first use.
         loaded = [name for name in ("triton", "apmgsrn.ops.multigrid_triton") if name in sys.modules]
-        built = [module.__name__ for module in (multigrid_cpu, level_grids_cpu) if module._tried]
+        built = [module.__name__ for module in (multigrid_cpu, field_cpu, trilinear_cpu) if module.LIBRARY.tried]
+        built += ["apmgsrn.ops.level_grids_cpu"] if level_grids_cpu._tried else []
         print("loaded:", loaded, "built:", built)
         """
     )
@@ -263,8 +286,8 @@ def fresh_kernel_state(monkeypatch, tmp_path):
     from apmgsrn.ops import multigrid_cpu
 
     monkeypatch.setenv("APMGSRN_CACHE", str(tmp_path / "cache"))
-    for name, value in (("_tried", False), ("_library", None), ("_load_error", None)):
-        monkeypatch.setattr(multigrid_cpu, name, value)
+    library = multigrid_cpu.LIBRARY
+    monkeypatch.setattr(multigrid_cpu, "LIBRARY", CompiledLibrary(library.name, library.source, library.declare))
     return multigrid_cpu
 
 
@@ -289,7 +312,7 @@ def test_kernel_is_built_once_into_the_cache(fresh_kernel_state, tmp_path):
     kernels = list((tmp_path / "cache" / "kernels").glob("multigrid_cpu_*.so"))
     assert len(kernels) == 1
     stamp = kernels[0].stat().st_mtime_ns
-    module._tried = False  # as a new process would: finds the cached file, does not rebuild
+    module.LIBRARY.reset()  # as a new process would: finds the cached file, does not rebuild
     assert module.load_library() is not None
     assert kernels[0].stat().st_mtime_ns == stamp
     assert list((tmp_path / "cache" / "kernels").iterdir()) == kernels  # no temporary files left
@@ -433,10 +456,10 @@ def _plant(path: Path, marker: Path) -> None:
 
 
 def _kernel_name(module) -> str:
-    from apmgsrn.ops.kernel_cache import cpu_signature, kernel_key
+    from apmgsrn.ops.kernel_cache import COMMON_FLAGS, FLAG_SETS, cpu_signature, kernel_key
 
     compiler = shutil.which("gcc") or shutil.which("cc")
-    return f"multigrid_cpu_{kernel_key(module.C_SOURCE, repr((module.COMMON_FLAGS, module.FLAG_SETS)), compiler, cpu_signature())}.so"
+    return f"multigrid_cpu_{kernel_key(module.C_SOURCE, repr((COMMON_FLAGS, FLAG_SETS)), compiler, cpu_signature())}.so"
 
 
 @pytest.mark.skipif(not HAS_COMPILER, reason="no C compiler")
@@ -472,6 +495,6 @@ def test_a_cache_others_can_write_or_a_file_they_own_is_not_trusted(fresh_kernel
     if hasattr(os, "geteuid") and os.geteuid() == 0:
         os.chmod(cache, 0o700)
         os.chown(cache / _kernel_name(module), 65534, 65534)  # the file belongs to someone else
-        module._tried = False
+        module.LIBRARY.reset()
         assert module.load_library() is not None, module.load_error()
         assert not marker.exists()

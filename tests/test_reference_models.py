@@ -44,8 +44,9 @@ def test_a_single_model_retrains_to_the_reference_tensors(tmp_path, capsys):
     summary = json.loads(capsys.readouterr().out)
     differences = largest_differences(DATA / "reference_field.apmgsrn", out)
     assert max(differences.values()) <= TOLERANCE, differences
-    # The PSNR the reference run reported (21.3612630954277 dB), up to the order of the float64 sums.
-    assert summary["psnr"] == pytest.approx(21.3612630954277, abs=1e-9)
+    # The PSNR the reference run reported (21.3612630954277 dB), up to the order of the float64 sums and the
+    # fused CPU decoder's float32 rounding (it sums each layer in its own order).
+    assert summary["psnr"] == pytest.approx(21.3612630954277, abs=1e-6)
 
 
 def test_a_brick_model_retrains_to_the_reference_tensors(tmp_path):

@@ -23,7 +23,11 @@ def _assert_same(images: dict[str, np.ndarray], reference: dict[str, np.ndarray]
     for name, image in images.items():
         expected = reference[name]
         assert image.dtype == expected.dtype and image.shape == expected.shape, name
-        assert np.array_equal(image, expected), f"{name}: {np.abs(image.astype(float) - expected).max()} off"
+        if image.dtype == np.uint8:
+            assert np.array_equal(image, expected), f"{name}: {np.abs(image.astype(float) - expected).max()} off"
+        else:  # float images of a model: the fused CPU decoder sums in its own order (float32 rounding)
+            off = np.abs(image.astype(np.float64) - expected).max()
+            assert off <= 1e-6, f"{name}: {off} off"
         assert expected.astype(np.float64).std() > 0.03 * (255 if expected.dtype == np.uint8 else 1)  # not blank
 
 

@@ -5,6 +5,10 @@ compiles kernels or imports torch or optional extras until a name below is used.
 """
 
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.threads import set_openmp_wait_policy
+
+# Before torch loads libgomp, which reads its wait policy once: see apmgsrn.threads.
+set_openmp_wait_policy()
 
 __version__ = "0.1.0"
 __all__ = ["ApmgsrnError", "Model", "Region", "fit", "load", "render", "__version__"]

@@ -24,7 +24,7 @@ import apmgsrn.decomposition.brick_model  # noqa: F401 - registers the brick-mod
 import apmgsrn.decomposition.series_bricks  # noqa: F401 - registers the time-series brick-model loader
 from apmgsrn.data import ArrayVolume, Volume, open_volume
 from apmgsrn.data.grid import AxisCoordinates, Region, VolumeMetadata, plain_attributes
-from apmgsrn.device import resolve_device
+from apmgsrn.device import inference_dtype, resolve_device
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.export import export_onnx
 from apmgsrn.inference.decode import decode_array, decode_volume
@@ -36,6 +36,7 @@ from apmgsrn.io.decode_plan import DecodePlan, plan_decode
 from apmgsrn.io.description import check_time
 from apmgsrn.io.field_file import FIELD_KIND
 from apmgsrn.io.series_file import SERIES_KIND
+from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
 from apmgsrn.render import Camera, RendererConfig, VolumeRenderer, extent_from_shape, make_transfer_function
 from apmgsrn.render.images import as_uint8
@@ -73,6 +74,27 @@ class Model(nn.Module):
         for parameter in self.parameters():
             return parameter.device
         return torch.device("cpu")
+
+    def set_precision(self, precision: str) -> Model:
+        """Choose the arithmetic of inference (decode, eval, render); training is not affected.
+
+        Args:
+            precision: ``"float32"`` (the fused float32 kernel on CPUs, exact to float32 rounding),
+                ``"bfloat16"`` (the decoder's hidden layers in bfloat16: fast where the CPU multiplies it
+                natively, a PSNR cost that docs/benchmarks.md measures), or ``"auto"`` (bfloat16 on such
+                CPUs, float32 elsewhere).
+
+        Returns:
+            The model.
+
+        Raises:
+            InvalidArgument: an unknown precision.
+        """
+        dtype = inference_dtype(precision, self.device)
+        for module in self.modules():
+            if isinstance(module, NeuralField):
+                module.inference_dtype = dtype
+        return self
 
     def predict(self, points, batch_size: int = QUERY_BATCH) -> np.ndarray:
         """Values at points, without gradients, in bounded-memory batches.
@@ -195,18 +217,20 @@ class Model(nn.Module):
         return export_onnx(self.field, path)
 
 
-def load(path: str | os.PathLike, device: torch.device | str = "cpu") -> Model:
+def load(path: str | os.PathLike, device: torch.device | str = "cpu", precision: str = "auto") -> Model:
     """Open a model file or a brick-model folder; never executes code from it.
 
     Args:
         path: the ``.apmgsrn`` file or brick-model folder.
         device: where to put the network: ``"cpu"``, ``"cuda"``, ``"cuda:1"``, ``"auto"`` or a torch device.
+        precision: arithmetic of inference, see :meth:`Model.set_precision` (``"auto"``: bfloat16 on CPUs
+            with native bfloat16, float32 elsewhere).
 
     Raises:
         ApmgsrnError: the file is missing, corrupt, foreign, hostile or from a newer version; an unknown device.
     """
     loaded = open_model(path, _device(device))
-    return Model(loaded.field, loaded.description, path).eval()
+    return Model(loaded.field, loaded.description, path).eval().set_precision(precision)
 
 
 def fit(

@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     from apmgsrn.inference.evaluate import evaluate
 
     device = resolve_device(args.device)
-    model = apmgsrn.load(args.model, device=device)
+    model = apmgsrn.load(args.model, device=device, precision="float32")  # PSNR in float32 (decode: auto)
     if model.description.series is not None:
         from apmgsrn.cli.series import run_series_eval
 

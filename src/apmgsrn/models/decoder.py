@@ -53,6 +53,10 @@ class Decoder(nn.Sequential):
                     bound = (6.0 / (fan_in + fan_out)) ** 0.5
                     layer.weight.uniform_(-bound, bound, generator=generator)
 
+    def weights(self) -> list[torch.Tensor]:
+        """The linear layers' weights ``[out, in]``, input layer first."""
+        return [layer.weight for layer in self if isinstance(layer, nn.Linear)]
+
     def forward(self, features: torch.Tensor, hidden_dtype: torch.dtype | None = None) -> torch.Tensor:
         """``[N, in_features] -> [N, 1]``.
 
@@ -63,9 +67,8 @@ class Decoder(nn.Sequential):
                 float32 (cast on use, so gradients arrive in float32) and the output layer runs in float32,
                 so the fitted value is not rounded to bfloat16's 8-bit mantissa.
         """
-        layers = [layer for layer in self if isinstance(layer, nn.Linear)]
+        weights = self.weights()
         x = features if hidden_dtype is None else features.to(hidden_dtype)
-        for layer in layers[:-1]:
-            x = torch.relu(nn.functional.linear(x, layer.weight.to(x.dtype)))
-        last = layers[-1]
-        return nn.functional.linear(x.to(last.weight.dtype), last.weight)
+        for weight in weights[:-1]:
+            x = torch.relu(nn.functional.linear(x, weight.to(x.dtype)))
+        return nn.functional.linear(x.to(weights[-1].dtype), weights[-1])

@@ -45,6 +45,9 @@ class NeuralField(nn.Module):
         self.value_min = float(fit_min if value_min is None else value_min)
         self.value_max = float(fit_max if value_max is None else value_max)
         self.transform = transform
+        # dtype of the decoder's hidden layers in inference (None: float32, the fused kernel where it runs);
+        # set by apmgsrn.load(precision=...)
+        self.inference_dtype: torch.dtype | None = None
 
     def normalized(
         self, points: torch.Tensor, detach_placement: bool = False, hidden_dtype: torch.dtype | None = None
@@ -52,7 +55,17 @@ class NeuralField(nn.Module):
         """Decoder output ``m(y)`` ``[N, 1]`` (about ``[0, 1]``), the quantity the trainer fits.
 
         ``hidden_dtype``: see :meth:`~apmgsrn.models.decoder.Decoder.forward` (training only).
+        Without gradients, the hidden layers run in :attr:`inference_dtype` when it is set; in float32,
+        an encoder's fused inference kernel runs where it has one
+        (:meth:`~apmgsrn.models.encoders.base.Encoder.decoded`); ``backend="torch"`` in the encoder's
+        config keeps the reference.
         """
+        if hidden_dtype is None and not torch.is_grad_enabled():
+            if self.inference_dtype is not None:
+                return self.decoder(self.encoder(points), self.inference_dtype)
+            fused = self.encoder.decoded(points, self.decoder.weights())  # [N] or None
+            if fused is not None:
+                return fused.view(-1, 1)
         return self.decoder(self.encoder(points, detach_placement=detach_placement), hidden_dtype)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:

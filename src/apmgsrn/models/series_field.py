@@ -256,6 +256,14 @@ class SeriesMultiGridEncoder(AdaptiveMultiGridEncoder):
             for group, grid in zip(groups, grids)
         ])  # [G * n, M * C]
 
+    def thread_invariant(self, threads: int) -> bool:
+        """Not shown for the per-step mixing kernels: a series run keeps its thread count."""
+        return False
+
+    def decoded(self, points: torch.Tensor, weights: list[torch.Tensor]) -> torch.Tensor | None:
+        """No fused kernel for a series (a step materialised as a single field has one)."""
+        return None
+
     def feature_parameters(self) -> list[nn.Parameter]:
         """The parameters the reconstruction loss moves."""
         return [p for p in (self.grids, self.coefficients, getattr(self, "residuals", None)) if isinstance(p, nn.Parameter)]

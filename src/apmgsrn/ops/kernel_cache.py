@@ -11,6 +11,7 @@ a predictable shared path such as ``/tmp/apmgsrn-kernels-<uid>``.
 from __future__ import annotations
 
 import atexit
+import ctypes
 import hashlib
 import os
 import platform
@@ -18,7 +19,8 @@ import shutil
 import stat
 import subprocess
 import tempfile
-from collections.abc import Sequence
+import threading
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 
@@ -134,3 +136,94 @@ def build_library(name: str, compiler: str, source: str, common_flags: Sequence[
     private = Path(tempfile.mkdtemp(prefix="apmgsrn-kernel-"))  # 0700, unpredictable
     atexit.register(shutil.rmtree, private, ignore_errors=True)  # loaded libraries stay mapped until exit
     return _compile(private, name, compiler, source, common_flags, flag_sets)
+
+
+# Tried in order until one compiles: tuned for this CPU with OpenMP, then portable, then single-threaded.
+# -fno-trapping-math lets gcc if-convert the float selects (else no loop vectorises); neither it nor
+# -fno-math-errno changes a result, since the kernels never read errno or floating-point exception flags.
+COMMON_FLAGS = ["-O3", "-fPIC", "-shared", "-fno-math-errno", "-fno-trapping-math", "-Wno-unknown-pragmas"]
+FLAG_SETS = (
+    ["-march=native", "-fopenmp"],
+    ["-fopenmp"],
+    [],
+)
+
+
+def find_compiler() -> str:
+    """The C compiler: ``$CC`` when set, else gcc, else cc.
+
+    Raises:
+        RuntimeError: none is on ``PATH``.
+    """
+    wanted = os.environ.get("CC")
+    compiler = shutil.which(wanted) if wanted else shutil.which("gcc") or shutil.which("cc")
+    if compiler is None:
+        raise RuntimeError(f"C compiler {wanted!r} not found" if wanted else "no C compiler (gcc or cc) on PATH")
+    return compiler
+
+
+class CompiledLibrary:
+    """One C kernel library, built on first use (once per machine, cached as :func:`build_library` says)
+    and loaded through :mod:`ctypes`, which releases the GIL during calls.
+
+    Plain C without PyTorch headers compiles in a second or two. Linked with ``-fopenmp``, a kernel runs
+    on PyTorch's own OpenMP pool: PyTorch ships ``libgomp.so.1`` under the same soname and loads it first,
+    so ``torch.set_num_threads`` applies. When it cannot be built (no compiler), :meth:`load` returns
+    ``None`` and :attr:`error` says why: callers fall back to their PyTorch reference.
+
+    Args:
+        name: file-name prefix of the build (the cached file is ``{name}_{key}.so``).
+        source: the C source.
+        declare: sets the ``argtypes``/``restype`` of the loaded library's functions.
+    """
+
+    def __init__(self, name: str, source: str, declare: Callable[[ctypes.CDLL], None]):
+        self.name = name
+        self.source = source
+        self.declare = declare
+        self._lock = threading.Lock()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the loaded library, as a new process would (the cached build stays)."""
+        self._tried = False
+        self._library: ctypes.CDLL | None = None
+        self.error: str | None = None
+
+    @property
+    def tried(self) -> bool:
+        """Whether this process has tried to build or load the library."""
+        return self._tried
+
+    def load(self) -> ctypes.CDLL | None:
+        """The loaded library, built first if no trusted cached build exists; ``None`` if it cannot be."""
+        with self._lock:
+            if self._tried:
+                return self._library
+            self._tried = True
+            try:
+                compiler = find_compiler()
+                key = kernel_key(self.source, repr((COMMON_FLAGS, FLAG_SETS)), compiler, cpu_signature())
+                path = build_library(f"{self.name}_{key}.so", compiler, self.source, COMMON_FLAGS, FLAG_SETS)
+                library = ctypes.CDLL(str(path))
+                self.declare(library)
+                self._library = library
+            except Exception as err:  # noqa: BLE001 - any build problem means "use the reference"
+                self.error = f"{type(err).__name__}: {err}"
+                self._library = None
+            return self._library
+
+    def available(self) -> bool:
+        """True when the library builds and loads on this machine."""
+        return self.load() is not None
+
+    def load_or_raise(self) -> ctypes.CDLL:
+        """The loaded library.
+
+        Raises:
+            RuntimeError: it cannot be built here (with the reason).
+        """
+        library = self.load()
+        if library is None:
+            raise RuntimeError(f"the {self.name} kernel is not available: {self.error}")
+        return library

@@ -186,6 +186,43 @@ def multigrid_features(
     return multigrid_cpu.multigrid_features_cpu(points, matrices, translations, grids)
 
 
+def multigrid_decoded(
+    points: torch.Tensor,
+    matrices: torch.Tensor,
+    translations: torch.Tensor,
+    grids: torch.Tensor,
+    weights: list[torch.Tensor],
+    backend: str = "auto",
+) -> torch.Tensor | None:
+    """``decoder(multigrid_features(points, ...))`` fused in one pass where a kernel can (inference only).
+
+    The fused CPU kernel (:mod:`apmgsrn.ops.field_cpu`) runs when ``backend`` resolves to ``"cpu"``, no
+    gradient is wanted, every tensor is float32 and the sizes fit; elsewhere this returns ``None`` and the
+    caller runs encoder and decoder as usual (the reference).
+
+    Args:
+        points: ``[N, 3]``.
+        matrices: ``[M, 3, 3]``.
+        translations: ``[M, 3]``.
+        grids: ``[M, C, D, H, W]``.
+        weights: the decoder's bias-free linear layers ``[out, in]`` in order, ReLU between them, the
+            last ``[1, in]``.
+        backend: as :func:`multigrid_features`.
+
+    Returns:
+        ``[N]`` decoder outputs, or ``None``.
+    """
+    if torch.is_grad_enabled() or resolve_backend(backend, points.device) != "cpu":
+        return None
+    if any(t.dtype != torch.float32 for t in (points, matrices, translations, grids, *weights)):
+        return None
+    from apmgsrn.ops import field_cpu
+
+    if not field_cpu.fusable(grids.shape[0] * grids.shape[1], [w.shape[0] for w in weights[:-1]]):
+        return None
+    return field_cpu.multigrid_decoder_cpu(points, matrices, translations, grids, weights)
+
+
 def feature_density_reference(
     points: torch.Tensor,
     matrices: torch.Tensor,

@@ -28,13 +28,10 @@ zero-padded trilinear sampling (a corner outside the grid contributes zero), gri
 from __future__ import annotations
 
 import ctypes
-import os
-import shutil
-import threading
 
 import torch
 
-from apmgsrn.ops.kernel_cache import build_library, cpu_signature, kernel_key
+from apmgsrn.ops.kernel_cache import CompiledLibrary
 
 # The C source. Coordinates are folded into index space once per grid: ``f = A' p + t'`` with
 # ``A' = A (size - 1) / 2`` and ``t' = (t + 1) (size - 1) / 2`` (corner-aligned unnormalisation), so a
@@ -51,6 +48,19 @@ static int omp_get_num_threads(void) { return 1; }
 #endif
 
 typedef int64_t i64;
+
+#if defined(__AVX2__)
+#include <immintrin.h>
+/* lane_lut[mask]: positions of the set bits of an 8-bit mask, in order (zero-filled), for compaction. */
+static unsigned char lane_lut[256][8];
+__attribute__((constructor)) static void init_lane_lut(void) {
+    for (int mask = 0; mask < 256; ++mask) {
+        int n = 0;
+        for (int b = 0; b < 8; ++b) if (mask >> b & 1) lane_lut[mask][n++] = (unsigned char)b;
+        for (; n < 8; ++n) lane_lut[mask][n] = 0;
+    }
+}
+#endif
 
 /* Points are processed in tiles: every loop below runs over the points of one tile for one grid, so
    the compiler vectorises it (8 points per AVX2 instruction), and the tile's scratch stays in L1. */
@@ -106,7 +116,21 @@ static inline int select_and_weigh(Scratch *s, const float *a, int nt, Shape g) 
            only for inside points) */
         float *restrict ox = s->cx, *restrict oy = s->cy, *restrict oz = s->cz;
         cnt = 0;
-        for (int i = 0; i < nt; ++i) {
+        int i = 0;
+#if defined(__AVX2__)
+        /* eight at a time: the inside lanes' positions from a table, one permute per array */
+        for (; i + 8 <= nt; i += 8) {
+            const __m256i in8 = _mm256_loadu_si256((const __m256i *)(inside + i));
+            const int mask = _mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpgt_epi32(in8, _mm256_setzero_si256())));
+            const __m256i lanes = _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)lane_lut[mask]));
+            _mm256_storeu_ps(ox + cnt, _mm256_permutevar8x32_ps(_mm256_loadu_ps(fxs + i), lanes));
+            _mm256_storeu_ps(oy + cnt, _mm256_permutevar8x32_ps(_mm256_loadu_ps(fys + i), lanes));
+            _mm256_storeu_ps(oz + cnt, _mm256_permutevar8x32_ps(_mm256_loadu_ps(fzs + i), lanes));
+            _mm256_storeu_si256((__m256i *)(idx + cnt), _mm256_add_epi32(lanes, _mm256_set1_epi32(i)));
+            cnt += __builtin_popcount(mask);
+        }
+#endif
+        for (; i < nt; ++i) {
             idx[cnt] = i; ox[cnt] = fxs[i]; oy[cnt] = fys[i]; oz[cnt] = fzs[i];
             cnt += inside[i];
         }
@@ -148,12 +172,11 @@ static inline int select_and_weigh(Scratch *s, const float *a, int nt, Shape g) 
 }
 
 /* res[k] = sum_j b[off_j[k]] w_j[k] for the compacted points (vectorised gathers). */
-static inline void gather_tile(const float *restrict b, Scratch *s, int cnt) {
+static inline void gather_tile(const float *restrict b, Scratch *s, int cnt, float *restrict res) {
     const int *restrict o0 = s->off[0], *restrict o1 = s->off[1], *restrict o2 = s->off[2], *restrict o3 = s->off[3];
     const int *restrict o4 = s->off[4], *restrict o5 = s->off[5], *restrict o6 = s->off[6], *restrict o7 = s->off[7];
     const float *restrict w0 = s->wt[0], *restrict w1 = s->wt[1], *restrict w2 = s->wt[2], *restrict w3 = s->wt[3];
     const float *restrict w4 = s->wt[4], *restrict w5 = s->wt[5], *restrict w6 = s->wt[6], *restrict w7 = s->wt[7];
-    float *restrict res = s->res;
     #pragma omp simd
     for (int k = 0; k < cnt; ++k) {
         float acc = b[o0[k]] * w0[k];
@@ -165,6 +188,22 @@ static inline void gather_tile(const float *restrict b, Scratch *s, int cnt) {
         acc += b[o6[k]] * w6[k];
         acc += b[o7[k]] * w7[k];
         res[k] = acc;
+    }
+}
+
+/* The features of the tile's nt points starting at i0 into rows o[k * M * C + g * C + c]. */
+static void encode_tile(Scratch *s, const float *points, i64 i0, int nt, const float *aff, i64 m,
+                        const float *grids, i64 c, i64 sm, i64 sc, Shape shape, float *o) {
+    const i64 mc = m * c;
+    load_tile(s, points, i0, nt);
+    memset(o, 0, sizeof(float) * (size_t)nt * (size_t)mc);  /* grids missing a point give 0 */
+    for (i64 g = 0; g < m; ++g) {
+        const int cnt = select_and_weigh(s, aff + 12 * g, nt, shape);
+        for (i64 ch = 0; ch < c; ++ch) {
+            gather_tile(grids + g * sm + ch * sc, s, cnt, s->res);
+            float *oc = o + g * c + ch;
+            for (int k = 0; k < cnt; ++k) oc[(i64)s->idx[k] * mc] = s->res[k];
+        }
     }
 }
 
@@ -185,17 +224,7 @@ void mg_forward(const float *points, i64 n, const float *aff, i64 m, const float
         for (i64 t = 0; t < ntiles; ++t) {
             const i64 i0 = t * TILE;
             const int nt = (int)(n - i0 < TILE ? n - i0 : TILE);
-            float *o = out + i0 * mc;
-            load_tile(&s, points, i0, nt);
-            memset(o, 0, sizeof(float) * (size_t)nt * (size_t)mc);  /* grids missing a point give 0 */
-            for (i64 g = 0; g < m; ++g) {
-                const int cnt = select_and_weigh(&s, aff + 12 * g, nt, shape);
-                for (i64 ch = 0; ch < c; ++ch) {
-                    gather_tile(grids + g * sm + ch * sc, &s, cnt);
-                    float *oc = o + g * c + ch;
-                    for (int k = 0; k < cnt; ++k) oc[(i64)s.idx[k] * mc] = s.res[k];
-                }
-            }
+            encode_tile(&s, points, i0, nt, aff, m, grids, c, sm, sc, shape, out + i0 * mc);
         }
     }
 }
@@ -379,15 +408,18 @@ void mg_density(const float *points, i64 n, const float *aff, const float *det, 
     }
 }
 
-/* partial: [nthreads, M, 13] zeroed doubles; each thread sums into its own block (no races). */
+/* partial: [blocks, M, 13] zeroed doubles, sums: [M, 13]. The tiles are cut into `blocks` runs fixed by n
+   alone; each run is summed by one thread into its own partial, and the partials are added in order, so
+   the result is the same on any number of threads (a thread-count change never changes training). */
 void mg_density_backward(const float *points, i64 n, const float *aff, const float *det, i64 m,
-                         int power, const float *grad_rho, double *partial, int nthreads) {
+                         int power, const float *grad_rho, double *partial, i64 blocks, double *sums,
+                         int nthreads) {
     const i64 ntiles = (n + DTILE - 1) / DTILE;
-    #pragma omp parallel num_threads(nthreads)
-    {
-        double *own = partial + (size_t)omp_get_thread_num() * (size_t)(13 * m);
-        #pragma omp for schedule(dynamic, 4)
-        for (i64 t = 0; t < ntiles; ++t) {
+    const i64 per_block = (ntiles + blocks - 1) / blocks;
+    #pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
+    for (i64 b = 0; b < blocks; ++b) {
+        double *own = partial + (size_t)b * (size_t)(13 * m);
+        for (i64 t = b * per_block; t < ntiles && t < (b + 1) * per_block; ++t) {
             const i64 i0 = t * DTILE;
             const int nt = (int)(n - i0 < DTILE ? n - i0 : DTILE);
             if (power == 10)
@@ -396,24 +428,19 @@ void mg_density_backward(const float *points, i64 n, const float *aff, const flo
                 density_backward_tile(points, i0, nt, aff, det, m, 2 * power, grad_rho, own);
         }
     }
+    for (i64 e = 0; e < 13 * m; ++e) {
+        double total = 0.0;
+        for (i64 b = 0; b < blocks; ++b) total += partial[(size_t)b * (size_t)(13 * m) + e];
+        sums[e] = total;
+    }
 }
 """
 
-# Tried in order until one compiles: tuned for this CPU with OpenMP, then portable, then single-threaded.
-# -fno-trapping-math lets gcc if-convert the float selects (else no loop vectorises); neither it nor
-# -fno-math-errno changes a result, since the kernel never reads errno or floating-point exception flags.
-COMMON_FLAGS = ["-O3", "-fPIC", "-shared", "-fno-math-errno", "-fno-trapping-math", "-Wno-unknown-pragmas"]
-FLAG_SETS = (
-    ["-march=native", "-fopenmp"],
-    ["-fopenmp"],
-    [],
-)
-
-_lock = threading.Lock()
-_library: ctypes.CDLL | None = None
-_load_error: str | None = None
-_tried = False
-
+#: Points per tile of the density kernels (``DTILE`` in the C source).
+DENSITY_TILE = 256
+#: Most runs of tiles the density backward sums separately (their partial sums take ``blocks * M * 13``
+#: doubles); the runs depend on the number of points only.
+DENSITY_BLOCKS = 64
 
 def _declare(lib: ctypes.CDLL) -> None:
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
@@ -421,9 +448,12 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.mg_forward.argtypes = [p, i64, p, i64, p, *sizes, p, i32]
     lib.mg_backward.argtypes = [p, i64, p, i64, p, *sizes, p, p, i32]
     lib.mg_density.argtypes = [p, i64, p, p, i64, i32, p, i32]
-    lib.mg_density_backward.argtypes = [p, i64, p, p, i64, i32, p, p, i32]
+    lib.mg_density_backward.argtypes = [p, i64, p, p, i64, i32, p, p, i64, p, i32]
     for fn in (lib.mg_forward, lib.mg_backward, lib.mg_density, lib.mg_density_backward):
         fn.restype = None
+
+
+LIBRARY = CompiledLibrary("multigrid_cpu", C_SOURCE, _declare)
 
 
 def load_library() -> ctypes.CDLL | None:
@@ -432,42 +462,17 @@ def load_library() -> ctypes.CDLL | None:
     Returns:
         The loaded library, or ``None`` when it cannot be built here (see :func:`load_error`).
     """
-    global _library, _load_error, _tried
-    with _lock:
-        if _tried:
-            return _library
-        _tried = True
-        try:
-            wanted = os.environ.get("CC")
-            compiler = shutil.which(wanted) if wanted else shutil.which("gcc") or shutil.which("cc")
-            if compiler is None:
-                raise RuntimeError(f"C compiler {wanted!r} not found" if wanted else "no C compiler (gcc or cc) on PATH")
-            key = kernel_key(C_SOURCE, repr((COMMON_FLAGS, FLAG_SETS)), compiler, cpu_signature())
-            path = build_library(f"multigrid_cpu_{key}.so", compiler, C_SOURCE, COMMON_FLAGS, FLAG_SETS)
-            lib = ctypes.CDLL(str(path))
-            _declare(lib)
-            _library = lib
-        except Exception as err:  # noqa: BLE001 - any build problem means "use the reference"
-            _load_error = f"{type(err).__name__}: {err}"
-            _library = None
-        return _library
+    return LIBRARY.load()
 
 
 def load_error() -> str | None:
     """Why :func:`load_library` returned ``None`` (``None`` when it has not failed)."""
-    return _load_error
+    return LIBRARY.error
 
 
 def is_available() -> bool:
     """True when the kernel library builds and loads on this machine."""
-    return load_library() is not None
-
-
-def _library_or_raise() -> ctypes.CDLL:
-    lib = load_library()
-    if lib is None:
-        raise RuntimeError(f"the CPU multigrid kernel is not available: {load_error()}")
-    return lib
+    return LIBRARY.available()
 
 
 def index_space_affine(
@@ -502,7 +507,7 @@ def forward_features(points: torch.Tensor, aff: torch.Tensor, grids: torch.Tenso
     Returns:
         ``[N, M * C]`` features, as the reference.
     """
-    lib = _library_or_raise()
+    lib = LIBRARY.load_or_raise()
     m, c, d, h, w = grids.shape
     n = points.shape[0]
     out = torch.empty(n, m * c, dtype=torch.float32)  # every element is written by the kernel
@@ -533,7 +538,7 @@ def backward_grids(
     Returns:
         ``[M, C, D, H, W]`` float32 gradient.
     """
-    lib = _library_or_raise()
+    lib = LIBRARY.load_or_raise()
     m, c, d, h, w = shape
     go = grad_out.to(torch.float32).contiguous()
     if stride is None:
@@ -638,7 +643,7 @@ class _DensityFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, points, matrices, translations, det, power):  # type: ignore[override]
-        lib = _library_or_raise()
+        lib = LIBRARY.load_or_raise()
         pts = points.detach().to(torch.float32).contiguous()
         m = matrices.shape[0]
         aff = torch.cat(
@@ -657,16 +662,18 @@ class _DensityFunction(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_rho):  # type: ignore[override]
         pts, aff, det_c = ctx.saved_tensors
-        lib = _library_or_raise()
+        lib = LIBRARY.load_or_raise()
         m = aff.shape[0]
         g = grad_rho.to(torch.float32).contiguous()
-        threads = torch.get_num_threads()
-        partial = torch.zeros(threads, m, 13, dtype=torch.float64)  # per-thread sums, no races
+        tiles = -(-pts.shape[0] // DENSITY_TILE)
+        blocks = max(1, min(DENSITY_BLOCKS, tiles))
+        partial = torch.zeros(blocks, m, 13, dtype=torch.float64)  # one per run of tiles, no races
+        sums = torch.empty(m, 13, dtype=torch.float64)
         lib.mg_density_backward(
             pts.data_ptr(), pts.shape[0], aff.data_ptr(), det_c.data_ptr(), m, ctx.power,
-            g.data_ptr(), partial.data_ptr(), threads,
+            g.data_ptr(), partial.data_ptr(), blocks, sums.data_ptr(), torch.get_num_threads(),
         )
-        sums = partial.sum(0).to(torch.float32)  # [M, 13]
+        sums = sums.to(torch.float32)  # [M, 13]
         grad_det = sums[:, 0]
         grad_a = sums[:, 1:10].reshape(m, 3, 3)  # [M, 3, 3]
         grad_t = sums[:, 10:]  # [M, 3]

@@ -19,12 +19,34 @@ def sample_volume(volume: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     Returns:
         ``[N]`` interpolated values, in the volume's dtype.
     """
+    if _fused(volume, points):
+        from apmgsrn.ops.trilinear_cpu import sample_volume_cpu
+
+        return sample_volume_cpu(volume, points.to(volume.dtype).contiguous())
+    return sample_volume_reference(volume, points)
+
+
+def sample_volume_reference(volume: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """:func:`sample_volume` by ``F.grid_sample`` (any device and dtype, differentiable)."""
     n = points.shape[0]
     grid = points.to(volume.dtype).view(1, n, 1, 1, 3)  # [1, N, 1, 1, 3]
     out = F.grid_sample(
         volume[None, None], grid, mode="bilinear", padding_mode="border", align_corners=True
     )  # [1, 1, N, 1, 1]
     return out.view(n)
+
+
+def _fused(volume: torch.Tensor, points: torch.Tensor) -> bool:
+    """Whether the CPU kernel (:mod:`apmgsrn.ops.trilinear_cpu`, bit for bit the reference) can sample."""
+    if volume.device.type != "cpu" or points.device.type != "cpu" or volume.dtype != torch.float32:
+        return False
+    if not volume.is_contiguous() or volume.dim() != 3 or points.dim() != 2 or points.shape[-1] != 3:
+        return False
+    if torch.is_grad_enabled() and (volume.requires_grad or points.requires_grad):
+        return False
+    from apmgsrn.ops.trilinear_cpu import LIBRARY
+
+    return LIBRARY.available()
 
 
 def voxel_coordinates(

@@ -29,6 +29,7 @@ from apmgsrn.render.field import Field, VolumeField, evaluate_field, field_devic
 from apmgsrn.render.images import as_uint8
 from apmgsrn.render.sampling import RaySamples, sample_offsets
 from apmgsrn.render.transfer_function import TransferFunction, TransferTable
+from apmgsrn.threads import inference_governor
 
 #: Most samples per ray across the box (a 2^16-voxel axis), and macro cells per axis (their value bounds
 #: take ``cells^3`` floats).
@@ -295,7 +296,8 @@ class VolumeRenderer:
         out = torch.empty((origins.shape[0], 4 if alpha else 3), dtype=torch.float32, device=self.device)
         stats = RenderStatistics()
         background = torch.tensor(self.config.background, dtype=torch.float32, device=self.device)
-        with torch.inference_mode():
+        governor = inference_governor(self.device.type)  # CPU threads by timing the chunks (apmgsrn.threads)
+        with torch.inference_mode(), governor:
             for start in range(0, origins.shape[0], chunk):
                 end = start + chunk
                 color, transmittance, chunk_stats = self._march(origins[start:end], directions[start:end],
@@ -307,6 +309,7 @@ class VolumeRenderer:
                 else:
                     out[start:end] = color + transmittance[:, None] * background  # C + T * background
                 stats.add(chunk_stats)
+                governor.tick(chunk_stats.samples_in_box + chunk_stats.rays)
         return out, stats
 
     def _march(

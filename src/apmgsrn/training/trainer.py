@@ -3,7 +3,6 @@ a learning rate that follows the iteration budget, atomic checkpoints and exact 
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 import signal
@@ -19,12 +18,14 @@ from torch import nn
 
 from apmgsrn.arguments import MAX_BATCH_SIZE, check_choice, check_int, check_number, check_optional_int
 from apmgsrn.choices import DECODER_PRECISIONS, DENSITY_NORMALIZATIONS, LR_SCHEDULES
+from apmgsrn.device import inference_dtype
 from apmgsrn.errors import ApmgsrnError, InvalidArgument
 from apmgsrn.io.container import load_tensors, read_header, save_tensors
 from apmgsrn.io.description import DescriptionError
 from apmgsrn.models.encoders.base import Encoder
 from apmgsrn.models.field import NeuralField
 from apmgsrn.ops.trilinear import sample_volume
+from apmgsrn.threads import ThreadGovernor
 from apmgsrn.training.checkpoint import (
     CHECKPOINT_KIND,
     TrainingState,
@@ -36,6 +37,11 @@ from apmgsrn.training.losses import feature_density_loss
 
 #: Weight of the newest loss in a series step's running loss.
 STEP_LOSS_WEIGHT = 0.3
+
+#: ATen sums at most this many elements on one thread (its grain size) whatever the thread count; a larger
+#: batch is summed in per-thread parts, so its loss, and the density target built from it, would change
+#: with the number of threads.
+SERIAL_REDUCTION_ELEMENTS = 32768
 
 
 @dataclass(frozen=True)
@@ -137,23 +143,9 @@ def current_names(stored: dict) -> dict:
 
 
 def decoder_hidden_dtype(precision: str, device: torch.device) -> torch.dtype | None:
-    """The decoder's hidden-layer dtype for a :attr:`TrainConfig.decoder_precision` on ``device``."""
-    if precision == "bfloat16":
-        return torch.bfloat16
-    if precision == "auto" and device.type == "cpu" and _cpu_has_native_bfloat16():
-        return torch.bfloat16
-    return None
-
-
-@functools.cache
-def _cpu_has_native_bfloat16() -> bool:
-    """Whether this CPU has bfloat16 dot-product instructions (elsewhere oneDNN emulates them, slowly)."""
-    try:
-        with open("/proc/cpuinfo") as cpuinfo:
-            flags = next((line.split() for line in cpuinfo if line.startswith("flags")), [])
-    except OSError:
-        return False
-    return "avx512_bf16" in flags or "amx_bf16" in flags
+    """The decoder's hidden-layer dtype for a :attr:`TrainConfig.decoder_precision` on ``device`` (the
+    rule of inference: :func:`apmgsrn.device.inference_dtype`)."""
+    return inference_dtype(precision, device)
 
 
 def default_budget(device: torch.device) -> tuple[int, int]:
@@ -209,6 +201,19 @@ class TrainingCallback:
         """The loop stopped: budget spent, early stop, Ctrl-C or an error."""
 
 
+class _GovernThreads(TrainingCallback):
+    """Runs the loop under the trainer's :class:`~apmgsrn.threads.ThreadGovernor`, one unit per step."""
+
+    def on_start(self, trainer: Trainer) -> None:
+        trainer.thread_governor.__enter__()
+
+    def after_step(self, trainer: Trainer, iteration: int, losses: StepLosses) -> None:
+        trainer.thread_governor.tick()
+
+    def on_end(self, trainer: Trainer) -> None:
+        trainer.thread_governor.__exit__(None, None, None)
+
+
 class Trainer:
     """Fits a :class:`NeuralField` to a volume (or a series field to a series) of values scaled to ``[0, 1]``.
 
@@ -251,6 +256,9 @@ class Trainer:
             else None
         )
         self.hidden_dtype = decoder_hidden_dtype(config.decoder_precision, self.device)
+        # CPU threads chosen by timing the steps, where that cannot change the numbers (exact resume).
+        self.thread_governor = ThreadGovernor(enabled=self.device.type == "cpu" and self._thread_invariant())
+        self.callbacks = (_GovernThreads(), *self.callbacks)
         self.generator = torch.Generator(device=self.device)
         self.generator.manual_seed(config.seed)
         self.state = TrainingState()
@@ -263,6 +271,16 @@ class Trainer:
         # one place every training path (single file, bricks) goes through; a resumed run then loads its
         # checkpoint over it.
         encoder.initialize_from_volume(volume)
+
+    def _thread_invariant(self) -> bool:
+        """Whether a step gives the same numbers on any thread count up to the current one: a batch that
+        ATen reduces serially, float32 decoder products (MKL's are the same on 1 and 2 threads for these
+        shapes; oneDNN's bfloat16 ones are not known to be), and an encoder that says so."""
+        return (
+            self.config.batch_size <= SERIAL_REDUCTION_ELEMENTS
+            and self.hidden_dtype is None
+            and self.field.encoder.thread_invariant(torch.get_num_threads())
+        )
 
     # ----------------------------------------------------------------------------- schedule
     def learning_rate(self, iteration: int) -> float:

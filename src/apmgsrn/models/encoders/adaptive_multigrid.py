@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from apmgsrn.models.encoders.base import Encoder
-from apmgsrn.ops.multigrid import feature_density, feature_mass, multigrid_features
+from apmgsrn.ops.multigrid import feature_density, feature_mass, multigrid_decoded, multigrid_features
 
 GRID_INITS = ("default", "large", "small")
 #: Sanity bounds of a config (a model file claiming more is refused before anything is allocated).
@@ -108,6 +108,11 @@ class AdaptiveMultiGridEncoder(Encoder):
             matrices, translations = matrices.detach(), translations.detach()
         return multigrid_features(points, matrices, translations, self.grids, backend=self.config.backend)
 
+    def decoded(self, points: torch.Tensor, weights: list[torch.Tensor]) -> torch.Tensor | None:
+        """Encoder and decoder in one pass on the CPU when no gradient is wanted (see
+        :func:`~apmgsrn.ops.multigrid.multigrid_decoded`); None elsewhere."""
+        return multigrid_decoded(points, self.matrices, self.translations, self.grids, weights, self.config.backend)
+
     def feature_density(self, points: torch.Tensor, power: int = 10) -> torch.Tensor:
         """Unnormalised feature density ``rho`` at ``points`` ``[N, 3]`` -> ``[N]`` (SPEC section 3)."""
         return feature_density(points, self.matrices, self.translations, power)
@@ -115,6 +120,12 @@ class AdaptiveMultiGridEncoder(Encoder):
     def mean_feature_density(self, power: int = 10) -> float:
         """Mean density over the domain ``[-1, 1]^3`` (volume 8) if every grid lay inside it."""
         return self.config.grids * feature_mass(power) / 8.0
+
+    def thread_invariant(self, threads: int) -> bool:
+        """Every kernel splits its work by point or by grid, never by thread, except the fused backward
+        with fewer grids than threads (per-thread partial gradients); the density backward sums fixed runs
+        of points in order."""
+        return self.config.grids >= threads
 
     def placement_parameters(self) -> list[nn.Parameter]:
         """The parameters the density loss moves."""

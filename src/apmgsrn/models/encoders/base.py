@@ -31,6 +31,22 @@ class Encoder(nn.Module):
     def initialize_from_volume(self, values: torch.Tensor) -> None:
         """Start from the training volume ``[D, H, W]`` in ``[0, 1]`` (called once before training; nothing here)."""
 
+    def thread_invariant(self, threads: int) -> bool:
+        """Whether forward and backward give the same numbers on any CPU thread count up to ``threads``
+        (the trainer then lets :class:`apmgsrn.threads.ThreadGovernor` change it mid-run). False unless an
+        encoder knows better."""
+        return False
+
+    def decoded(self, points: torch.Tensor, weights: list[torch.Tensor]) -> torch.Tensor | None:
+        """``decoder(self(points))`` ``[N]`` by a fused inference kernel, or None where there is none (the
+        field then runs encoder and decoder itself).
+
+        Args:
+            points: ``[N, 3]``.
+            weights: the decoder's linear layers (see :meth:`apmgsrn.models.decoder.Decoder.weights`).
+        """
+        return None
+
     def check_parameters(self) -> str | None:
         """Why these parameters cannot be a trained model (NaN/Inf, ...), or None when they can."""
         for name, tensor in self.named_parameters():

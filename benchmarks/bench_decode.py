@@ -1,0 +1,212 @@
+"""Decoding as a user decodes (issue 18): a trained model loaded with ``apmgsrn.load`` in a fresh process,
+library defaults, 2^18 random points per call under ``torch.no_grad()``, beside the CPU's measured limit.
+
+Rows, each in its own fresh process (no allocator settings or other process-wide changes here):
+- ``default``: ``apmgsrn.load(FILE)`` then ``model(points)``: the library's own path (on CPUs the fused
+  encoder + decoder kernel in float32, or bfloat16 hidden layers where the CPU multiplies them natively).
+- ``float32 unfused``: the path before issue 18: the encoder's CPU kernel, then the decoder's matrix
+  products in PyTorch (``field.decoder(field.encoder(points))``).
+- ``bfloat16``: ``apmgsrn.load(FILE, precision="bfloat16")``: hidden layers in bfloat16 (fast only where the
+  CPU has AVX512-BF16 or AMX; emulated, slowly, elsewhere).
+
+PSNR: each row's values on the training volume's whole lattice against the volume (value range of the
+volume), so the cost of a faster path shows in dB. Limit: GFLOP/s of a float32 and a bfloat16 matrix
+product ``[65536, 64] x [64, 64]`` on the same threads, divided by the decoder's dense FLOP per point (the
+fused kernel skips zero inputs, so it may pass that line; the encoder's gathers are not counted).
+
+    python benchmarks/bench_decode.py                          # prints the table
+    python benchmarks/bench_decode.py --out docs/benchmarks_decode.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared" / "data"
+VOLUME = ("c60_128x128x128_uint8.raw", (128, 128, 128))
+PRESETS = ("small", "medium")
+ROWS = ("default", "float32 unfused", "bfloat16")
+POINTS = 2**18
+
+
+def trained_model(folder: Path, preset: str, iterations: int) -> Path:
+    """A model of ``preset`` trained ``iterations`` on the c60 volume with the command line (made once)."""
+    path = folder / f"c60_{preset}_{iterations}.apmgsrn"
+    if not path.exists():
+        name, shape = VOLUME
+        command = [sys.executable, "-m", "apmgsrn", "train", str(SHARED / name), "--shape",
+                   ",".join(map(str, shape)), "--dtype", "uint8", "--preset", preset, "--iterations",
+                   str(iterations), "--device", "cpu", "--out", str(path)]
+        print("$", " ".join(command), flush=True)
+        subprocess.run(command, check=True, capture_output=True, env=dict(os.environ, PYTHONPATH=str(REPO / "src")))
+    return path
+
+
+def _median_seconds(fn, repeats: int) -> tuple[float, float]:
+    """Median wall seconds and median CPU seconds (all threads of this process) of a call."""
+    for _ in range(3):
+        fn()
+    wall, cpu = [], []
+    for _ in range(repeats):
+        start, start_cpu = time.perf_counter(), time.process_time()
+        fn()
+        wall.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
+    return statistics.median(wall), statistics.median(cpu)
+
+
+def child_decode(model_path: str, row: str, repeats: int) -> dict:
+    import numpy as np
+
+    import apmgsrn
+    import torch
+    from apmgsrn.inference.decode import decode_array
+
+    model = apmgsrn.load(model_path, precision="bfloat16" if row == "bfloat16" else "auto")
+    field = model.field
+    if row == "float32 unfused":
+        def run(points):
+            normalized = field.decoder(field.encoder(points))
+            return field.transform.inverse(normalized * (field.fit_max - field.fit_min) + field.fit_min)
+    else:
+        run = model
+    points = torch.rand(POINTS, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    with torch.no_grad():
+        seconds, cpu_seconds = _median_seconds(lambda: run(points), repeats)
+
+    class Callable(torch.nn.Module):  # decode_array wants a module: the row's path on the lattice
+        def __init__(self):
+            super().__init__()
+            self.anchor = torch.nn.Parameter(torch.zeros(1), requires_grad=False)
+
+        def forward(self, p):
+            return run(p)
+
+    name, shape = VOLUME
+    truth = np.fromfile(SHARED / name, dtype=np.uint8).reshape(shape).astype(np.float64)
+    decoded = decode_array(Callable(), shape).astype(np.float64)
+    mse = float(np.mean((decoded - truth) ** 2))
+    value_range = float(truth.max() - truth.min())
+    config = field.config
+    widths = [config.encoder.grids * config.encoder.features] + [config.decoder.width] * config.decoder.hidden_layers + [1]
+    flop = 2 * sum(a * b for a, b in zip(widths[:-1], widths[1:]))
+    return {"mpps": POINTS / seconds / 1e6, "cpu_mpps": POINTS / cpu_seconds / 1e6, "psnr": 10 * np.log10(value_range**2 / mse), "flop": flop,
+            "threads": torch.get_num_threads()}
+
+
+def child_matmul(repeats: int) -> dict:
+    import torch
+
+    out = {}
+    for name, dtype in (("float32", torch.float32), ("bfloat16", torch.bfloat16)):
+        a = torch.rand(65536, 64).to(dtype)
+        b = torch.rand(64, 64).to(dtype)
+        seconds, cpu_seconds = _median_seconds(lambda: a @ b, repeats)
+        out[name] = 2 * 65536 * 64 * 64 / seconds / 1e9
+        out[name + "_cpu"] = 2 * 65536 * 64 * 64 / cpu_seconds / 1e9
+    out["threads"] = torch.get_num_threads()
+    return out
+
+
+def in_fresh_process(*arguments: str) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(REPO / "src"))
+    result = subprocess.run([sys.executable, __file__, *arguments], env=env, check=True, capture_output=True,
+                            text=True)
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def cpu_name() -> str:
+    try:
+        return next(line.split(":", 1)[1].strip() for line in open("/proc/cpuinfo") if line.startswith("model name"))
+    except (OSError, StopIteration):
+        return platform.processor() or platform.machine()
+
+
+def cpu_flags() -> str:
+    try:
+        flags = next(line.split() for line in open("/proc/cpuinfo") if line.startswith("flags"))
+    except (OSError, StopIteration):
+        return "unknown"
+    wanted = ("avx2", "avx512f", "avx512_bf16", "amx_bf16")
+    return ", ".join(f"{f} {'yes' if f in flags else 'no'}" for f in wanted)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--child", choices=("decode", "matmul"))
+    parser.add_argument("--model", default="")
+    parser.add_argument("--row", choices=ROWS, default="default")
+    parser.add_argument("--repeats", type=int, default=10, help="timed calls per row (median)")
+    parser.add_argument("--iterations", type=int, default=500, help="training iterations of the models")
+    parser.add_argument("--models-dir", default=str(Path(tempfile.gettempdir()) / "apmgsrn-bench-models"))
+    parser.add_argument("--out", default=None, help="markdown file to write")
+    args = parser.parse_args()
+    if args.child == "decode":
+        print(json.dumps(child_decode(args.model, args.row, args.repeats)))
+        return
+    if args.child == "matmul":
+        print(json.dumps(child_matmul(args.repeats * 5)))
+        return
+    folder = Path(args.models_dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    models = {preset: trained_model(folder, preset, args.iterations) for preset in PRESETS}
+    load_start = os.getloadavg()[0]
+    limits = in_fresh_process("--child", "matmul", "--repeats", str(args.repeats))
+    lines = [f"Matrix product [65536, 64] x [64, 64], {limits['threads']} threads: float32 {limits['float32']:.1f} "
+             f"GFLOP/s ({limits['float32_cpu']:.1f} per CPU-second), bfloat16 {limits['bfloat16']:.1f} GFLOP/s "
+             f"({limits['bfloat16_cpu']:.1f} per CPU-second).", "",
+             "| preset | path | M points/s | M points per CPU-s | PSNR dB (128^3 lattice) | decoder FLOP/point | "
+             "limit f32 M/s | limit bf16 M/s | limit f32 per CPU-s | limit bf16 per CPU-s |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    print("\n".join(lines), flush=True)
+    for preset in PRESETS:
+        for row in ROWS:
+            r = in_fresh_process("--child", "decode", "--model", str(models[preset]), "--row", row,
+                                 "--repeats", str(args.repeats))
+            line = (f"| {preset} | {row} | {r['mpps']:.2f} | {r['cpu_mpps']:.2f} | {r['psnr']:.2f} | {r['flop']:,} | "
+                    f"{limits['float32'] * 1e3 / r['flop']:.2f} | {limits['bfloat16'] * 1e3 / r['flop']:.2f} | "
+                    f"{limits['float32_cpu'] * 1e3 / r['flop']:.2f} | {limits['bfloat16_cpu'] * 1e3 / r['flop']:.2f} |")
+            lines.append(line)
+            print(line, flush=True)
+    load_end = os.getloadavg()[0]
+    if args.out:
+        import torch
+
+        text = f"""# Decoding as a user decodes (issue 18)
+
+Machine: {cpu_name()}, {os.cpu_count()} cores ({cpu_flags()}), torch {torch.__version__}, Python
+{platform.python_version()}; 1-minute load average {load_start:.1f} at the start, {load_end:.1f} at the end (the
+machine is shared with other jobs: a load above 2 means the cores were not ours alone, and every figure
+here is lower than on an idle machine). Command: `python benchmarks/bench_decode.py --repeats {args.repeats}
+--out {args.out}`. No GPU was lent to this session: GPU rows are left for a session that has one.
+
+Models: the small and medium presets trained {args.iterations} iterations on c60 128^3 (uint8) with
+`apmgsrn train`; each row in a fresh process, `apmgsrn.load(FILE)` with the library's defaults (no allocator
+or thread settings in the benchmark), {POINTS:,} random points per call under `torch.no_grad()`, median of
+{args.repeats} calls after 3 warm-ups. The authors' code on the same kind of 2-core CPU: 0.96 M (small) and
+0.77 M (medium) points/s (REFERENCE.md).
+
+{chr(10).join(lines)}
+
+"per CPU-s": points per second of CPU time this process got (all its threads), which the other jobs on
+the machine disturb far less than wall time; on an idle 2-core machine the wall rate would be up to twice
+it. "limit": the matrix-product rate divided by the decoder's dense FLOP per point: what a dense decoder
+could reach if the encoder cost nothing. The fused kernel adds only the non-zero inputs of each layer (zero
+features outside a grid, ReLU zeros), so it is not bound by that line.
+"""
+        Path(args.out).write_text(text)
+        print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
