@@ -272,8 +272,8 @@ def test_import_builds_nothing():
         from apmgsrn.ops import field_cpu, level_grids_cpu, multigrid_cpu, trilinear_cpu
         # The CPU kernel modules are imported (plain Python), but nothing is compiled or loaded until first use.
         loaded = [name for name in ("triton", "apmgsrn.ops.multigrid_triton") if name in sys.modules]
-        built = [module.__name__ for module in (multigrid_cpu, field_cpu, trilinear_cpu) if module.LIBRARY.tried]
-        built += ["apmgsrn.ops.level_grids_cpu"] if level_grids_cpu._tried else []
+        kernels = (multigrid_cpu, field_cpu, trilinear_cpu, level_grids_cpu)
+        built = [module.__name__ for module in kernels if module.LIBRARY.tried]
         print("loaded:", loaded, "built:", built)
         """
     )

@@ -20,15 +20,11 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import os
-import shutil
-import threading
 
 import torch
 
-from apmgsrn.ops.kernel_cache import build_library, cpu_signature, kernel_key
+from apmgsrn.ops.kernel_cache import CompiledLibrary
 from apmgsrn.ops.level_layout import LevelLayout
-from apmgsrn.ops.multigrid_cpu import COMMON_FLAGS, FLAG_SETS
 
 C_SOURCE = r"""
 #include <math.h>
@@ -202,46 +198,24 @@ void lg_backward(const float *points, i64 n, i64 levels, const float *maps, cons
 }
 """
 
-_lock = threading.Lock()
-_library: ctypes.CDLL | None = None
-_load_error: str | None = None
-_tried = False
+def _declare(lib: ctypes.CDLL) -> None:
+    p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+    lib.lg_forward.argtypes = [p, i64, i64, p, p, p, p, p, p, i64, i32]
+    lib.lg_backward.argtypes = [p, i64, i64, p, p, p, p, p, i64, p, p, i64, i32]
+    lib.lg_forward.restype = lib.lg_backward.restype = None
 
 
-def load_library() -> ctypes.CDLL | None:
-    """Build (once per machine) and load the kernel; ``None`` when it cannot be built (see :func:`load_error`)."""
-    global _library, _load_error, _tried
-    with _lock:
-        if _tried:
-            return _library
-        _tried = True
-        try:
-            wanted = os.environ.get("CC")
-            compiler = shutil.which(wanted) if wanted else shutil.which("gcc") or shutil.which("cc")
-            if compiler is None:
-                raise RuntimeError(f"C compiler {wanted!r} not found" if wanted else "no C compiler (gcc or cc) on PATH")
-            key = kernel_key(C_SOURCE, repr((COMMON_FLAGS, FLAG_SETS)), compiler, cpu_signature())
-            path = build_library(f"level_grids_cpu_{key}.so", compiler, C_SOURCE, COMMON_FLAGS, FLAG_SETS)
-            lib = ctypes.CDLL(str(path))
-            p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
-            lib.lg_forward.argtypes = [p, i64, i64, p, p, p, p, p, p, i64, i32]
-            lib.lg_backward.argtypes = [p, i64, i64, p, p, p, p, p, i64, p, p, i64, i32]
-            lib.lg_forward.restype = lib.lg_backward.restype = None
-            _library = lib
-        except Exception as err:  # noqa: BLE001 - any build problem means "use the reference"
-            _load_error = f"{type(err).__name__}: {err}"
-            _library = None
-        return _library
+LIBRARY = CompiledLibrary("level_grids_cpu", C_SOURCE, _declare)
 
 
 def load_error() -> str | None:
-    """Why :func:`load_library` returned ``None`` (``None`` when it has not failed)."""
-    return _load_error
+    """Why the kernel could not be built or loaded (``None`` when it has not failed)."""
+    return LIBRARY.error
 
 
 def is_available() -> bool:
     """True when the kernel builds and loads on this machine."""
-    return load_library() is not None
+    return LIBRARY.available()
 
 
 class KernelLayout:
@@ -267,19 +241,12 @@ def kernel_layout(layout: LevelLayout) -> KernelLayout:
     return KernelLayout(layout)
 
 
-def _library_or_raise() -> ctypes.CDLL:
-    lib = load_library()
-    if lib is None:
-        raise RuntimeError(f"the CPU level-grid kernel is not available: {load_error()}")
-    return lib
-
-
 class _LevelGridFunction(torch.autograd.Function):
     """Autograd wrapper: gradients for the table only."""
 
     @staticmethod
     def forward(ctx, points, maps, table, kernel_layout):  # type: ignore[override]
-        lib = _library_or_raise()
+        lib = LIBRARY.load_or_raise()
         layout = kernel_layout.layout
         pts = points.detach().to(torch.float32).contiguous()
         m = maps.detach().to(torch.float32)
@@ -300,7 +267,7 @@ class _LevelGridFunction(torch.autograd.Function):
     def backward(ctx, grad_out):  # type: ignore[override]
         if not ctx.needs_input_grad[2]:
             return None, None, None, None
-        lib = _library_or_raise()
+        lib = LIBRARY.load_or_raise()
         pts, flat_maps = ctx.saved_tensors
         kernel_layout = ctx.kernel_layout
         layout = kernel_layout.layout
