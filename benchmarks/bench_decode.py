@@ -8,6 +8,8 @@ Rows, each in its own fresh process (no allocator settings or other process-wide
   products in PyTorch (``field.decoder(field.encoder(points))``).
 - ``bfloat16``: ``apmgsrn.load(FILE, precision="bfloat16")``: hidden layers in bfloat16 (fast only where the
   CPU has AVX512-BF16 or AMX; emulated, slowly, elsewhere).
+- ``encoder only``: the multi-grid encoder's CPU kernel alone (features, no decoder): the ceiling of any
+  decoding path with this encoder on these points.
 
 PSNR: each row's values on the training volume's whole lattice against the volume (value range of the
 volume), so the cost of a faster path shows in dB. Limit: GFLOP/s of a float32 and a bfloat16 matrix
@@ -35,7 +37,7 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
 VOLUME = ("c60_128x128x128_uint8.raw", (128, 128, 128))
 PRESETS = ("small", "medium")
-ROWS = ("default", "float32 unfused", "bfloat16")
+ROWS = ("default", "float32 unfused", "bfloat16", "encoder only")
 POINTS = 2**18
 
 
@@ -74,7 +76,9 @@ def child_decode(model_path: str, row: str, repeats: int) -> dict:
 
     model = apmgsrn.load(model_path, precision="bfloat16" if row == "bfloat16" else "auto")
     field = model.field
-    if row == "float32 unfused":
+    if row == "encoder only":
+        run = field.encoder
+    elif row == "float32 unfused":
         def run(points):
             normalized = field.decoder(field.encoder(points))
             return field.transform.inverse(normalized * (field.fit_max - field.fit_min) + field.fit_min)
@@ -83,6 +87,13 @@ def child_decode(model_path: str, row: str, repeats: int) -> dict:
     points = torch.rand(POINTS, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1
     with torch.no_grad():
         seconds, cpu_seconds = _median_seconds(lambda: run(points), repeats)
+    config = field.config
+    widths = [config.encoder.grids * config.encoder.features] + [config.decoder.width] * config.decoder.hidden_layers + [1]
+    flop = 2 * sum(a * b for a, b in zip(widths[:-1], widths[1:]))
+    result = {"mpps": POINTS / seconds / 1e6, "cpu_mpps": POINTS / cpu_seconds / 1e6, "psnr": None, "flop": flop,
+              "threads": torch.get_num_threads()}
+    if row == "encoder only":
+        return result  # features, not values: no PSNR
 
     class Callable(torch.nn.Module):  # decode_array wants a module: the row's path on the lattice
         def __init__(self):
@@ -97,11 +108,8 @@ def child_decode(model_path: str, row: str, repeats: int) -> dict:
     decoded = decode_array(Callable(), shape).astype(np.float64)
     mse = float(np.mean((decoded - truth) ** 2))
     value_range = float(truth.max() - truth.min())
-    config = field.config
-    widths = [config.encoder.grids * config.encoder.features] + [config.decoder.width] * config.decoder.hidden_layers + [1]
-    flop = 2 * sum(a * b for a, b in zip(widths[:-1], widths[1:]))
-    return {"mpps": POINTS / seconds / 1e6, "cpu_mpps": POINTS / cpu_seconds / 1e6, "psnr": 10 * np.log10(value_range**2 / mse), "flop": flop,
-            "threads": torch.get_num_threads()}
+    result["psnr"] = 10 * np.log10(value_range**2 / mse)
+    return result
 
 
 def child_matmul(repeats: int) -> dict:
@@ -173,7 +181,8 @@ def main() -> None:
         for row in ROWS:
             r = in_fresh_process("--child", "decode", "--model", str(models[preset]), "--row", row,
                                  "--repeats", str(args.repeats))
-            line = (f"| {preset} | {row} | {r['mpps']:.2f} | {r['cpu_mpps']:.2f} | {r['psnr']:.2f} | {r['flop']:,} | "
+            psnr = "-" if r["psnr"] is None else f"{r['psnr']:.2f}"
+            line = (f"| {preset} | {row} | {r['mpps']:.2f} | {r['cpu_mpps']:.2f} | {psnr} | {r['flop']:,} | "
                     f"{limits['float32'] * 1e3 / r['flop']:.2f} | {limits['bfloat16'] * 1e3 / r['flop']:.2f} | "
                     f"{limits['float32_cpu'] * 1e3 / r['flop']:.2f} | {limits['bfloat16_cpu'] * 1e3 / r['flop']:.2f} |")
             lines.append(line)
@@ -202,7 +211,10 @@ or thread settings in the benchmark), {POINTS:,} random points per call under `t
 the machine disturb far less than wall time; on an idle 2-core machine the wall rate would be up to twice
 it. "limit": the matrix-product rate divided by the decoder's dense FLOP per point: what a dense decoder
 could reach if the encoder cost nothing. The fused kernel adds only the non-zero inputs of each layer (zero
-features outside a grid, ReLU zeros), so it is not bound by that line.
+features outside a grid, ReLU zeros), so it is not bound by that line. "encoder only": the grids' look-ups
+alone, no decoder (PSNR "-": features are not values); where it is close to `default`, the encoder's
+gathers from the grids bound the whole path (the medium preset's 16 grids of 2 x 32^3 values, 4 MiB, do
+not stay in cache under random points).
 """
         Path(args.out).write_text(text)
         print(f"wrote {args.out}")
