@@ -24,12 +24,13 @@ from pathlib import Path
 
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.atomic import atomic_write_text
-from apmgsrn.io.container import FORMAT, FORMAT_VERSION, parse_json, read_header
+from apmgsrn.io.container import FORMAT, FORMAT_VERSION, read_header
 from apmgsrn.io.description import (
     BrickEntry,
     BrickLayout,
     DescriptionError,
     SourceInfo,
+    read_manifest_file,
     require_dict,
     require_int,
     require_ints,
@@ -117,29 +118,7 @@ def read_manifest(directory: str | os.PathLike) -> dict:
             f"{directory}: folder has no {MANIFEST_NAME}, so it is not a brick model; pass a model file or a "
             "folder written by a brick training run"
         )
-    not_ours = f"{path}: not an apmgsrn brick model manifest (corrupt or another format); re-train the model"
-    try:
-        if path.stat().st_size > MAX_MANIFEST_BYTES:
-            raise ApmgsrnError(not_ours)
-        text = path.read_bytes()
-    except OSError as exc:
-        raise ApmgsrnError(f"{path}: cannot read ({exc.strerror})") from None
-    manifest = parse_json(text, not_ours)
-    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT or manifest.get("kind") != BRICKS_KIND:
-        raise ApmgsrnError(not_ours)
-    version = manifest.get("format_version")
-    if not isinstance(version, int) or isinstance(version, bool):
-        raise ApmgsrnError(not_ours)
-    if version > FORMAT_VERSION:
-        raise ApmgsrnError(
-            f"{path}: written by a newer apmgsrn (model format {version}, this one reads up to {FORMAT_VERSION}); "
-            "upgrade apmgsrn to load it"
-        )
-    try:
-        _check_manifest(manifest)
-    except DescriptionError as exc:
-        raise ApmgsrnError(f"{path}: brick manifest is inconsistent ({exc}); re-train the model") from None
-    return manifest
+    return read_manifest_file(path, BRICKS_KIND, MAX_MANIFEST_BYTES, "brick model manifest", _check_manifest)
 
 
 def _check_manifest(manifest: dict) -> None:

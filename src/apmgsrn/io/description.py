@@ -8,6 +8,7 @@ description is refused with one message before anything is built from it.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -15,6 +16,7 @@ import numpy as np
 
 from apmgsrn.data.grid import AxisCoordinates, VolumeMetadata
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.io.container import FORMAT, FORMAT_VERSION, parse_json
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.models.series_field import SeriesConfig
 
@@ -430,3 +432,42 @@ def check_time(description: ModelDescription, time: int | None) -> int:
         held = "one time step (time=0)" if steps == 1 else f"{steps} time steps (time=0..{steps - 1})"
         raise ApmgsrnError(f"time={time!r}: the model holds {held}", arguments=("time",))
     return int(time)
+
+
+def read_manifest_file(path: Path, kind: str, max_bytes: int, what: str, check: Callable[[dict], None]) -> dict:
+    """Read a folder's JSON manifest of ``kind`` (nothing in it is executed): size capped before reading,
+    format, kind and version checked, then ``check`` (which raises :class:`DescriptionError`).
+
+    Args:
+        path: the manifest file.
+        kind: the ``kind`` it must declare.
+        max_bytes: the largest manifest read at all.
+        what: its name in messages (``"brick model manifest"``).
+        check: checks every field the product reads.
+
+    Raises:
+        ApmgsrnError: unreadable, not ours, corrupt, inconsistent or from a newer format version.
+    """
+    not_ours = f"{path}: not an apmgsrn {what} (corrupt or another format); re-train the model"
+    try:
+        if path.stat().st_size > max_bytes:
+            raise ApmgsrnError(not_ours)
+        text = path.read_bytes()
+    except OSError as exc:
+        raise ApmgsrnError(f"{path}: cannot read ({exc.strerror})") from None
+    manifest = parse_json(text, not_ours)
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT or manifest.get("kind") != kind:
+        raise ApmgsrnError(not_ours)
+    version = manifest.get("format_version")
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise ApmgsrnError(not_ours)
+    if version > FORMAT_VERSION:
+        raise ApmgsrnError(
+            f"{path}: written by a newer apmgsrn (model format {version}, this one reads up to {FORMAT_VERSION}); "
+            "upgrade apmgsrn to load it"
+        )
+    try:
+        check(manifest)
+    except DescriptionError as exc:
+        raise ApmgsrnError(f"{path}: {what} is inconsistent ({exc}); re-train the model") from None
+    return manifest

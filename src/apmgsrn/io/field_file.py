@@ -165,10 +165,21 @@ def load_field(path: str | os.PathLike, device: torch.device | str = "cpu",
         check_declared_tensors(header, parsed.config)
     except (DescriptionError, ValueError, TypeError) as exc:
         raise inconsistent(path, exc) from None
-    tensors = load_tensors(path)
+    field = restore_field(path, NeuralField, parsed.config, parsed, load_tensors(path))
+    description = loaded_description(path, header, FIELD_KIND, parsed, field)
+    return field.to(device).eval(), description
+
+
+def restore_field(path: Path, field_class: type, config, parsed: FieldDescription, tensors: dict):
+    """``field_class(config, ...)`` with the value ranges and transform of ``parsed``, its tensors loaded
+    exactly (no missing or extra names, matching shapes) and its parameters checked.
+
+    Raises:
+        ApmgsrnError: the tensors do not fit the description, or hold values no trained model has.
+    """
     try:
-        field = NeuralField(
-            parsed.config,
+        field = field_class(
+            config,
             fit_min=parsed.fit_range[0],
             fit_max=parsed.fit_range[1],
             value_min=parsed.value_range[0],
@@ -182,8 +193,13 @@ def load_field(path: str | os.PathLike, device: torch.device | str = "cpu",
             raise DescriptionError(problem)
     except (DescriptionError, ValueError, RuntimeError) as exc:
         raise inconsistent(path, exc) from None
-    description = ModelDescription(
-        kind=FIELD_KIND,
+    return field
+
+
+def loaded_description(path: Path, header: Header, kind: str, parsed: FieldDescription, field, **extra) -> ModelDescription:
+    """The :class:`ModelDescription` of a single-field file (``extra``: the fields of other kinds, as ``series``)."""
+    return ModelDescription(
+        kind=kind,
         config=parsed.config,
         volume_shape=parsed.volume_shape,
         value_range=parsed.value_range,
@@ -193,5 +209,5 @@ def load_field(path: str | os.PathLike, device: torch.device | str = "cpu",
         parameters=field.parameter_count(),
         file_bytes=path.stat().st_size,
         format_version=header.version,
+        **extra,
     )
-    return field.to(device).eval(), description

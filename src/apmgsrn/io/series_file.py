@@ -32,7 +32,13 @@ from apmgsrn.io.description import (
     require_int,
     require_number,
 )
-from apmgsrn.io.field_file import check_declared_tensors, field_description, parse_field_description
+from apmgsrn.io.field_file import (
+    check_declared_tensors,
+    field_description,
+    loaded_description,
+    parse_field_description,
+    restore_field,
+)
 from apmgsrn.models.encoders.adaptive_multigrid import MAX_RESOLUTION
 from apmgsrn.models.series_field import SeriesConfig, SeriesField, SeriesFieldConfig
 from apmgsrn.models.series_options import COEFFICIENT_KINDS, MAX_BASIS, MAX_STEPS, STORAGE_KINDS
@@ -147,33 +153,6 @@ def load_series(path: str | os.PathLike, device: torch.device | str = "cpu",
     except (DescriptionError, ValueError, TypeError) as exc:
         raise inconsistent(path, exc) from None
     tensors = {name: tensor.float() for name, tensor in load_tensors(path).items()}
-    try:
-        field = SeriesField(
-            config,
-            fit_min=parsed.fit_range[0],
-            fit_max=parsed.fit_range[1],
-            value_min=parsed.value_range[0],
-            value_max=parsed.value_range[1],
-            transform=parsed.transform,
-            volume_shape=parsed.volume_shape,
-        )
-        field.load_state_dict(tensors, strict=True)
-        problem = field.check_parameters()
-        if problem is not None:
-            raise DescriptionError(problem)
-    except (DescriptionError, ValueError, RuntimeError) as exc:
-        raise inconsistent(path, exc) from None
-    description = ModelDescription(
-        kind=SERIES_KIND,
-        config=parsed.config,
-        volume_shape=parsed.volume_shape,
-        value_range=parsed.value_range,
-        transform=parsed.transform.kind,
-        source=parsed.source,
-        training=parsed.training,
-        parameters=field.parameter_count(),
-        file_bytes=path.stat().st_size,
-        format_version=header.version,
-        series=SeriesLayout(config.series, steps),
-    )
+    field = restore_field(path, SeriesField, config, parsed, tensors)
+    description = loaded_description(path, header, SERIES_KIND, parsed, field, series=SeriesLayout(config.series, steps))
     return field.to(device).eval(), description

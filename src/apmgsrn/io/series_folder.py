@@ -24,11 +24,12 @@ from pathlib import Path
 
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.atomic import atomic_write_text
-from apmgsrn.io.container import FORMAT, FORMAT_VERSION, parse_json
+from apmgsrn.io.container import FORMAT, FORMAT_VERSION
 from apmgsrn.io.description import (
     DescriptionError,
     SourceInfo,
     optional_str,
+    read_manifest_file,
     require_dict,
     require_int,
     require_number,
@@ -90,27 +91,7 @@ def read_series_manifest(directory: str | os.PathLike) -> dict:
         ApmgsrnError: missing, not ours, corrupt, inconsistent or from a newer format version.
     """
     path = series_manifest_path(directory)
-    not_ours = f"{path}: not an apmgsrn time-series brick manifest (corrupt or another format); re-train the model"
-    try:
-        if path.stat().st_size > MAX_SERIES_MANIFEST_BYTES:
-            raise ApmgsrnError(not_ours)
-        text = path.read_bytes()
-    except OSError as exc:
-        raise ApmgsrnError(f"{path}: cannot read ({exc.strerror})") from None
-    manifest = parse_json(text, not_ours)
-    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT or manifest.get("kind") != SERIES_BRICKS_KIND:
-        raise ApmgsrnError(not_ours)
-    version = manifest.get("format_version")
-    if not isinstance(version, int) or isinstance(version, bool):
-        raise ApmgsrnError(not_ours)
-    if version > FORMAT_VERSION:
-        raise ApmgsrnError(f"{path}: written by a newer apmgsrn (model format {version}, this one reads up to "
-                           f"{FORMAT_VERSION}); upgrade apmgsrn to load it")
-    try:
-        _check(manifest)
-    except DescriptionError as exc:
-        raise ApmgsrnError(f"{path}: time-series brick manifest is inconsistent ({exc}); re-train the model") from None
-    return manifest
+    return read_manifest_file(path, SERIES_BRICKS_KIND, MAX_SERIES_MANIFEST_BYTES, "time-series brick manifest", _check)
 
 
 def _check(manifest: dict) -> None:
