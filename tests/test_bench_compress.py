@@ -2,6 +2,7 @@
 
 import csv
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +15,8 @@ from apmgsrn.bench.datasets import DataSpec
 from apmgsrn.bench.results import CompressRow
 from apmgsrn.cli.main import main
 from apmgsrn.data import open_volume
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -116,3 +119,42 @@ def test_packed_and_bounded_models_are_their_own_methods(test_data, tmp_path):
     assert rows["packed"].method == "apmgsrn packed" and rows["bounded"].method == "apmgsrn packed bounded"
     assert rows["bounded"].max_abs_error <= 5.0 < rows["packed"].max_abs_error
     assert rows["packed"].compressed_bytes == (tmp_path / "packed.apmgsrn").stat().st_size
+
+
+def _row(method: str, setting: str, ratio: float, psnr: float, dataset: str = "v.nc:x") -> CompressRow:
+    return CompressRow(dataset=dataset, method=method, setting=setting, compressed_bytes=int(1e6 / ratio),
+                       compression_ratio=ratio, compression_ratio_float32=ratio, psnr=psnr, max_abs_error=1.0,
+                       compress_seconds=1.0, decompress_seconds=1.0, decompress_voxels_per_second=1.0,
+                       query_points=1, query_seconds=1.0, query_points_per_second=1.0)
+
+
+def test_the_compressor_at_a_networks_ratio_is_interpolated_in_log_ratio_on_measured_hcci_rows():
+    from apmgsrn.bench.results import read_rows
+    from apmgsrn.bench.tables import compressor_psnr_at, network_frontier
+
+    rows = read_rows(REPO / "benchmarks" / "results" / "compress_packed_hcci.csv", CompressRow)
+    sz3 = sorted((r.compression_ratio, r.psnr) for r in rows if r.method == "sz3")
+    ratios, values = np.log([r for r, _ in sz3]), np.array([p for _, p in sz3])
+    networks = network_frontier(rows)
+    assert networks and all(r.method not in ("sz3", "zfp") for r in networks)
+    for row in networks:
+        value, how = compressor_psnr_at(sz3, row.compression_ratio)
+        assert how == "interpolated"  # SZ3 spans 88:1 to 13,244:1 here, every network lies inside
+        assert value == pytest.approx(np.interp(np.log(row.compression_ratio), ratios, values))
+
+
+def test_a_network_beyond_a_compressors_reach_is_ahead_only_above_its_last_point():
+    from apmgsrn.bench.tables import crossover_lines, network_frontier
+
+    rows = [_row("sz3", "0.1", 100.0, 34.0), _row("sz3", "0.2", 400.0, 26.0),
+            _row("apmgsrn", "small", 200.0, 29.0),  # behind SZ3 (30 dB at 200:1)
+            _row("apmgsrn packed", "small", 1000.0, 28.0),  # above SZ3's best at 400:1: ahead
+            _row("apmgsrn packed", "custom", 900.0, 27.0),  # a network at a higher ratio does better
+            _row("apmgsrn packed", "custom", 3000.0, 20.0)]  # below 26 dB beyond 400:1: not decided
+    assert [r.compression_ratio for r in network_frontier(rows)] == [200.0, 1000.0, 3000.0]
+    text = "\n".join(crossover_lines(rows))
+    assert "| 200 | 29.00 | SZ3 | 30.00 | -1.00 |" in text
+    assert "| 1,000 | 28.00 | SZ3 | ≤ 26.00 | +2.00 |" in text
+    assert "| 3,000 | 20.00 | SZ3 | not reached (at most 400:1 measured) | |" in text
+    assert "networks ahead of SZ3 from 1,000:1 up" in text
+    assert "ZFP" not in text  # no ZFP rows, no ZFP comparison

@@ -135,7 +135,105 @@ def compress_table(rows: list[CompressRow]) -> str:
             f"Query: {rows[0].query_points:,} uniformly random points; a compressor must decompress the "
             "whole volume first and then interpolate, a network evaluates the points directly.",
         ]
+    crossover = crossover_lines(rows)
+    if crossover:
+        lines += ["", *crossover]
     return "\n".join(lines) + "\n"
+
+
+#: Methods of ``bench compress`` that are compressors; every other method is a network.
+COMPRESSORS = ("sz3", "zfp")
+
+
+def compressor_psnr_at(curve: list[tuple[float, float]], ratio: float) -> tuple[float, str] | None:
+    """A compressor's PSNR at ``ratio`` from its measured ``(ratio, PSNR)`` points.
+
+    Inside the measured ratios: linear in log(ratio) between the two neighbours (``"interpolated"``).
+    Above the largest: the PSNR of that largest-ratio point, an upper bound of what the compressor gives at
+    ``ratio`` if its quality falls as its ratio grows (``"at most"``). Below the smallest: None.
+    """
+    curve = sorted(curve)
+    if not curve or ratio < curve[0][0]:
+        return None
+    if ratio >= curve[-1][0]:
+        return curve[-1][1], "at most" if ratio > curve[-1][0] else "measured"
+    for (r0, p0), (r1, p1) in zip(curve, curve[1:]):
+        if r0 <= ratio <= r1:
+            if not (math.isfinite(p0) and math.isfinite(p1)):
+                return max(p0, p1), "interpolated"
+            if r1 == r0:
+                return max(p0, p1), "measured"
+            share = math.log(ratio / r0) / math.log(r1 / r0)
+            return p0 + share * (p1 - p0), "interpolated"
+    return None  # unreachable: the ratio lies in the curve's range
+
+
+def network_frontier(rows: list[CompressRow]) -> list[CompressRow]:
+    """The networks no other network beats at an equal or higher ratio (the best choice at each ratio),
+    by increasing ratio."""
+    nets = sorted((r for r in rows if r.method not in COMPRESSORS), key=lambda r: -r.compression_ratio)
+    frontier, best = [], -math.inf
+    for row in nets:
+        if row.psnr > best:
+            frontier.append(row)
+            best = row.psnr
+    return frontier[::-1]
+
+
+def crossover_lines(rows: list[CompressRow]) -> list[str]:
+    """Each network of the frontier against each compressor at the same ratio, and the crossover: the
+    lowest ratio from which every frontier network compared is ahead. Above a compressor's largest
+    measured ratio only a network above that point's PSNR is decided (ahead); the others are not compared.
+    Empty without networks or compressors."""
+    lines: list[str] = []
+    for dataset in dict.fromkeys(r.dataset for r in rows):
+        here = [r for r in rows if r.dataset == dataset]
+        frontier = network_frontier(here)
+        for compressor in COMPRESSORS:
+            curve = [(r.compression_ratio, r.psnr) for r in here if r.method == compressor]
+            if not curve or not frontier:
+                continue
+            name = compressor.upper()
+            if not lines:
+                lines += [
+                    "Networks against each compressor at the same ratio (the networks no other network beats "
+                    "at an equal or higher ratio; the compressor's PSNR interpolated in log(ratio) between its "
+                    "measured bounds, or, above its largest ratio, that point's PSNR: an upper bound).",
+                    "",
+                    "| volume | network | ratio | network PSNR dB | compressor | compressor PSNR dB | margin dB |",
+                    "|---|---|---|---|---|---|---|",
+                ]
+            verdicts = []
+            reach = max(ratio for ratio, _ in curve)
+            for row in frontier:
+                reference = compressor_psnr_at(curve, row.compression_ratio)
+                if reference is None:
+                    continue
+                value, how = reference
+                title = f"{MODEL_TITLES.get(row.method, row.method.upper())} {row.setting}"
+                margin = row.psnr - value
+                if how == "at most" and not margin > 0:  # below an upper bound: undecided
+                    lines.append(f"| {dataset} | {title} | {row.compression_ratio:,.0f} | {row.psnr:.2f} | {name} | "
+                                 f"not reached (at most {reach:,.0f}:1 measured) | |")
+                    continue
+                verdicts.append((row.compression_ratio, margin > 0))
+                lines.append(f"| {dataset} | {title} | {row.compression_ratio:,.0f} | {row.psnr:.2f} | {name} | "
+                             f"{'≤ ' if how == 'at most' else ''}{value:.2f} | {margin:+.2f} |")
+            crossover = None
+            for ratio, ahead in reversed(verdicts):
+                if not ahead:
+                    break
+                crossover = ratio
+            if not verdicts:
+                summary = f"not compared: {name} reached at most {reach:,.0f}:1 with the bounds measured"
+            elif crossover is None:
+                summary = f"{name} ahead at the highest ratio compared"
+            elif crossover == verdicts[0][0]:
+                summary = f"networks ahead of {name} at every ratio compared, from {crossover:,.0f}:1 up"
+            else:
+                summary = f"networks ahead of {name} from {crossover:,.0f}:1 up"
+            lines.append(f"| {dataset} | crossover | | | {name} | | {summary} |")
+    return lines
 
 
 def _with_spread(summary: Summary, digits: int) -> str:
