@@ -150,11 +150,12 @@ def test_a_network_beyond_a_compressors_reach_is_ahead_only_above_its_last_point
             _row("apmgsrn", "small", 200.0, 29.0),  # behind SZ3 (30 dB at 200:1)
             _row("apmgsrn packed", "small", 1000.0, 28.0),  # above SZ3's best at 400:1: ahead
             _row("apmgsrn packed", "custom", 900.0, 27.0),  # a network at a higher ratio does better
-            _row("apmgsrn packed", "custom", 3000.0, 20.0)]  # below 26 dB beyond 400:1: not decided
+            _row("apmgsrn packed", "custom", 3000.0, 20.0),  # below 26 dB beyond 400:1: not decided
+            _row("apmgsrn packed", "small", 3010.0, 15.0)]  # within 1 % of 3,000:1 and worse: not a choice
     assert [r.compression_ratio for r in network_frontier(rows)] == [200.0, 1000.0, 3000.0]
     text = "\n".join(crossover_lines(rows))
     assert "| 200 | 29.00 | SZ3 | 30.00 | -1.00 |" in text
     assert "| 1,000 | 28.00 | SZ3 | ≤ 26.00 | +2.00 |" in text
     assert "| 3,000 | 20.00 | SZ3 | not reached (at most 400:1 measured) | |" in text
-    assert "networks ahead of SZ3 from 1,000:1 up" in text
+    assert "networks ahead of SZ3 from 1,000:1 up; ahead at 1,000:1; behind at 200:1" in text
     assert "ZFP" not in text  # no ZFP rows, no ZFP comparison

@@ -168,16 +168,16 @@ def compressor_psnr_at(curve: list[tuple[float, float]], ratio: float) -> tuple[
     return None  # unreachable: the ratio lies in the curve's range
 
 
-def network_frontier(rows: list[CompressRow]) -> list[CompressRow]:
+def network_frontier(rows: list[CompressRow], same_ratio: float = 0.01) -> list[CompressRow]:
     """The networks no other network beats at an equal or higher ratio (the best choice at each ratio),
-    by increasing ratio."""
-    nets = sorted((r for r in rows if r.method not in COMPRESSORS), key=lambda r: -r.compression_ratio)
-    frontier, best = [], -math.inf
-    for row in nets:
-        if row.psnr > best:
-            frontier.append(row)
-            best = row.psnr
-    return frontier[::-1]
+    by increasing ratio; ratios within ``same_ratio`` (relative) of each other count as equal."""
+    nets = [r for r in rows if r.method not in COMPRESSORS]
+    frontier = [
+        row for row in nets
+        if not any(other.psnr > row.psnr and other.compression_ratio >= row.compression_ratio * (1 - same_ratio)
+                   for other in nets)
+    ]
+    return sorted(frontier, key=lambda r: r.compression_ratio)
 
 
 def crossover_lines(rows: list[CompressRow]) -> list[str]:
@@ -226,12 +226,17 @@ def crossover_lines(rows: list[CompressRow]) -> list[str]:
                 crossover = ratio
             if not verdicts:
                 summary = f"not compared: {name} reached at most {reach:,.0f}:1 with the bounds measured"
-            elif crossover is None:
-                summary = f"{name} ahead at the highest ratio compared"
-            elif crossover == verdicts[0][0]:
-                summary = f"networks ahead of {name} at every ratio compared, from {crossover:,.0f}:1 up"
             else:
-                summary = f"networks ahead of {name} from {crossover:,.0f}:1 up"
+                if crossover is None:
+                    summary = f"{name} ahead at the highest ratio compared"
+                elif crossover == verdicts[0][0]:
+                    summary = f"networks ahead of {name} at every ratio compared, from {crossover:,.0f}:1 up"
+                else:
+                    summary = f"networks ahead of {name} from {crossover:,.0f}:1 up"
+                for label, wanted in (("ahead at", True), ("behind at", False)):
+                    ratios = [f"{ratio:,.0f}" for ratio, ahead in verdicts if ahead == wanted]
+                    if ratios:
+                        summary += f"; {label} {', '.join(ratios)}:1"
             lines.append(f"| {dataset} | crossover | | | {name} | | {summary} |")
     return lines
 
