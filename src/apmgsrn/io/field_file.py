@@ -196,7 +196,9 @@ def restore_field(path: Path, field_class: type, config, parsed: FieldDescriptio
     return field
 
 
-def loaded_description(path: Path, header: Header, kind: str, parsed: FieldDescription, field, **extra) -> ModelDescription:
+def loaded_description(
+    path: Path, header: Header, kind: str, parsed: FieldDescription, field, **extra
+) -> ModelDescription:
     """The :class:`ModelDescription` of a single-field file (``extra``: the fields of other kinds, as ``series``)."""
     return ModelDescription(
         kind=kind,

@@ -154,5 +154,6 @@ def load_series(path: str | os.PathLike, device: torch.device | str = "cpu",
         raise inconsistent(path, exc) from None
     tensors = {name: tensor.float() for name, tensor in load_tensors(path).items()}
     field = restore_field(path, SeriesField, config, parsed, tensors)
-    description = loaded_description(path, header, SERIES_KIND, parsed, field, series=SeriesLayout(config.series, steps))
+    layout = SeriesLayout(config.series, steps)
+    description = loaded_description(path, header, SERIES_KIND, parsed, field, series=layout)
     return field.to(device).eval(), description
