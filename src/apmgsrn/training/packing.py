@@ -537,7 +537,7 @@ def pack_field(
         raise ApmgsrnError(f"target_bytes={config.target_bytes}: the packed file came out at {len(data)} bytes; "
                            "pass a slightly larger target", arguments=("target_bytes",))
     say(f"packed network: {len(data):,} bytes, PSNR {network.psnr:.2f} dB "
-        f"({report['psnr_cost']:+.2f} dB against float32)")
+        f"(cost {report['psnr_cost']:.2f} dB against float32)")
     correction = None
     if config.max_error is not None:
         correction, packed, bounded = _bound(packed, truth, config.max_error)
