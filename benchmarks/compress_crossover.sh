@@ -1,19 +1,20 @@
 #!/usr/bin/env bash
 # Networks against SZ3 and ZFP from about 100:1 to 10,000:1 on one volume (issue 15's crossover), as
 # docs/results_compress_packed_*.md were made: a small model (2,000 iterations) packed at 0.1 dB, at 1,000:1
-# and 3,000:1, with a bounded variant, and models that `train --ratio` sizes for 3,000:1 and 10,000:1.
+# and 3,000:1, with a bounded variant, and models that `train --ratio` sizes for 300:1 to 10,000:1; SZ3 and
+# ZFP at relative error bounds from 0.5 (to reach the highest ratios) down to 0.001.
 #
 #   bash benchmarks/compress_crossover.sh ../shared/data/miranda_density_256.nc density 0.12 OUT
 #
-# VARIABLE "-" for a file of one unnamed variable (raw). The third argument is the bounded variant's --max-error in data units (HCCI's run used 0.5, about 4 % of
-# its value range).
+# VARIABLE "-" for a file of one unnamed variable (raw). The third argument is the bounded variant's
+# --max-error in data units (about 4 % of the value range in docs/results_compress_crossover.md).
 # OUT gets the models and `apmgsrn bench compress`'s CSV, table and chart (compress_NAME.*). Models that
 # exist are reused, so a run that stopped goes on where it was.
 set -euo pipefail
 data=$1 variable=$2 max_error=$3 out=$4
 cd "$(dirname "$0")/.."
 apm=(env PYTHONPATH="$PWD/src" .venv/bin/python -m apmgsrn)
-var=("${var[@]}") spec="$data:$variable"
+var=(--variable "$variable") spec="$data:$variable"
 [ "$variable" = "-" ] && var=() spec="$data"
 train=("${var[@]}" --iterations 2000 --batch-size 32768 --device cpu --seed 0)
 mkdir -p "$out"
@@ -30,11 +31,13 @@ for ratio in 1000 3000; do
 done
 make "$out/bounded_r1000.apmgsrn" "${apm[@]}" pack "$out/small.apmgsrn" "$data" "${var[@]}" --ratio 1000 \
   --max-error "$max_error"
-make "$out/train_r3000.apmgsrn" "${apm[@]}" train "$data" "${train[@]}" --ratio 3000
+for ratio in 300 1000 3000; do
+  make "$out/train_r$ratio.apmgsrn" "${apm[@]}" train "$data" "${train[@]}" --ratio $ratio
+done
 make "$out/train_r10000.apmgsrn" "${apm[@]}" train "$data" "${train[@]}" --ratio 10000 --grids 8 --width 32
 models=()
-for name in small packed packed_r1000 packed_r3000 bounded_r1000 train_r3000 train_r10000; do
+for name in small packed packed_r1000 packed_r3000 bounded_r1000 train_r300 train_r1000 train_r3000 train_r10000; do
   [ -f "$out/$name.apmgsrn" ] && models+=("$out/$name.apmgsrn")
 done
 "${apm[@]}" bench compress "$spec" --model-files "${models[@]}" \
-  --bounds 0.2 0.1 0.05 0.02 0.01 0.005 0.002 0.001 --query-points 65536 --device cpu --out "$out"
+  --bounds 0.5 0.3 0.2 0.1 0.05 0.02 0.01 0.005 0.002 0.001 --query-points 65536 --device cpu --out "$out"
