@@ -86,7 +86,8 @@ def test_choice_lists_are_the_librarys():
         "--backend": tuple(dict.fromkeys(b for names in choices.BACKENDS.values() for b in names)),
         "--transform": choices.VALUE_TRANSFORMS, "--lr-schedule": choices.LR_SCHEDULES,
         "--density-normalization": choices.DENSITY_NORMALIZATIONS,
-        "--decoder-precision": choices.DECODER_PRECISIONS, "--preset-units": choices.PRESET_UNITS,
+        "--decoder-precision": choices.DECODER_PRECISIONS, "--precision": choices.DECODER_PRECISIONS,
+        "--preset-units": choices.PRESET_UNITS,
         "--compressors": choices.COMPRESSORS, "--region-units": choices.REGION_UNITS,
         "--format": choices.EXPORT_FORMATS, "--coefficients": choices.SERIES_COEFFICIENTS,
         "--storage": choices.SERIES_STORAGE,
@@ -122,7 +123,7 @@ def test_translation_rewrites_only_the_arguments_an_error_names():
 LIBRARY_ONLY = {
     "betas", "density_window", "density_tolerance", "density_power", "final_lr_fraction", "history_every",
     "stop_after_lr_cuts", "samples_per_cell", "table_size", "points", "qat_lr", "sensitivity_points",
-    "measure_voxels", "precision",
+    "measure_voxels",
     "steps", "mixing",  # a series' step count comes from its data; weight lattices are a library option
 }
 CHECKS = {"check_int", "check_optional_int", "check_number", "check_choice"}

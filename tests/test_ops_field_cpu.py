@@ -151,3 +151,32 @@ def test_bfloat16_inference_is_close_to_float32_and_auto_follows_the_cpu(test_da
     assert apmgsrn.load(path).field.inference_dtype is None
     with pytest.raises(InvalidArgument, match="precision"):
         apmgsrn.load(path, precision="int4")
+
+
+def test_eval_and_decode_take_the_precision_and_eval_reports_float32_unless_asked(test_data, tmp_path, capsys):
+    """`--precision` reaches apmgsrn.load: eval's default is the float32 network's PSNR, bfloat16 when asked
+    costs little; decode --precision bfloat16 writes values within bfloat16's rounding of float32's."""
+    import json
+
+    from apmgsrn.cli.main import main
+
+    model = str(test_data / "reference_field.apmgsrn")
+    volume = str(test_data / "reference_neghip_24.npy")
+    psnr = {}
+    for precision in (None, "float32", "bfloat16"):
+        extra = [] if precision is None else ["--precision", precision]
+        assert main(["eval", model, volume, "--device", "cpu", "--json", *extra]) == 0
+        psnr[precision] = json.loads(capsys.readouterr().out)["psnr"]
+    assert psnr[None] == psnr["float32"]
+    assert psnr["bfloat16"] != psnr["float32"] and abs(psnr["bfloat16"] - psnr["float32"]) < 0.5
+    decoded = {}
+    for precision in ("float32", "bfloat16"):
+        out = tmp_path / f"{precision}.npy"
+        assert main(["decode", model, "--out", str(out), "--device", "cpu", "--precision", precision]) == 0
+        decoded[precision] = np.load(out)
+    difference = np.abs(decoded["bfloat16"] - decoded["float32"]).max()
+    value_range = float(decoded["float32"].max() - decoded["float32"].min())
+    assert 0 < difference < 0.02 * value_range
+    capsys.readouterr()
+    assert main(["decode", model, "--out", str(tmp_path / "x.npy"), "--precision", "int4"]) == 2
+    assert "--precision" in capsys.readouterr().err

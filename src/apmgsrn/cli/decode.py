@@ -9,7 +9,7 @@ from pathlib import Path
 
 import apmgsrn
 from apmgsrn.choices import REGION_UNITS
-from apmgsrn.cli.common import add_device_argument, parse_triple, time_option
+from apmgsrn.cli.common import add_device_argument, add_precision_argument, parse_triple, time_option
 from apmgsrn.cli.paths import CommandPaths, Output
 from apmgsrn.errors import ApmgsrnError
 
@@ -42,6 +42,7 @@ def register(subparsers) -> None:
                         help="write nothing: say what would be written (lattice, origin, spacing, variable)")
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
     add_device_argument(parser)
+    add_precision_argument(parser, "auto", "")
     parser.set_defaults(func=run, paths=paths)
 
 
@@ -55,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     from apmgsrn.data.writers import check_axes_writable
     from apmgsrn.io.description import time_steps
 
-    model = apmgsrn.load(args.model, device=args.device)
+    model = apmgsrn.load(args.model, device=args.device, precision=args.precision)
     shape = None
     if args.shape:
         x, y, z = parse_triple(args.shape, "--shape")

@@ -10,6 +10,7 @@ import apmgsrn
 from apmgsrn.cli.common import (
     add_data_arguments,
     add_device_argument,
+    add_precision_argument,
     compression_figures,
     compression_text,
     format_bytes,
@@ -26,6 +27,7 @@ def register(subparsers) -> None:
                              "a .pvd, or one file with --time all)")
     add_data_arguments(parser)
     add_device_argument(parser)
+    add_precision_argument(parser, "float32", ": PSNR of the float32 network")
     parser.add_argument("--batch-size", type=int, default=2**18, help="points per forward pass")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
     parser.set_defaults(func=run)
@@ -36,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     from apmgsrn.inference.evaluate import evaluate
 
     device = resolve_device(args.device)
-    model = apmgsrn.load(args.model, device=device, precision="float32")  # PSNR in float32 (decode: auto)
+    model = apmgsrn.load(args.model, device=device, precision=args.precision)
     if model.description.series is not None:
         from apmgsrn.cli.series import run_series_eval
 

@@ -48,6 +48,7 @@ FLAGS = {
     "freeze_fraction": "--freeze-fraction",
     "density_normalization": "--density-normalization",
     "decoder_precision": "--decoder-precision",
+    "precision": "--precision",
     "seed": "--seed",
     "checkpoint_every": "--checkpoint-every",
     "device": "--device",
