@@ -189,6 +189,20 @@ def stored_settings(manifest: dict) -> dict:
     return settings
 
 
+def check_out_folder(out: Path) -> None:
+    """A brick model's folder can go to ``out``: not a file, and its parent exists.
+
+    Raises:
+        ApmgsrnError: naming ``out=``.
+    """
+    if out.exists() and not out.is_dir():
+        raise ApmgsrnError(f"{out}: exists and is a file; a brick model is a folder: pass another out=",
+                           arguments=("out",))
+    if not out.absolute().parent.is_dir():
+        raise ApmgsrnError(f"{out}: output folder {out.parent} does not exist; create it or pass another out=",
+                           arguments=("out",))
+
+
 def _prepare_directory(out: Path, settings: dict, data: dict) -> dict | None:
     """Create the model folder, or check that an existing one belongs to the same run on the same data
     (``data``: :func:`~apmgsrn.data.fingerprint.volume_fingerprint`; folders written before it was recorded
@@ -197,12 +211,7 @@ def _prepare_directory(out: Path, settings: dict, data: dict) -> dict | None:
     Returns:
         The existing manifest, or None for a new folder.
     """
-    if out.exists() and not out.is_dir():
-        raise ApmgsrnError(f"{out}: exists and is a file; a brick model is a folder: pass another out=",
-                           arguments=("out",))
-    if not out.absolute().parent.is_dir():
-        raise ApmgsrnError(f"{out}: output folder {out.parent} does not exist; create it or pass another out=",
-                           arguments=("out",))
+    check_out_folder(out)
     if out.is_dir():
         if manifest_path(out).exists():
             manifest = read_manifest(out)

@@ -21,7 +21,13 @@ from torch import nn
 from apmgsrn.data.series import VolumeSeries
 from apmgsrn.decomposition.brick_model import brick_description, load_bricks
 from apmgsrn.decomposition.bricked_field import BrickedField
-from apmgsrn.decomposition.coordinator import BrickProgress, BrickTrainingSummary, open_brick_run, run_brick_jobs
+from apmgsrn.decomposition.coordinator import (
+    BrickProgress,
+    BrickTrainingSummary,
+    check_out_folder,
+    open_brick_run,
+    run_brick_jobs,
+)
 from apmgsrn.decomposition.executor import JobQueue
 from apmgsrn.decomposition.planner import DecompositionConfig
 from apmgsrn.errors import ApmgsrnError
@@ -131,12 +137,7 @@ def train_series_bricks(
 
 def _prepare_folder(out: Path, settings: dict) -> dict | None:
     """Create the model folder, or check that an existing one belongs to the same run."""
-    if out.exists() and not out.is_dir():
-        raise ApmgsrnError(f"{out}: exists and is a file; a brick model is a folder: pass another out=",
-                           arguments=("out",))
-    if not out.absolute().parent.is_dir():
-        raise ApmgsrnError(f"{out}: output folder {out.parent} does not exist; create it or pass another out=",
-                           arguments=("out",))
+    check_out_folder(out)
     if out.is_dir() and series_manifest_path(out).exists():
         manifest = read_series_manifest(out)
         if manifest.get("settings") != settings:

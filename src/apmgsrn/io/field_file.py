@@ -170,8 +170,10 @@ def load_field(path: str | os.PathLike, device: torch.device | str = "cpu",
     return field.to(device).eval(), description
 
 
-def restore_field(path: Path, field_class: type, config, parsed: FieldDescription, tensors: dict):
-    """``field_class(config, ...)`` with the value ranges and transform of ``parsed``, its tensors loaded
+def restore_field(path: Path | str, field_class: type, config, parsed: FieldDescription, tensors: dict,
+                  prepare=None, **options):
+    """``field_class(config, ..., **options)`` with the value ranges and transform of ``parsed``, then
+    ``prepare(field)`` if given (before the tensors load: a correction to attach), its tensors loaded
     exactly (no missing or extra names, matching shapes) and its parameters checked.
 
     Raises:
@@ -186,7 +188,10 @@ def restore_field(path: Path, field_class: type, config, parsed: FieldDescriptio
             value_max=parsed.value_range[1],
             transform=parsed.transform,
             volume_shape=parsed.volume_shape,
+            **options,
         )
+        if prepare is not None:
+            prepare(field)
         field.load_state_dict(tensors, strict=True)
         problem = field.check_parameters()
         if problem is not None:

@@ -52,7 +52,7 @@ from apmgsrn.io.description import (
     require_int,
     require_number,
 )
-from apmgsrn.io.field_file import FieldDescription, field_description, parse_field_description
+from apmgsrn.io.field_file import FieldDescription, field_description, parse_field_description, restore_field
 from apmgsrn.io.quantization import MAX_GROUPS, QuantizedTensor, dequantize, group_count
 from apmgsrn.models.corrected_field import CorrectedField
 from apmgsrn.models.field import NeuralField
@@ -405,19 +405,12 @@ def build_field(parsed: FieldDescription, state: dict[str, torch.Tensor], correc
     Raises:
         ApmgsrnError: the parameters do not fit the config, or hold NaN/Inf or a singular grid map.
     """
-    try:
-        kwargs = dict(fit_min=parsed.fit_range[0], fit_max=parsed.fit_range[1], value_min=parsed.value_range[0],
-                      value_max=parsed.value_range[1], transform=parsed.transform, volume_shape=parsed.volume_shape)
-        if correction is None:
-            field = NeuralField(parsed.config, **kwargs)
-        else:
-            field = CorrectedField(parsed.config, max_error=correction.max_error, **kwargs)
-            field.set_correction(torch.from_numpy(correction.indices), correction.values())
-        field.load_state_dict(state, strict=True)
-        problem = field.check_parameters()
-        if problem is not None:
-            raise DescriptionError(problem)
-    except (DescriptionError, ValueError, RuntimeError) as exc:
-        raise inconsistent(path, exc) from None
-    return field
+    if correction is None:
+        return restore_field(path, NeuralField, parsed.config, parsed, state)
+
+    def attach(field: CorrectedField) -> None:
+        field.set_correction(torch.from_numpy(correction.indices), correction.values())
+
+    return restore_field(path, CorrectedField, parsed.config, parsed, state, prepare=attach,
+                         max_error=correction.max_error)
 
