@@ -117,6 +117,21 @@ def read_header(path: str | os.PathLike) -> Header:
     return Header(meta.get("kind", ""), version, description, tensors)
 
 
+
+def header_of_kind(path: str | os.PathLike, kind: str, what: str, header: Header | None = None) -> Header:
+    """``header`` (read from ``path`` when None), checked to declare ``kind``.
+
+    Args:
+        what: the file wanted, for the message (``"a packed model"``).
+
+    Raises:
+        ApmgsrnError: unreadable, or a file of another kind.
+    """
+    header = header or read_header(path)
+    if header.kind != kind:
+        raise ApmgsrnError(f"{path}: is a {header.kind or 'unknown'} file, not {what}")
+    return header
+
 def _tensor_entries(header: dict, body: int, not_ours: str) -> dict[str, TensorEntry]:
     """Every tensor's dtype and shape, checked against its extent; extents inside the body, disjoint."""
     entries: dict[str, TensorEntry] = {}

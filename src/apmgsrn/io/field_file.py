@@ -19,8 +19,7 @@ from pathlib import Path
 
 import torch
 
-from apmgsrn.errors import ApmgsrnError
-from apmgsrn.io.container import FIELD_KIND, Header, load_tensors, read_header, save_tensors
+from apmgsrn.io.container import FIELD_KIND, Header, header_of_kind, load_tensors, save_tensors
 from apmgsrn.io.description import (
     DescriptionError,
     ModelDescription,
@@ -157,9 +156,7 @@ def load_field(path: str | os.PathLike, device: torch.device | str = "cpu",
         ApmgsrnError: unreadable, foreign, newer, inconsistent or hostile file.
     """
     path = Path(path)
-    header = header or read_header(path)
-    if header.kind != FIELD_KIND:
-        raise ApmgsrnError(f"{path}: is a {header.kind or 'unknown'} file, not a single model; pass a model file")
+    header = header_of_kind(path, FIELD_KIND, "a single model; pass a model file", header)
     try:
         parsed = parse_field_description(header.description)
         check_declared_tensors(header, parsed.config)

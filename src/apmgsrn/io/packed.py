@@ -36,9 +36,9 @@ from apmgsrn.io.container import (
     PACKED_KIND,
     Header,
     file_bytes,
+    header_of_kind,
     load_tensors,
     parse_json,
-    read_header,
     write_file_bytes,
 )
 from apmgsrn.io.description import (
@@ -308,9 +308,7 @@ def load_packed(path: str | os.PathLike, device: torch.device | str = "cpu") -> 
         ApmgsrnError: unreadable, foreign, newer, inconsistent or hostile file.
     """
     path = Path(path)
-    header = read_header(path)
-    if header.kind != PACKED_KIND:
-        raise ApmgsrnError(f"{path}: is a {header.kind or 'unknown'} file, not a packed model")
+    header = header_of_kind(path, PACKED_KIND, "a packed model")
     not_ours = f"{path}: not an apmgsrn model file (corrupt, truncated or another format)"
     sections = _section_sizes(header, not_ours)
     payload = load_tensors(path)[PAYLOAD].numpy().tobytes()

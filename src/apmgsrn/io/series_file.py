@@ -18,8 +18,7 @@ from pathlib import Path
 
 import torch
 
-from apmgsrn.errors import ApmgsrnError
-from apmgsrn.io.container import Header, load_tensors, read_header, save_tensors
+from apmgsrn.io.container import Header, header_of_kind, load_tensors, save_tensors
 from apmgsrn.io.description import (
     DescriptionError,
     ModelDescription,
@@ -117,9 +116,7 @@ def declared_steps(path: str | os.PathLike) -> int:
     Raises:
         ApmgsrnError: not a readable time-series model file.
     """
-    header = read_header(path)
-    if header.kind != SERIES_KIND:
-        raise ApmgsrnError(f"{path}: is a {header.kind or 'unknown'} file, not a time-series model")
+    header = header_of_kind(path, SERIES_KIND, "a time-series model")
     try:
         return _series_config(header.description.get("series")).steps
     except (DescriptionError, ValueError, TypeError) as exc:
@@ -142,9 +139,7 @@ def load_series(path: str | os.PathLike, device: torch.device | str = "cpu",
         ApmgsrnError: unreadable, foreign, newer, inconsistent or hostile file.
     """
     path = Path(path)
-    header = header or read_header(path)
-    if header.kind != SERIES_KIND:
-        raise ApmgsrnError(f"{path}: is a {header.kind or 'unknown'} file, not a time-series model")
+    header = header_of_kind(path, SERIES_KIND, "a time-series model", header)
     try:
         parsed = parse_field_description(header.description)
         config = SeriesFieldConfig(parsed.config, _series_config(header.description.get("series")))
