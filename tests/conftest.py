@@ -62,3 +62,15 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.skip(reason="needs /usr/bin/chromium"))
         if "paraview" in item.keywords and not pvpython:
             item.add_marker(pytest.mark.skip(reason="needs ParaView's pvpython on PATH (Debian: apt-get install paraview)"))
+
+
+@pytest.fixture(scope="module")
+def client():
+    """An in-process Dask cluster of two one-thread workers, shared by a test module's brick runs."""
+    import distributed
+
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0",
+                                       worker_dashboard_address=None)
+    with distributed.Client(cluster) as c:
+        yield c
+    cluster.close()

@@ -46,15 +46,6 @@ class RecordingRawVolume(RawVolume):
         return super()._read_stored(z, y, x)
 
 
-@pytest.fixture(scope="module")
-def client():
-    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0",
-                                       worker_dashboard_address=None)
-    with distributed.Client(cluster) as c:
-        yield c
-    cluster.close()
-
-
 def queue_for(client, retries=2):
     return DaskJobQueue(client, retries=retries, threads_per_job=1)
 

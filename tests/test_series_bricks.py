@@ -24,7 +24,7 @@ from apmgsrn.models.registry import preset_config
 from apmgsrn.models.series_field import SeriesConfig, SeriesFieldConfig
 from apmgsrn.training.trainer import TrainConfig
 
-distributed = pytest.importorskip("distributed")
+pytest.importorskip("distributed")
 
 CONFIG = SeriesFieldConfig(preset_config("apmgsrn", "small", grids=4, resolution=(8, 8, 8), width=32),
                            SeriesConfig(4, 2, "learned", residual=3))
@@ -35,15 +35,6 @@ GRID = DecompositionConfig((2, 1, 1), ghost_cells=1)
 @pytest.fixture(scope="module")
 def series(test_data):
     return open_series(str(test_data / "viscous_fingers_run01" / "*.vti")).absolute()
-
-
-@pytest.fixture(scope="module")
-def client():
-    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0",
-                                       worker_dashboard_address=None)
-    with distributed.Client(cluster) as c:
-        yield c
-    cluster.close()
 
 
 @pytest.fixture(scope="module")
