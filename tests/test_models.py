@@ -101,12 +101,13 @@ def test_bfloat16_decoder_matches_float32_in_forward_and_backward():
 
 
 def test_decoder_precision_is_chosen_by_option_and_device():
-    from apmgsrn.training.trainer import TrainConfig, decoder_hidden_dtype
+    from apmgsrn.device import inference_dtype
+    from apmgsrn.training.trainer import TrainConfig
 
     cpu = torch.device("cpu")
-    assert decoder_hidden_dtype("float32", cpu) is None
-    assert decoder_hidden_dtype("bfloat16", cpu) is torch.bfloat16
-    assert decoder_hidden_dtype("auto", torch.device("meta")) is None  # auto: bfloat16 only on such CPUs
+    assert inference_dtype("float32", cpu) is None
+    assert inference_dtype("bfloat16", cpu) is torch.bfloat16
+    assert inference_dtype("auto", torch.device("meta")) is None  # auto: bfloat16 only on such CPUs
     with pytest.raises(ValueError, match="decoder_precision="):
         TrainConfig(decoder_precision="half")
 

@@ -142,12 +142,6 @@ def current_names(stored: dict) -> dict:
     return {RENAMED.get(key, key): value for key, value in stored.items()} if isinstance(stored, dict) else stored
 
 
-def decoder_hidden_dtype(precision: str, device: torch.device) -> torch.dtype | None:
-    """The decoder's hidden-layer dtype for a :attr:`TrainConfig.decoder_precision` on ``device`` (the
-    rule of inference: :func:`apmgsrn.device.inference_dtype`)."""
-    return inference_dtype(precision, device)
-
-
 def default_budget(device: torch.device) -> tuple[int, int]:
     """(iterations, batch size) sized for the device: minutes on a 2-core CPU, the paper's on a GPU."""
     if device.type == "cuda":
@@ -255,7 +249,7 @@ class Trainer:
             if placement_params
             else None
         )
-        self.hidden_dtype = decoder_hidden_dtype(config.decoder_precision, self.device)
+        self.hidden_dtype = inference_dtype(config.decoder_precision, self.device)  # same rule as inference
         # CPU threads chosen by timing the steps, where that cannot change the numbers (exact resume).
         self.thread_governor = ThreadGovernor(enabled=self.device.type == "cpu" and self._thread_invariant())
         self.callbacks = (_GovernThreads(), *self.callbacks)
