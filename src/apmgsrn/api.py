@@ -37,7 +37,7 @@ from apmgsrn.io.description import check_time
 from apmgsrn.io.field_file import FIELD_KIND
 from apmgsrn.io.series_file import SERIES_KIND
 from apmgsrn.models.field import NeuralField
-from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
+from apmgsrn.models.registry import preset_config, training_defaults
 from apmgsrn.render import Camera, RendererConfig, VolumeRenderer, extent_from_shape, make_transfer_function
 from apmgsrn.render.images import as_uint8
 from apmgsrn.render.raymarch import default_batch_size
@@ -282,7 +282,7 @@ def fit(
     if isinstance(model_options.get("resolution"), (int, np.integer)):
         model_options["resolution"] = (int(model_options["resolution"]),) * 3  # R -> (R, R, R), as --resolution
     default_iterations, default_batch = default_budget(device)
-    train_options.setdefault("lr_schedule", DEFAULT_LR_SCHEDULES.get(model, "cosine"))
+    train_options = training_defaults(model, **train_options)
     train_config = TrainConfig(iterations=default_iterations if iterations is None else iterations,
                                batch_size=default_batch if batch_size is None else batch_size, **train_options)
     try:

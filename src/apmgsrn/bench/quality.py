@@ -17,11 +17,11 @@ from apmgsrn.arguments import MAX_BATCH_SIZE, check_choice, check_int, check_num
 from apmgsrn.atomic import atomic_write_text
 from apmgsrn.bench.charts import quality_chart
 from apmgsrn.bench.datasets import DataSpec, open_spec
-from apmgsrn.bench.results import QualityRow, append_row, read_rows
+from apmgsrn.bench.results import QualityRow, append_row, read_rows, write_rows
 from apmgsrn.bench.tables import quality_tables
 from apmgsrn.choices import LR_SCHEDULES, MODEL_KINDS, PAPER_MODELS, SIZE_PRESETS, VALUE_TRANSFORMS
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
+from apmgsrn.models.registry import preset_config, training_defaults
 from apmgsrn.training.fit import fit_volume
 from apmgsrn.training.trainer import TrainConfig
 
@@ -37,6 +37,7 @@ class QualityPlan:
         seeds: seeds ``0 .. seeds - 1`` per combination.
         iterations, batch_size: training budget of every run.
         lr_schedule: one schedule for every model, or None for each model's default.
+        voxel_fraction: one share of voxel points for every model, or None for each model's default.
         transform, log_offset: value transform applied to every volume.
     """
 
@@ -47,6 +48,7 @@ class QualityPlan:
     iterations: int = 2000
     batch_size: int = 32768
     lr_schedule: str | None = None
+    voxel_fraction: float | None = None
     transform: str = "none"
     log_offset: float = 0.0
 
@@ -60,6 +62,8 @@ class QualityPlan:
         check_int("batch_size", self.batch_size, 1, MAX_BATCH_SIZE)
         if self.lr_schedule is not None:
             check_choice("lr_schedule", self.lr_schedule, LR_SCHEDULES)
+        if self.voxel_fraction is not None:
+            check_number("voxel_fraction", self.voxel_fraction, 0.0, 1.0)
         check_choice("transform", self.transform, VALUE_TRANSFORMS)
         check_number("log_offset", self.log_offset)
 
@@ -93,6 +97,8 @@ def run_quality(
     """
     paths = prepare_folder(out)
     rows = read_rows(paths["csv"], QualityRow)
+    if rows:
+        write_rows(paths["csv"], rows, QualityRow)  # a file of an older version gets today's columns first
     done = {row.key() for row in rows}
     cases = [
         (spec, model, size, seed)
@@ -102,16 +108,18 @@ def run_quality(
         for seed in range(plan.seeds)
     ]
     for number, (spec, model, size, seed) in enumerate(cases, 1):
-        schedule = plan.lr_schedule or DEFAULT_LR_SCHEDULES.get(model, "cosine")
-        key = (spec.label, model, size, seed, plan.iterations, plan.batch_size, schedule)
+        train_config = TrainConfig(
+            iterations=plan.iterations, batch_size=plan.batch_size, seed=seed,
+            checkpoint_every=max(250, plan.iterations // 4),
+            **training_defaults(model, lr_schedule=plan.lr_schedule, voxel_fraction=plan.voxel_fraction),
+        )
+        schedule = train_config.lr_schedule
+        key = (spec.label, model, size, seed, plan.iterations, plan.batch_size, schedule, train_config.voxel_fraction)
         if key in done:
             continue
         volume = open_spec(spec)
-        train_config = TrainConfig(
-            iterations=plan.iterations, batch_size=plan.batch_size, lr_schedule=schedule, seed=seed,
-            checkpoint_every=max(250, plan.iterations // 4),
-        )
-        model_file = paths["models"] / f"{spec.stem}_{model}_{size}_s{seed}_i{plan.iterations}.apmgsrn"
+        voxels = f"_v{train_config.voxel_fraction:g}" if train_config.voxel_fraction else ""
+        model_file = paths["models"] / f"{spec.stem}_{model}_{size}_s{seed}_i{plan.iterations}{voxels}.apmgsrn"
         result = fit_volume(
             volume, preset_config(model, size), train_config, model_file, device,
             transform=plan.transform, log_offset=plan.log_offset, resume=True,
@@ -138,6 +146,7 @@ def run_quality(
             ms_per_iteration=1000 * result.seconds / max(result.iterations, 1),
             device=str(device),
             model_file=str(model_file),
+            voxel_fraction=train_config.voxel_fraction,
         )
         append_row(paths["csv"], row)
         rows.append(row)

@@ -40,6 +40,8 @@ class QualityRow:
         ms_per_iteration: ``train_seconds`` per iteration.
         device: where it trained.
         model_file: path of the model file.
+        voxel_fraction: share of every batch drawn on voxels (:class:`~apmgsrn.training.trainer.TrainConfig`;
+            0 in files written before the option).
     """
 
     dataset: str
@@ -62,10 +64,12 @@ class QualityRow:
     ms_per_iteration: float
     device: str
     model_file: str
+    voxel_fraction: float = 0.0
 
     def key(self) -> tuple:
         """What identifies a run: a row with the same key is not run again."""
-        return (self.dataset, self.model, self.size, self.seed, self.iterations, self.batch_size, self.lr_schedule)
+        return (self.dataset, self.model, self.size, self.seed, self.iterations, self.batch_size, self.lr_schedule,
+                self.voxel_fraction)
 
 
 @dataclass(frozen=True)
@@ -134,17 +138,20 @@ def append_row(path: Path, row) -> None:
 def read_rows(path: Path, row_type: type[Row]) -> list[Row]:
     """Rows of a CSV written by :func:`write_rows` / :func:`append_row`; an absent file gives none.
 
+    A file of an older version may lack the columns added since with a default (they take it).
+
     Raises:
         ApmgsrnError: the file is not such a CSV (another header).
     """
     if not path.exists():
         return []
     fields = {f.name: f.type for f in dataclasses.fields(row_type)}
+    optional = {f.name for f in dataclasses.fields(row_type) if f.default is not dataclasses.MISSING}
     with open(path, newline="") as handle:
         reader = csv.DictReader(handle)
         if reader.fieldnames is None:
             return []
-        if set(reader.fieldnames) != set(fields):
+        if not set(fields) - optional <= set(reader.fieldnames) <= set(fields):
             raise ApmgsrnError(
                 f"{path}: not a {row_type.__name__} results file of this version (other columns); move it away or "
                 "pass another out= folder", arguments=("out",)
@@ -153,6 +160,8 @@ def read_rows(path: Path, row_type: type[Row]) -> list[Row]:
         for record in reader:
             values = {}
             for name, kind in fields.items():
+                if name not in record:
+                    continue  # an older file: the field's default
                 text = record[name]
                 if kind in ("int", int):
                     values[name] = int(text)

@@ -264,9 +264,10 @@ def _protocol(rows: list[QualityRow]) -> str:
     seeds = sorted({len(g) for g in group_quality(rows).values()})
     devices = sorted({r.device for r in rows})
     schedules = sorted({f"{MODEL_TITLES.get(r.model, r.model)} {r.lr_schedule}" for r in rows})
+    voxels = sorted({f"{MODEL_TITLES.get(r.model, r.model)} {r.voxel_fraction:g}" for r in rows})
     budget_text = ", ".join(f"{i:,} iterations x {b:,} points" for i, b in budgets)
     seed_text = "/".join(str(s) for s in seeds)
     return (
         f"Protocol: {budget_text}; {seed_text} seed(s) per cell; learning-rate schedule "
-        f"{', '.join(schedules)}; device {', '.join(devices)}."
+        f"{', '.join(schedules)}; share of voxel points {', '.join(voxels)}; device {', '.join(devices)}."
     )

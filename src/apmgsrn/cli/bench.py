@@ -68,6 +68,8 @@ def _add_budget(parser: argparse.ArgumentParser, schedules, transforms) -> None:
     if schedules is not None:
         parser.add_argument("--lr-schedule", choices=schedules,
                             help="one schedule for every model (default: each model's own)")
+        parser.add_argument("--voxel-fraction", type=float,
+                            help="one share of voxel points for every model, 0..1 (default: each model's own)")
     if transforms is not None:
         parser.add_argument("--transform", choices=transforms, default="none",
                             help="value transform for every volume")
@@ -98,6 +100,7 @@ def run_quality_command(args: argparse.Namespace) -> int:
         iterations=args.iterations,
         batch_size=args.batch_size,
         lr_schedule=args.lr_schedule,
+        voxel_fraction=args.voxel_fraction,
         transform=args.transform,
         log_offset=args.log_offset,
     )

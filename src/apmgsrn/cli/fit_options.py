@@ -48,6 +48,9 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                           help="cosine: anneal after the grids stop (default for every model, bricks too); "
                                "constant; plateau (paper; a brick ends after the third cut); "
                                "steps: x0.33 at 40/60/80%% (NGP/fVSRN reference code)")
+    training.add_argument("--voxel-fraction", type=float,
+                          help="share of every batch drawn on voxels (their own values) instead of uniform points "
+                               "with trilinear targets, 0..1 (default: 0.5 for hybrid, 0 for the paper's models)")
     training.add_argument("--density-start", type=int,
                           help="iteration where the grids start moving (default: 5%% of the budget; paper 500)")
     training.add_argument("--freeze-fraction", type=float, default=0.5,
@@ -75,7 +78,7 @@ def build_configs(args: argparse.Namespace, device, steps: int | None = None):
     Raises:
         ApmgsrnError: an option out of range (the configs refuse it), or an invalid model size.
     """
-    from apmgsrn.models.registry import DEFAULT_LR_SCHEDULES, preset_config
+    from apmgsrn.models.registry import preset_config, training_defaults
     from apmgsrn.training.trainer import TrainConfig, default_budget, series_budget
 
     iterations, batch_size = default_budget(device)
@@ -102,7 +105,7 @@ def build_configs(args: argparse.Namespace, device, steps: int | None = None):
             batch_size=batch_size if args.batch_size is None else args.batch_size,
             lr=args.lr,
             placement_lr=args.placement_lr,
-            lr_schedule=args.lr_schedule or DEFAULT_LR_SCHEDULES.get(args.model, "cosine"),
+            **training_defaults(args.model, lr_schedule=args.lr_schedule, voxel_fraction=args.voxel_fraction),
             density_start=args.density_start,
             freeze_fraction=args.freeze_fraction,
             density_normalization=args.density_normalization,

@@ -44,6 +44,7 @@ FLAGS = {
     "lr": "--lr",
     "placement_lr": "--placement-lr",
     "lr_schedule": "--lr-schedule",
+    "voxel_fraction": "--voxel-fraction",
     "density_start": "--density-start",
     "freeze_fraction": "--freeze-fraction",
     "density_normalization": "--density-normalization",

@@ -34,6 +34,7 @@ from apmgsrn.training.checkpoint import (
     state_from_json,
 )
 from apmgsrn.training.losses import feature_density_loss
+from apmgsrn.training.points import draw_batch
 
 #: Weight of the newest loss in a series step's running loss.
 STEP_LOSS_WEIGHT = 0.3
@@ -78,6 +79,10 @@ class TrainConfig:
             (weights, gradients, optimiser and the output layer stay float32). ``"auto"``: bfloat16 on CPUs
             that multiply it natively (AVX512-BF16 or AMX), where it makes CPU training 20-25 % faster at the
             same PSNR (docs/benchmarks.md); float32 elsewhere. Evaluation always runs in float32.
+        voxel_fraction: share of every batch drawn at voxel positions with the voxels' own values as
+            targets (:func:`~apmgsrn.training.points.draw_batch`); the rest are uniform points with trilinear
+            targets. 0 (SPEC section 4, and what older checkpoints ran with): uniform points only. The model
+            kinds' own defaults are in :func:`apmgsrn.models.registry.training_defaults`.
         steps_per_iteration: a time series only: the batch is split evenly over this many steps (every step is
             visited once per round of ``T / steps_per_iteration`` iterations).
     """
@@ -101,6 +106,7 @@ class TrainConfig:
     stop_after_lr_cuts: int | None = None
     decoder_precision: str = "auto"
     steps_per_iteration: int = 4
+    voxel_fraction: float = 0.0
 
     def __post_init__(self) -> None:
         """Refuse every value the loop cannot run with (:class:`~apmgsrn.errors.InvalidArgument`)."""
@@ -130,6 +136,7 @@ class TrainConfig:
         check_int("history_every", self.history_every, 1)
         check_optional_int("stop_after_lr_cuts", self.stop_after_lr_cuts, 1)
         check_choice("decoder_precision", self.decoder_precision, DECODER_PRECISIONS)
+        object.__setattr__(self, "voxel_fraction", check_number("voxel_fraction", self.voxel_fraction, 0.0, 1.0))
 
 
 #: Names older versions stored for today's :class:`TrainConfig` fields.
@@ -313,18 +320,14 @@ class Trainer:
         cfg, st = self.config, self.state
         for group in self.network_optimizer.param_groups:
             group["lr"] = self.learning_rate(st.iteration) * group.get("lr_multiplier", 1.0)
-        points = torch.rand(cfg.batch_size, 3, generator=self.generator, device=self.device) * 2 - 1
-
         # Step 1: L_rec moves grids and decoder only (transform-detached coordinates).
         if self.volume.dim() == 3:
-            target = sample_volume(self.volume, points)  # [B]
+            points, target = draw_batch(self.volume, cfg.batch_size, cfg.voxel_fraction, self.generator)  # [B, 3], [B]
             prediction = self.field.normalized(points, detach_placement=True, hidden_dtype=self.hidden_dtype)
         else:
             # A series: the batch is cut into groups of equal size, each at one step.
             steps = self.batch_steps(st.iteration)  # [G]
-            points = points[: len(steps) * (cfg.batch_size // len(steps))]
-            groups = points.view(len(steps), -1, 3)  # [G, n, 3]
-            target = torch.cat([sample_volume(self.volume[s], group) for s, group in zip(steps.tolist(), groups)])
+            points, target = self._draw_series_batch(steps)
             prediction = self.field.normalized(points, steps, detach_placement=True, hidden_dtype=self.hidden_dtype)
         prediction = prediction.view(-1)  # [B]
         error = (prediction - target).square()  # [B]
@@ -354,6 +357,19 @@ class Trainer:
             self.placement_optimizer.step()
             density_value = density_loss.detach()
         return StepLosses(reconstruction.detach(), density_value)
+
+    def _draw_series_batch(self, steps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Points ``[G n, 3]`` and targets of a series batch: group ``g`` of ``n`` points at step ``steps[g]``."""
+        cfg = self.config
+        per_group = cfg.batch_size // len(steps)
+        if cfg.voxel_fraction == 0:  # one draw for the whole batch, as before the option existed
+            points = torch.rand(cfg.batch_size, 3, generator=self.generator, device=self.device) * 2 - 1
+            points = points[: len(steps) * per_group]
+            groups = points.view(len(steps), -1, 3)  # [G, n, 3]
+            target = torch.cat([sample_volume(self.volume[s], group) for s, group in zip(steps.tolist(), groups)])
+            return points, target
+        drawn = [draw_batch(self.volume[s], per_group, cfg.voxel_fraction, self.generator) for s in steps.tolist()]
+        return torch.cat([p for p, _ in drawn]), torch.cat([t for _, t in drawn])
 
     def batch_steps(self, iteration: int) -> torch.Tensor:
         """Steps of a series that iteration ``iteration`` trains on: ``steps_per_iteration`` indices ``[G]``.

@@ -1,0 +1,154 @@
+"""Training batches on voxels (TrainConfig.voxel_fraction): where the points land, what the targets are, and
+that the trainer, the command line, the API and the benchmark use the option."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from apmgsrn.bench.results import QualityRow, read_rows
+from apmgsrn.cli.main import build_parser
+from apmgsrn.cli.fit_options import build_configs
+from apmgsrn.data import open_volume
+from apmgsrn.errors import InvalidArgument
+from apmgsrn.models.field import NeuralField
+from apmgsrn.models.registry import preset_config
+from apmgsrn.ops.trilinear import sample_volume
+from apmgsrn.training.points import draw_batch, voxel_count
+from apmgsrn.training.trainer import TrainConfig, Trainer
+
+
+@pytest.fixture(scope="module")
+def channel(test_data) -> torch.Tensor:
+    """The real 96x64x48 channel-flow pressure crop, scaled to [0, 1] (non-cubic: catches swapped axes)."""
+    values = open_volume(test_data / "channel_pressure_96x64x48.nc", variable="pressure").read()
+    values = torch.from_numpy(np.asarray(values, dtype=np.float32))
+    return (values - values.min()) / (values.max() - values.min())
+
+
+def test_no_voxel_points_draws_what_the_trainer_always_drew(channel):
+    points, targets = draw_batch(channel, 1000, 0.0, torch.Generator().manual_seed(3))
+    expected = torch.rand(1000, 3, generator=torch.Generator().manual_seed(3)) * 2 - 1
+    assert torch.equal(points, expected)
+    assert torch.equal(targets, sample_volume(channel, expected))
+
+
+def test_voxel_points_sit_on_voxels_and_carry_their_values(channel):
+    d, h, w = channel.shape
+    points, targets = draw_batch(channel, 4000, 1.0, torch.Generator().manual_seed(0))
+    # back to indices: every coordinate is a lattice position
+    index = (points + 1) / 2 * torch.tensor([w - 1, h - 1, d - 1])
+    assert torch.allclose(index, index.round(), atol=1e-4)
+    x, y, z = index.round().long().unbind(1)
+    assert torch.equal(targets, channel[z, y, x])
+    # interpolating the volume there gives the voxel back (same convention as sample_volume)
+    assert torch.allclose(sample_volume(channel, points), targets, atol=1e-6)
+    # drawn over the whole volume, not one corner of it
+    assert {int(x.max() > w * 0.9), int(y.max() > h * 0.9), int(z.max() > d * 0.9)} == {1}
+
+
+def test_a_mix_keeps_its_share_and_trilinear_targets_for_the_rest(channel):
+    points, targets = draw_batch(channel, 1001, 0.5, torch.Generator().manual_seed(1))
+    on_voxels = voxel_count(1001, 0.5)
+    assert points.shape == (1001, 3) and targets.shape == (1001,) and on_voxels in (500, 501)
+    rest = points[on_voxels:]
+    assert torch.equal(targets[on_voxels:], sample_volume(channel, rest))
+    d, h, w = channel.shape
+    index = (rest + 1) / 2 * torch.tensor([w - 1, h - 1, d - 1])
+    assert (index - index.round()).abs().max() > 0.1  # uniform points, not voxels
+
+
+@pytest.mark.parametrize("bad", [-0.1, 1.5, float("nan"), "half"])
+def test_the_share_must_be_a_number_in_0_1(bad):
+    with pytest.raises(InvalidArgument, match="voxel_fraction"):
+        TrainConfig(voxel_fraction=bad)
+
+
+def test_the_trainer_fits_the_batch_the_option_draws(channel):
+    field = NeuralField(preset_config("apmgsrn", "small", grids=2), volume_shape=tuple(channel.shape))
+    config = TrainConfig(iterations=10, batch_size=512, voxel_fraction=0.75, seed=5)
+    before = copy.deepcopy(field)
+    losses = Trainer(field, channel, config).step()
+    points, targets = draw_batch(channel, 512, 0.75, torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        expected = (before.normalized(points).view(-1) - targets).square().mean()
+    assert float(losses.reconstruction) == pytest.approx(float(expected), rel=1e-5)
+
+
+def test_a_series_draws_each_group_on_its_own_step(channel):
+    from apmgsrn.models.series_field import SeriesConfig, SeriesField, SeriesFieldConfig
+
+    series = torch.stack([channel, 1 - channel, channel.flip(0)])  # [T, D, H, W]
+    tiny = preset_config("apmgsrn", "small", grids=2, resolution=(4, 4, 4))
+    field = SeriesField(SeriesFieldConfig(tiny, SeriesConfig(3, 2)))
+    trainer = Trainer(field, series, TrainConfig(iterations=10, batch_size=300, voxel_fraction=1.0,
+                                                 steps_per_iteration=3))
+    steps = trainer.batch_steps(0)
+    points, targets = trainer._draw_series_batch(steps)
+    for group, (p, t) in enumerate(zip(points.view(3, -1, 3), targets.view(3, -1))):
+        assert torch.allclose(sample_volume(series[steps[group]], p), t, atol=1e-6)
+
+
+@pytest.mark.parametrize(("argv", "expected"), [
+    (["--model", "hybrid"], 0.5),
+    (["--model", "apmgsrn"], 0.0),
+    (["--model", "ngp"], 0.0),
+    (["--model", "apmgsrn", "--voxel-fraction", "0.25"], 0.25),
+    (["--model", "hybrid", "--voxel-fraction", "0"], 0.0),
+])
+def test_each_model_kind_has_its_default_and_the_flag_overrides_it(argv, expected):
+    args = build_parser().parse_args(["train", "data.npy", "--out", "m.apmgsrn", *argv])
+    _, train_config = build_configs(args, torch.device("cpu"))
+    assert train_config.voxel_fraction == expected
+
+
+def test_the_command_line_names_a_bad_share(tmp_path, neghip_crop, capsys):
+    from apmgsrn.cli.main import main
+
+    path, _ = neghip_crop
+    code = main(["train", str(path), "--out", str(tmp_path / "m.apmgsrn"), "--voxel-fraction", "2"])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--voxel-fraction" in err[0]
+
+
+def test_benchmark_results_from_before_the_option_read_as_uniform_points(tmp_path):
+    import csv
+    import dataclasses
+
+    from apmgsrn.bench.results import write_rows
+
+    names = [f.name for f in dataclasses.fields(QualityRow) if f.name != "voxel_fraction"]
+    row = dict(dataset="hcci_oh_187.nc:oh", shape="187x187x187", model="hybrid", size="small", seed=0,
+               iterations=2000, batch_size=32768, lr_schedule="cosine", parameters=69104, parameter_bytes=276416,
+               file_bytes=290112, data_dtype="float32", data_bytes=26156812, compression_ratio=90.2,
+               compression_ratio_float32=90.2, psnr=53.33, train_seconds=112.3, ms_per_iteration=56.1,
+               device="cpu", model_file="m.apmgsrn")
+    older = tmp_path / "quality.csv"
+    with open(older, "w", newline="") as handle:  # a results file written before the column existed
+        writer = csv.writer(handle)
+        writer.writerow(names)
+        writer.writerow([row[name] for name in names])
+    (read,) = read_rows(older, QualityRow)
+    assert read.voxel_fraction == 0.0 and read.psnr == 53.33
+    assert read.key() != dataclasses.replace(read, voxel_fraction=0.5).key()
+    write_rows(older, [read], QualityRow)  # today's columns; read back unchanged
+    assert read_rows(older, QualityRow) == [read]
+    extra = tmp_path / "other.csv"
+    extra.write_text(older.read_text().replace("voxel_fraction", "unknown_column"))
+    with pytest.raises(Exception, match="other columns"):
+        read_rows(extra, QualityRow)
+
+
+def test_the_python_api_trains_with_the_model_kinds_default_unless_given(neghip_crop):
+    import apmgsrn
+
+    _, data = neghip_crop
+    budget = dict(iterations=5, batch_size=256, device="cpu")
+    hybrid = apmgsrn.fit(data, model="hybrid", **budget)
+    given = apmgsrn.fit(data, model="apmgsrn", voxel_fraction=0.3, **budget)
+    assert hybrid.description.training["config"]["voxel_fraction"] == 0.5
+    assert given.description.training["config"]["voxel_fraction"] == 0.3
