@@ -104,7 +104,8 @@ def run_series(args: argparse.Namespace) -> None:
     iterations = args.series_iterations or series_budget(args.iterations, len(series))
     config = series_config(preset_config("apmgsrn", "small"), len(series), args.basis, args.coefficients,
                            args.residual, args.storage)
-    train_config = TrainConfig(iterations=iterations, batch_size=args.batch_size, lr=0.01, seed=0)
+    train_config = TrainConfig(iterations=iterations, batch_size=args.batch_size, lr=0.01, seed=0,
+                               voxel_fraction=args.voxel_fraction)
     load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "series.apmgsrn"
@@ -113,7 +114,7 @@ def run_series(args: argparse.Namespace) -> None:
         if args.keep:
             args.keep.write_bytes(out.read_bytes())
     described = f"basis={config.series.basis} {config.series.coefficients} residual={config.series.residual} " \
-                f"storage={config.series.storage} iterations={iterations}"
+                f"storage={config.series.storage} iterations={iterations} voxel_fraction={args.voxel_fraction:g}"
     if args.csv.exists():
         args.csv.unlink()  # one model: the table is replaced, not appended to
     for step, evaluation in zip(result.evaluation.indices, result.evaluation.steps):
@@ -297,6 +298,7 @@ def main() -> None:
     series.add_argument("--series-iterations", type=int, help="default: the train command's series budget")
     series.add_argument("--keep", type=Path, help="also keep the model file here")
     series.add_argument("--progress", action="store_true")
+    series.add_argument("--voxel-fraction", type=float, default=0.0, help="share of every batch on voxels")
     timing = sub.add_parser("timing", help="one step's training time, for the 5x comparison")
     timing.add_argument("--csv", type=Path, default=TIMING_CSV)
     timing.add_argument("--step", type=int, default=15)
