@@ -385,11 +385,12 @@ def test_the_untampered_checkpoint_resumes(interrupted, tmp_path):
 
 
 def _older_names(tensors: dict, description: dict) -> None:
-    """A checkpoint as versions before the grid-placement rename wrote it."""
+    """A checkpoint as versions before the grid-placement rename (and before voxel points) wrote it."""
     for name in [k for k in tensors if k.startswith("optim.placement.")]:
         tensors["optim.transform." + name[len("optim.placement."):]] = tensors.pop(name)
     config = description["config"]
     config["transform_lr"] = config.pop("placement_lr")
+    del config["voxel_fraction"]
 
 
 def test_a_checkpoint_with_the_older_names_resumes_to_the_same_model(interrupted, tmp_path):

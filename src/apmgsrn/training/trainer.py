@@ -141,12 +141,17 @@ class TrainConfig:
 
 #: Names older versions stored for today's :class:`TrainConfig` fields.
 RENAMED = {"transform_lr": "placement_lr"}
+#: :class:`TrainConfig` fields added since, with the value the versions without them ran with.
+ADDED = {"voxel_fraction": 0.0}
 
 
 def current_names(stored: dict) -> dict:
-    """A stored training config with the names this version uses, so that brick folders and checkpoints
-    written before the grid maps were called placements still match their runs."""
-    return {RENAMED.get(key, key): value for key, value in stored.items()} if isinstance(stored, dict) else stored
+    """A stored training config with the names and fields this version uses, so that brick folders and
+    checkpoints written before the grid maps were called placements, or before a field existed, still match
+    their runs."""
+    if not isinstance(stored, dict):
+        return stored
+    return {**ADDED, **{RENAMED.get(key, key): value for key, value in stored.items()}}
 
 
 def default_budget(device: torch.device) -> tuple[int, int]:
