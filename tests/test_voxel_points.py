@@ -152,3 +152,17 @@ def test_the_python_api_trains_with_the_model_kinds_default_unless_given(neghip_
     given = apmgsrn.fit(data, model="apmgsrn", voxel_fraction=0.3, **budget)
     assert hybrid.description.training["config"]["voxel_fraction"] == 0.5
     assert given.description.training["config"]["voxel_fraction"] == 0.3
+
+
+def test_info_says_how_much_of_each_batch_was_on_voxels(neghip_crop, tmp_path, capsys):
+    import apmgsrn
+    from apmgsrn.cli.main import main
+
+    _, data = neghip_crop
+    budget = dict(iterations=5, batch_size=256, device="cpu")
+    apmgsrn.fit(data, model="hybrid", **budget).save(tmp_path / "hybrid.apmgsrn")
+    apmgsrn.fit(data, model="apmgsrn", **budget).save(tmp_path / "paper.apmgsrn")
+    assert main(["info", str(tmp_path / "hybrid.apmgsrn")]) == 0
+    assert "256 points (0.5 of each on voxels)" in capsys.readouterr().out
+    assert main(["info", str(tmp_path / "paper.apmgsrn")]) == 0
+    assert "on voxels" not in capsys.readouterr().out

@@ -176,7 +176,10 @@ def run(args: argparse.Namespace) -> int:
         print("\n".join(packing_lines(info["packing"])))
     if t:
         psnr = f", PSNR {t['psnr']:.2f} dB" if isinstance(t.get("psnr"), (int, float)) else ""
-        print(f"training        {t.get('iterations')} iterations x {t.get('batch_size')} points, "
+        config = t.get("config") if isinstance(t.get("config"), dict) else {}
+        fraction = config.get("voxel_fraction")
+        voxels = f" ({fraction:g} of each on voxels)" if isinstance(fraction, (int, float)) and fraction > 0 else ""
+        print(f"training        {t.get('iterations')} iterations x {t.get('batch_size')} points{voxels}, "
               f"{t.get('seconds')} s on {t.get('device')}{psnr}")
         if "final_reconstruction_loss" in info:  # a packed file keeps no loss history
             print(f"final losses    reconstruction {info['final_reconstruction_loss']:.3e}, "
