@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -51,7 +50,7 @@ def train(spec_text: str, kind: str, fraction: float, seed: int, out: Path) -> N
     if spec.variable:
         command += ["--variable", spec.variable]
     print(" ".join(command[2:]), flush=True)
-    subprocess.run(command, check=True, stdout=subprocess.DEVNULL, env=os.environ)
+    subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
 
 
 def measure(path: Path, truth: torch.Tensor, points: torch.Tensor, between: torch.Tensor, span: float) -> dict:

@@ -61,7 +61,7 @@ def test_a_mix_keeps_its_share_and_trilinear_targets_for_the_rest(channel):
     assert (index - index.round()).abs().max() > 0.1  # uniform points, not voxels
 
 
-@pytest.mark.parametrize("bad", [-0.1, 1.5, float("nan"), "half"])
+@pytest.mark.parametrize("bad", [-0.1, 1.5, float("nan"), "half", None])
 def test_the_share_must_be_a_number_in_0_1(bad):
     with pytest.raises(InvalidArgument, match="voxel_fraction"):
         TrainConfig(voxel_fraction=bad)

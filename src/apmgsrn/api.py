@@ -282,7 +282,7 @@ def fit(
     if isinstance(model_options.get("resolution"), (int, np.integer)):
         model_options["resolution"] = (int(model_options["resolution"]),) * 3  # R -> (R, R, R), as --resolution
     default_iterations, default_batch = default_budget(device)
-    train_options = training_defaults(model, **train_options)
+    train_options = {**training_defaults(model), **train_options}  # what is given wins, None included
     train_config = TrainConfig(iterations=default_iterations if iterations is None else iterations,
                                batch_size=default_batch if batch_size is None else batch_size, **train_options)
     try:

@@ -117,7 +117,6 @@ def read_header(path: str | os.PathLike) -> Header:
     return Header(meta.get("kind", ""), version, description, tensors)
 
 
-
 def header_of_kind(path: str | os.PathLike, kind: str, what: str, header: Header | None = None) -> Header:
     """``header`` (read from ``path`` when None), checked to declare ``kind``.
 
@@ -131,6 +130,7 @@ def header_of_kind(path: str | os.PathLike, kind: str, what: str, header: Header
     if header.kind != kind:
         raise ApmgsrnError(f"{path}: is a {header.kind or 'unknown'} file, not {what}")
     return header
+
 
 def _tensor_entries(header: dict, body: int, not_ours: str) -> dict[str, TensorEntry]:
     """Every tensor's dtype and shape, checked against its extent; extents inside the body, disjoint."""

@@ -72,15 +72,17 @@ def voxel_coordinates(
     d, h, w = shape
     box = box or ((-1.0, 1.0),) * 3
     zs = torch.arange(d)[z if z is not None else slice(None)][::stride]
-    axes = [_axis(zs, d, *box[2]), _axis(torch.arange(h)[::stride], h, *box[1]),
-            _axis(torch.arange(w)[::stride], w, *box[0])]
+    axes = [axis_coordinates(zs, d, *box[2]), axis_coordinates(torch.arange(h)[::stride], h, *box[1]),
+            axis_coordinates(torch.arange(w)[::stride], w, *box[0])]
     gz, gy, gx = torch.meshgrid(*axes, indexing="ij")
     return torch.stack([gx, gy, gz], dim=-1).reshape(-1, 3)
 
 
-def _axis(index: torch.Tensor, n: int, low: float = -1.0, high: float = 1.0) -> torch.Tensor:
+def axis_coordinates(index: torch.Tensor, n: int, low: float = -1.0, high: float = 1.0) -> torch.Tensor:
+    """Corner-aligned coordinates (float32, on ``index``'s device) of voxels ``index`` of an axis of ``n``
+    voxels whose first and last voxel sit at ``low`` and ``high``."""
     if n == 1:  # one voxel: the middle of the span
-        return torch.full((len(index),), 0.5 * (low + high))
+        return torch.full((len(index),), 0.5 * (low + high), device=index.device)
     if (low, high) == (-1.0, 1.0):
         return index.to(torch.float32) * (2.0 / (n - 1)) - 1.0
     # float64 on the way: a region's bounds are not multiples of the step, and float32 would round each

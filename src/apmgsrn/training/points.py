@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-from apmgsrn.ops.trilinear import sample_volume
+from apmgsrn.ops.trilinear import axis_coordinates, sample_volume
 
 
 def voxel_count(batch: int, fraction: float) -> int:
@@ -40,12 +40,8 @@ def draw_batch(
     d, h, w = volume.shape
     index = torch.randint(0, d * h * w, (on_voxels,), generator=generator, device=volume.device)
     z, y, x = index // (h * w), index // w % h, index % w
-    voxels = torch.stack([_coordinate(x, w), _coordinate(y, h), _coordinate(z, d)], dim=1)
+    voxels = torch.stack([axis_coordinates(x, w), axis_coordinates(y, h), axis_coordinates(z, d)], dim=1)
     points = torch.cat([voxels, uniform])
     targets = torch.cat([volume.reshape(-1)[index], sample_volume(volume, uniform)])
     return points, targets
 
-
-def _coordinate(index: torch.Tensor, n: int) -> torch.Tensor:
-    """Corner-aligned coordinate of voxel ``index`` along an axis of ``n`` voxels (0 for one voxel)."""
-    return index.float() * (2.0 / (n - 1)) - 1 if n > 1 else torch.zeros(index.shape, device=index.device)
