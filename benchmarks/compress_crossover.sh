@@ -34,7 +34,7 @@ make "$out/bounded_r1000.apmgsrn" "${apm[@]}" pack "$out/small.apmgsrn" "$data" 
 for ratio in 300 1000 3000; do
   make "$out/train_r$ratio.apmgsrn" "${apm[@]}" train "$data" "${train[@]}" --ratio $ratio
 done
-make "$out/train_r10000.apmgsrn" "${apm[@]}" train "$data" "${train[@]}" --ratio 10000 --grids 8 --width 32
+make "$out/train_r10000.apmgsrn" "${apm[@]}" train "$data" "${train[@]}" --ratio 10000
 models=()
 for name in small packed packed_r1000 packed_r3000 bounded_r1000 train_r300 train_r1000 train_r3000 train_r10000; do
   [ -f "$out/$name.apmgsrn" ] && models+=("$out/$name.apmgsrn")

@@ -128,6 +128,39 @@ def test_train_to_a_ratio_chooses_the_model_size_and_lands_under_it(neghip, tmp_
     assert apmgsrn.load(tmp_path / "l.apmgsrn").description.config.encoder.resolution[0] > chosen[0]
 
 
+def test_a_tiny_size_target_shrinks_the_decoder_and_the_grid_count_unless_they_were_given():
+    from apmgsrn.models.registry import preset_config
+    from apmgsrn.training.packing import BITS_PER_PARAMETER, PACKED_OVERHEAD_BYTES, config_for_bytes
+
+    def estimate(config):
+        parameters = sum(int(np.prod(shape)) for shape in config.parameter_shapes().values())
+        return parameters * BITS_PER_PARAMETER / 8 + PACKED_OVERHEAD_BYTES
+
+    small = preset_config("apmgsrn", "small")
+    large = config_for_bytes(small, 300_000)  # about 90:1 on a 256^3 uint8 volume: the preset's shape
+    assert (large.encoder.grids, large.decoder.hidden_layers, large.decoder.width) == (16, 2, 64)
+    tiny = config_for_bytes(small, 2_600)  # 10,000:1 on a 187^3 float32 volume
+    assert tiny.encoder.grids < 16 and tiny.decoder.width < 64
+    assert tiny.encoder.resolution[0] >= 6
+    for config, target in ((large, 300_000), (tiny, 2_600)):
+        assert estimate(config) <= target
+    kept = config_for_bytes(small, 8_000, fixed=("grids", "decoder"))
+    assert (kept.encoder.grids, kept.decoder.hidden_layers, kept.decoder.width) == (16, 2, 64)
+    free = config_for_bytes(small, 8_000)
+    assert free.decoder.width < 64 and min(free.encoder.resolution) > min(kept.encoder.resolution)
+
+
+def test_train_to_a_tiny_ratio_lands_under_it_with_a_smaller_decoder(test_data, tmp_path, capsys):
+    volume = test_data / "neghip_64x64x64_uint8.raw"  # 262,144 bytes: 100:1 leaves 2,621
+    out = tmp_path / "t.apmgsrn"
+    code, trained = run_json(["train", str(volume), "--out", str(out), "--iterations", "40", "--batch-size", "2048",
+                              "--device", "cpu", "--ratio", "100"], capsys)
+    assert code == 0 and trained["model_bytes"] == out.stat().st_size <= 64**3 / 100
+    model = apmgsrn.load(out)
+    assert model.description.config.decoder.width < 64
+    assert trained["packing"]["psnr"] > 18  # the best constant (its mean) scores 15.1 dB
+
+
 def test_a_ratio_no_model_reaches_is_a_clear_error(neghip, tmp_path, capsys):
     assert main(["train", str(neghip), "--out", str(tmp_path / "x.apmgsrn"), *TINY[4:], "--ratio", "5000"]) == 2
     err = capsys.readouterr().err

@@ -202,20 +202,24 @@ def split_packed(data: bytes) -> tuple[dict, list[bytes]]:
     sizes = json.loads(header["__metadata__"]["description"])["sections"]
     offsets = [sum(sizes[:i]) for i in range(len(sizes) + 1)]
     sections = [payload[offsets[i] : offsets[i + 1]] for i in range(len(sizes))]
-    description = json.loads(codec.decompress_bounded(sections[0], 1 << 20, "d", "text"))
+    description = json.loads(codec.decompress_description(sections[0], 1 << 20, "d"))
     return description, sections[1:]
 
 
-def write_packed_parts(path: Path, description: dict, sections: list[bytes], sizes: list[int] | None = None) -> Path:
-    """A packed file of these parts (``sizes``: section sizes to declare instead of the true ones)."""
+def write_packed_parts(path: Path, description: dict, sections: list[bytes], sizes: list[int] | None = None,
+                       coding: str | None = "deflate-primer-1") -> Path:
+    """A packed file of these parts (``sizes``: section sizes to declare instead of the true ones; ``coding``:
+    the description coding the header names, None for none, which means LZMA)."""
     from apmgsrn.io import codec
     from apmgsrn.io.container import PACKED_KIND, file_bytes
 
     text = description if isinstance(description, bytes) else json.dumps(description).encode()
-    parts = [codec.compress(text, "text"), *sections]
+    coded = codec.compress_description(text) if coding == "deflate-primer-1" else codec.compress(text, "text")
+    parts = [coded, *sections]
     payload = torch.frombuffer(bytearray(b"".join(parts)), dtype=torch.uint8)
     declared = sizes if sizes is not None else [len(p) for p in parts]
-    path.write_bytes(file_bytes({"payload": payload}, PACKED_KIND, {"sections": declared}))
+    header = {"sections": declared, **({"coding": coding} if coding is not None else {})}
+    path.write_bytes(file_bytes({"payload": payload}, PACKED_KIND, header))
     return path
 
 
@@ -233,6 +237,30 @@ def test_a_good_packed_file_loads(good_packed_parts, tmp_path):
     description, sections = good_packed_parts
     model = apmgsrn.load(write_packed_parts(tmp_path / "p.apmgsrn", description, sections))
     assert model.description.packing.corrected_voxels == 4 and model.description.packing.max_error == 0.5
+
+
+def test_packed_files_of_format_version_1_load(good_packed_parts, tmp_path, monkeypatch):
+    """Version 1 coded the description with LZMA and named no coding; such files still load, the same."""
+    from apmgsrn.io import container
+
+    description, sections = good_packed_parts
+    current = apmgsrn.load(write_packed_parts(tmp_path / "v2.apmgsrn", description, sections))
+    monkeypatch.setattr(container, "FORMAT_VERSION", 1)
+    old = write_packed_parts(tmp_path / "v1.apmgsrn", description, sections, coding=None)
+    monkeypatch.undo()
+    loaded = apmgsrn.load(old)
+    assert loaded.description.format_version == 1 and current.description.format_version == 2
+    points = torch.rand(1000, 3) * 2 - 1
+    assert torch.equal(loaded.field(points), current.field(points))
+
+
+@pytest.mark.parametrize("coding", ["lzma", None, 7])
+def test_packed_description_codings_other_than_the_header_names_are_refused(good_packed_parts, tmp_path, coding):
+    """A version-2 file must name the primed deflate coding; anything else (or nothing) is not ours."""
+    description, sections = good_packed_parts
+    hostile = write_packed_parts(tmp_path / "h.apmgsrn", description, sections, coding=coding)
+    with pytest.raises(ApmgsrnError, match="not an apmgsrn model file"):
+        apmgsrn.load(hostile)
 
 
 def _set(keys, value):
@@ -319,7 +347,7 @@ def test_packed_section_lists_that_disagree_with_the_payload_are_refused(good_pa
 def codec_text(description: dict) -> bytes:
     from apmgsrn.io import codec
 
-    return codec.compress(json.dumps(description).encode(), "text")
+    return codec.compress_description(json.dumps(description).encode())
 
 
 def test_a_packed_description_that_inflates_past_its_limit_is_refused(good_packed_parts, tmp_path):

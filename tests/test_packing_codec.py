@@ -4,6 +4,7 @@ description declares."""
 
 from __future__ import annotations
 
+import json
 import lzma
 
 import numpy as np
@@ -118,3 +119,28 @@ def test_decompression_refuses_wrong_sizes_corruption_and_bombs():
     assert codec.decompress_bounded(codec.compress(text, "text"), 1 << 20, "t", "text") == text
     with pytest.raises(ApmgsrnError, match="longer than 100 bytes"):
         codec.decompress_bounded(codec.compress(text, "text"), 100, "t", "text")
+
+
+def test_the_primed_description_coding_round_trips_shrinks_and_refuses_damage(parameters, test_data):
+    """A real packed description: restored exactly, smaller than LZMA's, and bounded like every section."""
+    from apmgsrn.io.field_file import field_description
+    from apmgsrn.training.packing import bits_quantizer, encode_field
+
+    model = apmgsrn.load(test_data / "reference_field.apmgsrn")
+    tensors, _ = encode_field(model.field, bits_quantizer(model.field, 8))
+    text = json.dumps({**field_description(model.field, model.description.source, {"iterations": 300}),
+                       "tensors": [t.entry() for t in tensors], "packing": {"mode": "bits", "bits": 8}},
+                      separators=(",", ":")).encode()
+    coded = codec.compress_description(text)
+    assert codec.decompress_description(coded, 1 << 20, "d") == text
+    assert len(coded) < 0.6 * len(codec.compress(text, "text"))
+    with pytest.raises(ApmgsrnError, match="longer than 100 bytes"):
+        codec.decompress_description(coded, 100, "d")
+    for damaged in (coded[: len(coded) // 2], coded + b"\0", bytes(len(coded))):
+        with pytest.raises(ApmgsrnError, match="corrupt"):
+            codec.decompress_description(damaged, 1 << 20, "d")
+    # A bomb: 64 MiB of spaces in about 64 KB; it stops at the limit and is refused.
+    bomb = codec.compress_description(b" " * (64 << 20))
+    assert len(bomb) < 128 << 10
+    with pytest.raises(ApmgsrnError, match="longer than"):
+        codec.decompress_description(bomb, 1 << 20, "d")

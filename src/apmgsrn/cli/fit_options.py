@@ -51,6 +51,10 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     training.add_argument("--voxel-fraction", type=float,
                           help="share of every batch drawn on voxels (their own values) instead of uniform points "
                                "with trilinear targets, 0..1 (default: 0.5 for hybrid, 0 for the paper's models)")
+    training.add_argument("--anchored-grids", type=int,
+                          help="the first N adaptive grids keep their starting placement, over the whole domain "
+                               "(default 0, the paper's training; 1 for models of 8 grids or fewer sized by "
+                               "--ratio/--size)")
     training.add_argument("--density-start", type=int,
                           help="iteration where the grids start moving (default: 5%% of the budget; paper 500)")
     training.add_argument("--freeze-fraction", type=float, default=0.5,
@@ -114,6 +118,7 @@ def build_configs(args: argparse.Namespace, device, steps: int | None = None):
             checkpoint_every=args.checkpoint_every,
             **({"steps_per_iteration": args.steps_per_iteration}
                if getattr(args, "steps_per_iteration", None) is not None else {}),
+            **({"anchored_grids": args.anchored_grids} if args.anchored_grids is not None else {}),
         )
     except ApmgsrnError:
         raise  # names the option already (translated by the command line)

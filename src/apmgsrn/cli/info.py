@@ -184,7 +184,9 @@ def run(args: argparse.Namespace) -> int:
         if "final_reconstruction_loss" in info:  # a packed file keeps no loss history
             print(f"final losses    reconstruction {info['final_reconstruction_loss']:.3e}, "
                   f"density {t.get('final_density_loss')}")
-        print(f"grids frozen at iteration {t.get('frozen_at')}")
+        anchored = config.get("anchored_grids")
+        anchored = f" ({anchored} anchored over the domain)" if isinstance(anchored, int) and anchored > 0 else ""
+        print(f"grids frozen at iteration {t.get('frozen_at')}{anchored}")
     levels = info.get("levels")
     if levels:
         dense = sum(level["dense"] for level in levels)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 from apmgsrn.choices import VALUE_TRANSFORMS
@@ -92,12 +93,20 @@ def run(args: argparse.Namespace) -> int:
     volume = open_data(args, args.data)
     packing = pack_config(args, volume.stored_bytes) if packing_requested(args) else None  # checked before training
     if packing is not None and packing.target_bytes is not None and args.resolution is None:
-        from apmgsrn.training.packing import config_for_bytes
+        from apmgsrn.training.packing import anchored_grids_for, config_for_bytes
 
-        field_config = config_for_bytes(field_config, packing.target_bytes)  # a model that packs to the target
+        fixed = (*(("grids",) if args.grids is not None else ()),
+                 *(("decoder",) if args.width is not None or args.hidden_layers is not None else ()))
+        field_config = config_for_bytes(field_config, packing.target_bytes, fixed)  # packs to the target
+        if args.anchored_grids is None:
+            train_config = replace(train_config, anchored_grids=anchored_grids_for(field_config))
         if not args.json:
-            print(f"model size  grids of {field_config.encoder.resolution[0]}^3 chosen to pack into "
-                  f"{packing.target_bytes:,} bytes (--resolution to choose yourself)")
+            grids = getattr(field_config.encoder, "grids", None)
+            shape = "x".join(str(r) for r in reversed(field_config.encoder.resolution))  # x*y*z
+            print(f"model size  {f'{grids} grids' if grids else 'a grid'} of {shape}, "
+                  f"decoder {field_config.decoder.hidden_layers} x {field_config.decoder.width}, chosen to pack "
+                  f"into {packing.target_bytes:,} bytes (--resolution, --grids, --width to choose yourself)"
+                  + (", one grid anchored over the domain" if train_config.anchored_grids else ""))
     out = Path(args.out)
     try:
         result = fit_volume(

@@ -25,8 +25,10 @@ from apmgsrn.errors import ApmgsrnError
 from apmgsrn.atomic import atomic_write
 
 FORMAT = "apmgsrn"
-#: Version 1: the first format. Files of every version up to this one load.
-FORMAT_VERSION = 1
+#: Version 1: the first format. Version 2: a packed file's description is coded with deflate and a primer
+#: (:mod:`apmgsrn.io.packed`; the layout of every other kind is unchanged). Files of every version up to this
+#: one load.
+FORMAT_VERSION = 2
 MAX_HEADER_BYTES = 64 * 1024 * 1024
 #: Kinds of single-file models: a float32 field (:mod:`apmgsrn.io.field_file`) and a packed one
 #: (:mod:`apmgsrn.io.packed`). A model of either kind may replace a model file of the other.
@@ -206,7 +208,7 @@ def file_bytes(tensors: dict[str, torch.Tensor], kind: str, description: dict) -
         "format": FORMAT,
         "format_version": str(FORMAT_VERSION),
         "kind": kind,
-        "description": json.dumps(description, allow_nan=True),
+        "description": json.dumps(description, separators=(",", ":"), allow_nan=True),
     }
     return save_safetensors_bytes(tensors, metadata=metadata)
 

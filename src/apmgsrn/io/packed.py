@@ -6,7 +6,9 @@ into sections whose compressed sizes the header lists (``{"sections": [n0, n1, .
 0. the description: the JSON of a single-field file (``field``, value ranges, ``transform``,
    ``volume_shape``, ``source``, ``training`` without the loss history) plus ``tensors`` (how each
    parameter is stored), ``packing`` (what packing measured) and ``correction`` (the error bound, or null),
-   LZMA-compressed (:mod:`apmgsrn.io.codec`) and at most :data:`MAX_DESCRIPTION_BYTES` once decompressed;
+   coded as the header's ``coding`` says (deflate primed with a typical description,
+   :func:`~apmgsrn.io.codec.compress_description`; files of format version 1 have no such entry and use
+   LZMA) and at most :data:`MAX_DESCRIPTION_BYTES` once decompressed;
 1. one section per stored parameter, in the config's order: ``quantized`` (float16 group steps, then the
    coded integers of :mod:`apmgsrn.io.quantization`) or ``float32`` (the raw values, LZMA-compressed);
 2. with an error bound, two more: the corrected voxels' flat indices (gaps between them) and their
@@ -178,9 +180,10 @@ def packed_file_bytes(
             "gap_width": gap_width, "level_width": level_width,
         }
         sections += [gaps, levels]
-    sections.insert(0, codec.compress(_json_bytes(description), "text"))
+    sections.insert(0, codec.compress_description(_json_bytes(description)))
     payload = torch.frombuffer(bytearray(b"".join(sections)), dtype=torch.uint8)
-    return file_bytes({PAYLOAD: payload}, PACKED_KIND, {"sections": [len(s) for s in sections]})
+    return file_bytes({PAYLOAD: payload}, PACKED_KIND,
+                      {"sections": [len(s) for s in sections], "coding": codec.DESCRIPTION_CODING})
 
 
 def save_packed(path: str | os.PathLike, data: bytes) -> int:
@@ -221,6 +224,16 @@ def _section_sizes(header: Header, not_ours: str) -> list[int]:
     ):
         raise ApmgsrnError(not_ours)
     return sections
+
+
+def _description_text(header: Header, data: bytes, what: str, not_ours: str) -> bytes:
+    """The description's JSON text: primed deflate (the header names it), or LZMA in files of version 1."""
+    coding = header.description.get("coding")
+    if coding is None and header.version == 1:
+        return codec.decompress_bounded(data, MAX_DESCRIPTION_BYTES, what, "text")
+    if coding != codec.DESCRIPTION_CODING:
+        raise ApmgsrnError(not_ours)
+    return codec.decompress_description(data, MAX_DESCRIPTION_BYTES, what)
 
 
 def _tensor_entry(name: str, entry: list) -> dict:
@@ -315,7 +328,7 @@ def load_packed(path: str | os.PathLike, device: torch.device | str = "cpu") -> 
     offsets = np.cumsum([0] + sections).tolist()
     chunk = [payload[offsets[i]:offsets[i + 1]] for i in range(len(sections))]
     try:
-        text = codec.decompress_bounded(chunk[0], MAX_DESCRIPTION_BYTES, f"{path}: description", "text")
+        text = _description_text(header, chunk[0], f"{path}: description", not_ours)
         description = parse_json(text, not_ours)
         if not isinstance(description, dict):
             raise ApmgsrnError(not_ours)

@@ -130,14 +130,43 @@ class PackConfig:
 #: target: 4.5 to 7.4 measured at 0.1 dB on the shared volumes (docs/results_packing.md; 2.3 on a
 #: log-transformed dark-matter field). The packer then meets the target exactly, with finer or coarser steps.
 BITS_PER_PARAMETER = 6.0
+#: Bytes a packed file spends besides its coded parameters: the container's framing, the coded description
+#: and the float16 steps (350-450 measured on the shared volumes; about 900 before format version 2).
+PACKED_OVERHEAD_BYTES = 420
+#: Decoders a size target may shrink to (hidden layers, width), largest first. The largest that takes at most
+#: :data:`DECODER_SHARE` of the parameters is used (never one larger than the config's): at 10,000:1 on a
+#: 187^3 volume the preset's 2 x 64 decoder alone would take twice the bytes. A decoder is worth much of the
+#: budget: with an eighth instead of a half, Richtmyer-Meshkov lost 2.3 dB at 1,000:1 and 2.8 at 3,000:1, HCCI
+#: 0.6 at 1,000:1; at 10,000:1 on HCCI 4 grids with 2 x 32 (41.2, 42.5, 41.1 dB over three seeds) beat 8 with
+#: 1 x 16 (41.7, 36.0, 42.8).
+DECODER_LADDER = ((2, 64), (2, 32), (1, 32), (1, 16))
+DECODER_SHARE = 1 / 2
+#: Grids coarser than this are not worth their count: the number of grids halves (not below
+#: :data:`MIN_GRIDS`) until each gets at least this resolution.
+MIN_RESOLUTION, MIN_GRIDS = 6, 4
+#: A model sized for a target with at most this many adaptive grids trains with one of them anchored over
+#: the whole domain (:attr:`~apmgsrn.training.trainer.TrainConfig.anchored_grids`): with so few, the placement
+#: can drift off a region for good (HCCI at 10,000:1, 8 grids, three seeds: 30.9, 27.1, 27.4 dB with every grid
+#: moving, 41.7, 36.0, 42.8 anchored), while with 16 none collapsed and an anchor cost up to 0.5 dB.
+ANCHOR_MAX_GRIDS = 8
 
 
-def config_for_bytes(config, target_bytes: int, bits_per_parameter: float = BITS_PER_PARAMETER):
-    """The grid resolution of ``config`` (a :class:`~apmgsrn.models.registry.FieldConfig` of an encoder with
-    a ``resolution``: apmgsrn, fvsrn) whose parameters pack to about ``target_bytes``.
+def anchored_grids_for(config) -> int:
+    """Grids to anchor when training ``config``, a model :func:`config_for_bytes` sized: 1 for an adaptive
+    encoder of at most :data:`ANCHOR_MAX_GRIDS` grids, else 0."""
+    return 1 if 0 < getattr(config.encoder, "grids", 0) <= ANCHOR_MAX_GRIDS else 0
 
-    Keeps the number of grids, the features and the decoder; picks the largest cubic resolution (2..256)
-    whose ``parameters * bits_per_parameter / 8`` fits.
+
+def config_for_bytes(config, target_bytes: int, fixed: tuple[str, ...] = (),
+                     bits_per_parameter: float = BITS_PER_PARAMETER):
+    """A config like ``config`` (a :class:`~apmgsrn.models.registry.FieldConfig` of an encoder with a
+    ``resolution``: apmgsrn, fvsrn) whose packed file comes to about ``target_bytes``.
+
+    Chooses, unless ``fixed`` names it (``"grids"``, ``"decoder"``): the decoder, from
+    :data:`DECODER_LADDER` by :data:`DECODER_SHARE`; the number of grids (apmgsrn), halved while each would
+    be coarser than :data:`MIN_RESOLUTION`; then the largest resolution (2^3 .. 256^3, one axis finer at a
+    time) whose ``parameters * bits_per_parameter / 8`` plus :data:`PACKED_OVERHEAD_BYTES` fits. Features
+    and every other setting stay as given.
 
     Raises:
         ApmgsrnError: the encoder has no resolution to choose, or even resolution 2 does not fit.
@@ -145,23 +174,50 @@ def config_for_bytes(config, target_bytes: int, bits_per_parameter: float = BITS
     if not hasattr(config.encoder, "resolution"):
         raise ApmgsrnError(f"target_bytes={target_bytes}: choosing the size of a {config.model} model is not "
                            "supported; give its size options and pack to the target", arguments=("target_bytes",))
+    budget = max(target_bytes - PACKED_OVERHEAD_BYTES, 0) * 8 / bits_per_parameter  # parameters
 
-    def estimate(resolution: int):
-        candidate = replace(config, encoder=replace(config.encoder, resolution=(resolution,) * 3))
-        parameters = sum(math.prod(shape) for shape in candidate.parameter_shapes().values())
-        return candidate, parameters * bits_per_parameter / 8
+    def parameters(candidate) -> int:
+        return sum(math.prod(shape) for shape in candidate.parameter_shapes().values())
 
-    best = None
-    for resolution in range(2, 257):
-        candidate, size = estimate(resolution)
-        if size > target_bytes:
-            break
-        best = candidate
-    if best is None:
-        raise ApmgsrnError(f"target_bytes={target_bytes}: even grids of 2^3 take about {estimate(2)[1]:.0f} "
-                           "bytes; pass a larger target (a lower ratio), or fewer grids or a narrower decoder",
+    def with_resolution(candidate, resolution: tuple[int, int, int]):
+        return replace(candidate, encoder=replace(candidate.encoder, resolution=resolution))
+
+    def largest_resolution(candidate) -> tuple[int, int, int] | None:
+        """The largest of 2^3, 2x2x3, 2x3x3, 3^3, ... 256^3 (D, H, W) that fits: one axis finer at a time,
+        so a small budget is filled to within a few percent, not to within a cube."""
+        best = None
+        for side in range(2, 257):
+            for resolution in ((side, side, side), (side, side, side + 1), (side, side + 1, side + 1)):
+                if max(resolution) > 256 or parameters(with_resolution(candidate, resolution)) > budget:
+                    return best
+                best = resolution
+        return best
+
+    def with_decoder(candidate):
+        if "decoder" in fixed:
+            return candidate
+        current = (candidate.decoder.hidden_layers, candidate.decoder.width)
+        ladder = [size for size in DECODER_LADDER if size[0] <= current[0] and size[1] <= current[1]] or [current]
+        for layers, width in ladder:
+            decoder = replace(candidate.decoder, hidden_layers=layers, width=width)
+            shapes = decoder.parameter_shapes(candidate.encoder.out_features)
+            if sum(math.prod(shape) for shape in shapes.values()) <= DECODER_SHARE * budget:
+                break
+        return replace(candidate, decoder=decoder)
+
+    candidate = with_decoder(config)
+    resolution = largest_resolution(candidate)
+    while ("grids" not in fixed and hasattr(config.encoder, "grids") and candidate.encoder.grids // 2 >= MIN_GRIDS
+           and (resolution is None or min(resolution) < MIN_RESOLUTION)):
+        candidate = with_decoder(replace(config, encoder=replace(config.encoder, grids=candidate.encoder.grids // 2)))
+        resolution = largest_resolution(candidate)
+    if resolution is None:
+        smallest = with_resolution(candidate, (2, 2, 2))
+        raise ApmgsrnError(f"target_bytes={target_bytes}: even grids of 2^3 take about "
+                           f"{parameters(smallest) * bits_per_parameter / 8 + PACKED_OVERHEAD_BYTES:.0f} bytes; "
+                           "pass a larger target (a lower ratio), or fewer grids or a narrower decoder",
                            arguments=("target_bytes",))
-    return best
+    return with_resolution(candidate, resolution)
 
 
 # ------------------------------------------------------------------------------------------ quantiser

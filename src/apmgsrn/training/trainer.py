@@ -85,6 +85,11 @@ class TrainConfig:
             kinds' own defaults are in :func:`apmgsrn.models.registry.training_defaults`.
         steps_per_iteration: a time series only: the batch is split evenly over this many steps (every step is
             visited once per round of ``T / steps_per_iteration`` iterations).
+        anchored_grids: the first this many adaptive grids keep the placement they started with (the density
+            loss moves the others). With the default initialisation they cover the whole domain, so no
+            region is ever left without features: a point no grid covers decodes to the bottom of the value
+            range. 0 (SPEC section 3, and what older checkpoints ran with): every grid moves. Small models
+            sized for a byte target anchor one (:func:`apmgsrn.training.packing.anchored_grids_for`).
     """
 
     iterations: int = 2000
@@ -107,6 +112,7 @@ class TrainConfig:
     decoder_precision: str = "auto"
     steps_per_iteration: int = 4
     voxel_fraction: float = 0.0
+    anchored_grids: int = 0
 
     def __post_init__(self) -> None:
         """Refuse every value the loop cannot run with (:class:`~apmgsrn.errors.InvalidArgument`)."""
@@ -133,6 +139,7 @@ class TrainConfig:
         check_number("final_lr_fraction", self.final_lr_fraction, 0.0, 1.0)
         check_int("seed", self.seed, 0, 2**63 - 1)
         check_int("checkpoint_every", self.checkpoint_every, 1)
+        check_int("anchored_grids", self.anchored_grids, 0)
         check_int("history_every", self.history_every, 1)
         check_optional_int("stop_after_lr_cuts", self.stop_after_lr_cuts, 1)
         check_choice("decoder_precision", self.decoder_precision, DECODER_PRECISIONS)
@@ -142,7 +149,7 @@ class TrainConfig:
 #: Names older versions stored for today's :class:`TrainConfig` fields.
 RENAMED = {"transform_lr": "placement_lr"}
 #: :class:`TrainConfig` fields added since, with the value the versions without them ran with.
-ADDED = {"voxel_fraction": 0.0}
+ADDED = {"voxel_fraction": 0.0, "anchored_grids": 0}
 
 
 def current_names(stored: dict) -> dict:
@@ -251,6 +258,11 @@ class Trainer:
         self.callbacks = tuple(callbacks)
         encoder = field.encoder
         placement_params = list(encoder.placement_parameters())
+        grids = placement_params[0].shape[0] if placement_params else 0
+        if config.anchored_grids > grids:
+            raise InvalidArgument(f"anchored_grids={config.anchored_grids}: the model has {grids} grids that move",
+                                  arguments=("anchored_grids",))
+        self._placement_params = placement_params
         placement_ids = {id(p) for p in placement_params}
         network_params = [p for p in field.parameters() if id(p) not in placement_ids]
         self.network_optimizer = torch.optim.Adam(
@@ -359,6 +371,9 @@ class Trainer:
             density_loss = feature_density_loss(density, error.detach(), mean_density)
             self.placement_optimizer.zero_grad(set_to_none=True)
             density_loss.backward()
+            if cfg.anchored_grids:  # no gradient ever reaches them, so Adam never moves them
+                for p in self._placement_params:
+                    p.grad[: cfg.anchored_grids] = 0
             self.placement_optimizer.step()
             density_value = density_loss.detach()
         return StepLosses(reconstruction.detach(), density_value)
