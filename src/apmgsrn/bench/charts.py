@@ -92,6 +92,13 @@ def rate_distortion_chart(rows: list[CompressRow], path: Path, title: str = "") 
             for r in points:
                 axis.scatter(r.compression_ratio, r.psnr, color=COLOURS.get(method), s=45, zorder=3,
                              marker=MARKERS.get(r.setting, "o"), label=f"{label} {r.setting}")
+        elif method.split()[0] in MODEL_TITLES:
+            # Packed or bounded networks: a line per setting, so that one model packed harder and models sized
+            # for each ratio ("custom") are not joined into one zigzag.
+            for index, setting in enumerate(dict.fromkeys(r.setting for r in points)):
+                same = [r for r in points if r.setting == setting]
+                axis.plot([r.compression_ratio for r in same], [r.psnr for r in same], ("-o", "--s", ":^")[index % 3],
+                          markersize=4, color=COLOURS.get(method), label=f"{label} {setting}")
         else:
             axis.plot([r.compression_ratio for r in points], [r.psnr for r in points], "-o", markersize=3,
                       color=COLOURS.get(method), label=label)
