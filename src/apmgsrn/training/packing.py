@@ -147,7 +147,7 @@ MIN_RESOLUTION, MIN_GRIDS = 6, 4
 #: A model sized for a target with at most this many adaptive grids trains with one of them anchored over
 #: the whole domain (:attr:`~apmgsrn.training.trainer.TrainConfig.anchored_grids`): with so few, the placement
 #: can drift off a region for good (HCCI at 10,000:1, 8 grids, three seeds: 30.9, 27.1, 27.4 dB with every grid
-#: moving, 41.7, 36.0, 42.8 anchored), while with 16 none collapsed and an anchor cost up to 0.5 dB.
+#: moving, 41.7, 36.0, 42.8 anchored), while with 16 none collapsed and an anchor cost about 0.5 dB (one seed).
 ANCHOR_MAX_GRIDS = 8
 
 
