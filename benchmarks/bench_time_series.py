@@ -105,7 +105,7 @@ def run_series(args: argparse.Namespace) -> None:
     config = series_config(preset_config("apmgsrn", "small"), len(series), args.basis, args.coefficients,
                            args.residual, args.storage)
     train_config = TrainConfig(iterations=iterations, batch_size=args.batch_size, lr=0.01, seed=0,
-                               voxel_fraction=args.voxel_fraction)
+                               voxel_fraction=args.voxel_fraction, anchored_grids=args.anchored_grids)
     load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "series.apmgsrn"
@@ -114,7 +114,8 @@ def run_series(args: argparse.Namespace) -> None:
         if args.keep:
             args.keep.write_bytes(out.read_bytes())
     described = f"basis={config.series.basis} {config.series.coefficients} residual={config.series.residual} " \
-                f"storage={config.series.storage} iterations={iterations} voxel_fraction={args.voxel_fraction:g}"
+                f"storage={config.series.storage} iterations={iterations} voxel_fraction={args.voxel_fraction:g}" \
+                + (f" anchored_grids={args.anchored_grids}" if args.anchored_grids else "")
     if args.csv.exists():
         args.csv.unlink()  # one model: the table is replaced, not appended to
     for step, evaluation in zip(result.evaluation.indices, result.evaluation.steps):
@@ -299,6 +300,7 @@ def main() -> None:
     series.add_argument("--keep", type=Path, help="also keep the model file here")
     series.add_argument("--progress", action="store_true")
     series.add_argument("--voxel-fraction", type=float, default=0.0, help="share of every batch on voxels")
+    series.add_argument("--anchored-grids", type=int, default=0, help="grids that keep their starting placement")
     timing = sub.add_parser("timing", help="one step's training time, for the 5x comparison")
     timing.add_argument("--csv", type=Path, default=TIMING_CSV)
     timing.add_argument("--step", type=int, default=15)

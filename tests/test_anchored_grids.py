@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from apmgsrn.cli.main import main
+from apmgsrn.cli.fit_options import build_configs
+from apmgsrn.cli.main import build_parser, main
 from apmgsrn.data import open_volume
 from apmgsrn.errors import InvalidArgument
 from apmgsrn.models.field import NeuralField
@@ -89,6 +90,18 @@ def test_info_says_how_many_grids_were_anchored(neghip_crop, tmp_path, capsys):
         assert main(["info", str(out)]) == 0
         frozen = [line for line in capsys.readouterr().out.splitlines() if line.startswith("grids frozen")]
         assert len(frozen) == 1 and ("(2 anchored over the domain)" in frozen[0]) == (anchored == "2")
+
+
+@pytest.mark.parametrize(("argv", "steps", "expected"), [
+    ([], None, 0),  # one volume: the paper's training
+    ([], 30, 1),  # a time series anchors one
+    (["--anchored-grids", "0"], 30, 0),
+    (["--anchored-grids", "2"], None, 2),
+])
+def test_a_time_series_anchors_one_grid_unless_told_otherwise(argv, steps, expected):
+    args = build_parser().parse_args(["train", "data.npy", "--out", "m.apmgsrn", *argv])
+    _, train_config = build_configs(args, torch.device("cpu"), steps=steps)
+    assert train_config.anchored_grids == expected
 
 
 def test_checkpoints_from_before_the_option_resume_with_every_grid_moving():

@@ -53,8 +53,8 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                                "with trilinear targets, 0..1 (default: 0.5 for hybrid, 0 for the paper's models)")
     training.add_argument("--anchored-grids", type=int,
                           help="the first N adaptive grids keep their starting placement, over the whole domain "
-                               "(default 0, the paper's training; 1 for models of 8 grids or fewer sized by "
-                               "--ratio/--size)")
+                               "(default 0, the paper's training; 1 for a time series and for models of 8 grids or "
+                               "fewer sized by --ratio/--size)")
     training.add_argument("--density-start", type=int,
                           help="iteration where the grids start moving (default: 5%% of the budget; paper 500)")
     training.add_argument("--freeze-fraction", type=float, default=0.5,
@@ -83,7 +83,7 @@ def build_configs(args: argparse.Namespace, device, steps: int | None = None):
         ApmgsrnError: an option out of range (the configs refuse it), or an invalid model size.
     """
     from apmgsrn.models.registry import preset_config, training_defaults
-    from apmgsrn.training.trainer import TrainConfig, default_budget, series_budget
+    from apmgsrn.training.trainer import SERIES_ANCHORED_GRIDS, TrainConfig, default_budget, series_budget
 
     iterations, batch_size = default_budget(device)
     if steps is not None:
@@ -104,6 +104,9 @@ def build_configs(args: argparse.Namespace, device, steps: int | None = None):
     }
     try:
         field_config = preset_config(args.model, args.preset, **overrides)
+        anchored = args.anchored_grids
+        if anchored is None and steps is not None and getattr(field_config.encoder, "grids", 0):
+            anchored = SERIES_ANCHORED_GRIDS  # a time series' shared placement must cover moving structures
         train_config = TrainConfig(
             iterations=iterations if args.iterations is None else args.iterations,
             batch_size=batch_size if args.batch_size is None else args.batch_size,
@@ -118,7 +121,7 @@ def build_configs(args: argparse.Namespace, device, steps: int | None = None):
             checkpoint_every=args.checkpoint_every,
             **({"steps_per_iteration": args.steps_per_iteration}
                if getattr(args, "steps_per_iteration", None) is not None else {}),
-            **({"anchored_grids": args.anchored_grids} if args.anchored_grids is not None else {}),
+            **({"anchored_grids": anchored} if anchored is not None else {}),
         )
     except ApmgsrnError:
         raise  # names the option already (translated by the command line)
