@@ -14,8 +14,9 @@ one anchored grid, seed ``--seed``, 0 by default):
    cosine); the grid placement and the decoder stay the start model's, shared by every step.
 
 Every step's PSNR (every voxel) and the seconds are written to the CSV. With ``--store-bits``, each step's
-grids are quantised with one step size per grid (shared by every time step, ``max |x| / (2^(B-1) - 1)``),
-the integers coded with the project's LZMA layout after a difference along time, and the PSNR of the
+grids are quantised with one step size per grid and channel, shared by every time step (the packed format's
+:func:`~apmgsrn.io.quantization.steps_for_bits` and ``quantize``), the integers coded with its LZMA layout
+(:func:`~apmgsrn.io.codec.encode_levels`) after a difference along time, and the PSNR of the
 quantised steps measured: what a packed series file of these grids would cost.
 """
 
@@ -24,6 +25,7 @@ from __future__ import annotations
 import argparse
 import csv
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -32,9 +34,10 @@ import torch
 from apmgsrn.data.series import open_series
 from apmgsrn.inference.evaluate import evaluate
 from apmgsrn.io import codec
+from apmgsrn.io.quantization import quantize, steps_for_bits
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config
-from apmgsrn.training.fit import prepare_values
+from apmgsrn.training.fit import prepare_values, train_prepared
 from apmgsrn.training.trainer import TrainConfig, Trainer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -42,36 +45,32 @@ SERIES = ROOT.parent / "shared" / "data" / "viscous_fingers_run01"
 FIELDS = ["step", "psnr", "seconds", "what"]
 
 
-def _field_kwargs(prepared, data, seed: int) -> dict:
-    return dict(fit_min=prepared.fit_min, fit_max=prepared.fit_max, value_min=prepared.value_min,
-                value_max=prepared.value_max, transform=prepared.transform, volume_shape=data.shape[1:],
-                generator=torch.Generator().manual_seed(seed))
-
-
-def start_model(args, prepared, data) -> tuple[NeuralField, float]:
-    """A single-step model trained 2,000 iterations on the start step alone, and its training seconds."""
-    field = NeuralField(preset_config("apmgsrn", "small"), **_field_kwargs(prepared, data, args.seed))
+def start_model(args, prepared) -> tuple[NeuralField, float]:
+    """A single-step model trained 2,000 iterations on the start step alone (the ``train`` pipeline's
+    :func:`~apmgsrn.training.fit.train_prepared`, with the whole series' value scaling), and its seconds."""
     start = time.perf_counter()
     config = TrainConfig(iterations=2000, voxel_fraction=0.5, anchored_grids=1, seed=args.seed)
-    Trainer(field, prepared.values[args.start_step], config, None, {}, []).run()
-    return field, time.perf_counter() - start
+    step = replace(prepared, values=prepared.values[args.start_step])
+    trained = train_prepared(step, preset_config("apmgsrn", "small"), config, tuple(step.values.shape), None, {}, [])
+    return trained.field, time.perf_counter() - start
 
 
 def stored_cost(field: NeuralField, grids: np.ndarray, data: np.ndarray, bits: int) -> tuple[int, list[float]]:
     """Bytes of every step's grids ``[T, M, C, D, H, W]`` quantised to ``bits`` and coded, and each step's
     PSNR with the quantised grids."""
-    top = np.abs(grids).max(axis=(0, 3, 4, 5), keepdims=True)  # one step size per grid and channel
-    steps = (top / (2 ** (bits - 1) - 1)).astype(np.float16).astype(np.float32)
-    levels = np.rint(grids / steps).astype(np.int64)
-    residuals = np.diff(levels, axis=0, prepend=0).reshape(-1)  # what changes from one step to the next
-    width = codec.width_of(residuals)
-    size = len(codec.compress(codec.to_bytes(residuals, width))) + steps.size * 2
+    by_grid = np.moveaxis(grids, 0, 2)  # [M, C, T, D, H, W]: one quantisation group per grid and channel
+    group = by_grid[0, 0].size
+    quantized = quantize(by_grid, steps_for_bits(by_grid, group, bits), group)
+    levels = np.moveaxis(quantized.levels.reshape(by_grid.shape), 2, 0)  # [T, M, C, D, H, W]
+    residuals = np.diff(levels, axis=0, prepend=0)  # what changes from one step to the next
+    coded, _ = codec.encode_levels(residuals, residuals.shape, "none")
+    restored = np.moveaxis(quantized.dequantize().numpy(), 2, 0)  # [T, M, C, D, H, W]
     psnrs = []
     for t in range(len(grids)):
         with torch.no_grad():
-            field.encoder.grids.copy_(torch.from_numpy(levels[t] * steps[0]))
+            field.encoder.grids.copy_(torch.from_numpy(restored[t]))
         psnrs.append(evaluate(field.eval(), data[t]).psnr)
-    return size, psnrs
+    return len(coded) + quantized.steps.nbytes, psnrs
 
 
 def main() -> None:
@@ -90,7 +89,7 @@ def main() -> None:
     data = open_series([str(f) for f in files]).to_numpy()  # [T, D, H, W]
     prepared = prepare_values(data, "none", 0.0, str(args.data), torch.device("cpu"))
     args.start_step = 0 if args.start == "first" else len(data) - 1
-    field, seconds = start_model(args, prepared, data)
+    field, seconds = start_model(args, prepared)
     rows = [{"step": args.start_step, "psnr": f"{evaluate(field.eval(), data[args.start_step]).psnr:.4f}",
              "seconds": f"{seconds:.2f}", "what": "start: 2000 iterations"}]
     print(rows[-1], flush=True)
