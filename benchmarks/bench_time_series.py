@@ -1,7 +1,7 @@
 """One model for a whole simulation run against one small model per step (issue 16).
 
     python benchmarks/bench_time_series.py baseline --threads 1   # 30 independent small models -> CSV
-    python benchmarks/bench_time_series.py series --threads 1     # one time-series model -> CSV
+    python benchmarks/bench_time_series.py series --threads 1     # one time-series model (stepwise) -> CSV
     python benchmarks/bench_time_series.py timing --threads 1     # one step's training right before and after
     python benchmarks/bench_time_series.py speed --model M        # decode/render one step: series vs single file
     python benchmarks/bench_time_series.py report                 # docs/time_series_results.md + chart
@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import math
 import os
 import platform
 import tempfile
@@ -30,6 +31,8 @@ BASELINE_CSV = RESULTS / "time_series_baseline.csv"
 BASELINE_FIELDS = ["step", "file", "psnr", "max_abs_error", "seconds", "iterations", "model_bytes", "parameters",
                    "threads", "load_average", "cpu"]
 SERIES_CSV = RESULTS / "time_series_model.csv"
+#: The same series model trained with seed 1 (``series --seed 1 --csv ...``): a line of the chart when present.
+SERIES_SEED1_CSV = RESULTS / "time_series_model_seed1.csv"
 SERIES_FIELDS = ["step", "file", "psnr", "max_abs_error", "model_bytes", "train_seconds", "iterations", "config",
                  "threads", "load_average", "cpu"]
 TIMING_CSV = RESULTS / "time_series_timing.csv"
@@ -97,25 +100,44 @@ def run_series(args: argparse.Namespace) -> None:
     from apmgsrn.data.series import open_series
     from apmgsrn.models.registry import preset_config
     from apmgsrn.models.series_field import series_config
-    from apmgsrn.training.fit import fit_series
-    from apmgsrn.training.trainer import TrainConfig, series_budget
+    from apmgsrn.training.series_fit import fit_series
+    from apmgsrn.training.series_steps import STEPWISE_VOXEL_FRACTION, StepwiseConfig, stepwise_config
+    from apmgsrn.training.trainer import SERIES_ANCHORED_GRIDS, TrainConfig, series_budget
 
     series = open_series([str(p) for p in _series_files(args.data)])
-    iterations = args.series_iterations or series_budget(args.iterations, len(series))
-    config = series_config(preset_config("apmgsrn", "small"), len(series), args.basis, args.coefficients,
-                           args.residual, args.storage)
-    train_config = TrainConfig(iterations=iterations, batch_size=args.batch_size, lr=0.01, seed=0,
-                               voxel_fraction=args.voxel_fraction, anchored_grids=args.anchored_grids)
+    small = preset_config("apmgsrn", "small")
+    if args.series_training == "stepwise":
+        joint = [name for name in ("basis", "coefficients", "residual", "storage", "series_iterations")
+                 if getattr(args, name) is not None]
+        if joint:
+            raise SystemExit(f"--{joint[0].replace('_', '-')} shapes a joint model: add --series-training joint")
+        iterations, config = args.iterations, stepwise_config(small, len(series))
+        stepwise, bits = StepwiseConfig(start=args.start), args.bits
+        voxel_fraction = STEPWISE_VOXEL_FRACTION if args.voxel_fraction is None else args.voxel_fraction
+        anchored = SERIES_ANCHORED_GRIDS if args.anchored_grids is None else args.anchored_grids
+    else:
+        iterations = args.series_iterations or series_budget(args.iterations, len(series))
+        config = series_config(small, len(series), args.basis, args.coefficients, args.residual, args.storage)
+        stepwise, bits = None, None
+        voxel_fraction, anchored = args.voxel_fraction or 0.0, args.anchored_grids or 0
+    train_config = TrainConfig(iterations=iterations, batch_size=args.batch_size, lr=0.01, seed=args.seed,
+                               voxel_fraction=voxel_fraction, anchored_grids=anchored)
     load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "series.apmgsrn"
-        result = fit_series(series, config, train_config, out, torch.device("cpu"), progress=args.progress)
+        result = fit_series(series, config, train_config, out, torch.device("cpu"), progress=args.progress,
+                            stepwise=stepwise, bits=bits)
         model_bytes = out.stat().st_size
         if args.keep:
             args.keep.write_bytes(out.read_bytes())
-    described = f"basis={config.series.basis} {config.series.coefficients} residual={config.series.residual} " \
-                f"storage={config.series.storage} iterations={iterations} voxel_fraction={args.voxel_fraction:g}" \
-                + (f" anchored_grids={args.anchored_grids}" if args.anchored_grids else "")
+    if stepwise is not None:
+        described = (f"stepwise start={args.start} iterations={iterations} bits={bits} "
+                     f"voxel_fraction={voxel_fraction:g} anchored_grids={anchored}"
+                     + (f" seed={args.seed}" if args.seed else ""))
+    else:
+        described = f"basis={config.series.basis} {config.series.coefficients} residual={config.series.residual} " \
+                    f"storage={config.series.storage} iterations={iterations} voxel_fraction={voxel_fraction:g}" \
+                    + (f" anchored_grids={anchored}" if anchored else "")
     if args.csv.exists():
         args.csv.unlink()  # one model: the table is replaced, not appended to
     for step, evaluation in zip(result.evaluation.indices, result.evaluation.steps):
@@ -154,9 +176,10 @@ def run_speed(args: argparse.Namespace) -> None:
     """Decode and render one step from the series file, against the same step saved as a single-step model file.
 
     The single-step file holds exactly the step's materialised network, so both evaluate the same values with
-    the same network shape; what differs is what the series costs on top: reading the larger file and
-    materialising the step's features. Each timing opens the file anew (load + step + decode or render); the
-    table keeps the fastest of ``repeats`` runs of each, interleaved, so a burst of load hits both alike.
+    the same network shape. Timed apart: opening the file (a packed series decodes every step's grids once),
+    then decoding and rendering the step with the model open (the series materialises the step's features),
+    and opening plus decoding together, as a one-off command does. Each row keeps the fastest of ``repeats``
+    interleaved runs, after one warm-up, so a burst of load hits both alike.
     """
     import apmgsrn
     from apmgsrn.io import SourceInfo, save_field
@@ -168,33 +191,38 @@ def run_speed(args: argparse.Namespace) -> None:
     camera = Camera.orbit(width=args.image_size, height=args.image_size)
     config = RendererConfig(samples_per_ray=256)
 
-    def decode(path: Path, time_step: int | None) -> float:
+    def timed(action) -> float:
         start = time.perf_counter()
-        apmgsrn.load(path).decode(time=time_step)
-        return time.perf_counter() - start
-
-    def render(path: Path, time_step: int | None) -> float:
-        start = time.perf_counter()
-        model = apmgsrn.load(path)
-        VolumeRenderer(model.step_field(time_step), tf, config).render(camera)
+        action()
         return time.perf_counter() - start
 
     with tempfile.TemporaryDirectory() as tmp:
         single = Path(tmp) / "step.apmgsrn"
         save_field(single, series_model.step_field(step), SourceInfo(), {})
+        models = {"series": (args.model, step), "single": (single, None)}
+        opened = {name: apmgsrn.load(path) for name, (path, _) in models.items()}
+        actions = {
+            "open the model file": lambda name: apmgsrn.load(models[name][0]),
+            "decode one step (64^3), model open": lambda name: opened[name].decode(time=models[name][1]),
+            f"render one step ({args.image_size}^2, 256 spp), model open": lambda name: VolumeRenderer(
+                opened[name].step_field(models[name][1]), tf, config).render(camera),
+            "open the file and decode one step": lambda name: apmgsrn.load(models[name][0]).decode(
+                time=models[name][1]),
+        }
         load = os.getloadavg()[0]
-        for what, measure in (("decode one step (64^3, load included)", decode),
-                              (f"render one step ({args.image_size}^2, 256 spp, load included)", render)):
-            series_times, single_times = [], []
+        for what, action in actions.items():
+            times = {name: [] for name in models}
+            for name in models:
+                action(name)  # warm-up: kernels, caches
             for _ in range(args.repeats):
-                series_times.append(measure(args.model, step))
-                single_times.append(measure(single, None))
+                for name in models:
+                    times[name].append(timed(lambda: action(name)))
             _append(args.csv, SPEED_FIELDS, {
-                "what": f"{what}, step {step}", "series_seconds": f"{min(series_times):.4f}",
-                "single_seconds": f"{min(single_times):.4f}", "repeats": args.repeats,
+                "what": f"{what}, step {step}", "series_seconds": f"{min(times['series']):.4f}",
+                "single_seconds": f"{min(times['single']):.4f}", "repeats": args.repeats,
                 "threads": torch.get_num_threads(), "load_average": f"{(load + os.getloadavg()[0]) / 2:.2f}",
                 "cpu": _cpu()})
-            print(f"{what}: series {min(series_times):.3f} s, single {min(single_times):.3f} s", flush=True)
+            print(f"{what}: series {min(times['series']):.3f} s, single {min(times['single']):.3f} s", flush=True)
 
 
 def write_report(out: Path, timing_steps: list[int] | None = None) -> None:
@@ -236,7 +264,9 @@ def write_report(out: Path, timing_steps: list[int] | None = None) -> None:
     elif timing:
         step_seconds = sum(float(r["seconds"]) for r in timing) / len(timing)
         measured = ", ".join(f"{float(r['seconds']):.1f} s" for r in timing)
-        step_source = f"the mean of {len(timing)} single-step trainings measured right before and after it ({measured})"
+        labels = "; ".join(sorted({r["what"].split(") ", 1)[-1] for r in timing if ") " in r["what"]}))
+        step_source = (f"the mean of {len(timing)} single-step trainings of the timing table ({measured}"
+                       + (f"; {labels}" if labels else "") + ")")
     else:
         step_seconds = sorted(float(baseline[t]["seconds"]) for t in steps)[len(steps) // 2]
         step_source = "the median single-step training of the baseline table"
@@ -264,8 +294,9 @@ CPU: {series[steps[0]]['cpu']}, {series[steps[0]]['threads']} thread(s); the mac
 | training time | <= 5 x one step ({5 * step_seconds:.0f} s) | {series_seconds:.0f} s ({series_seconds / step_seconds:.2f} x {step_source}) |
 
 Decoding or rendering one step, the series file against the same step saved as a single-step model file
-(identical network shape and values; the difference is opening the larger file and materialising the step's
-features; fastest of several interleaved runs):
+(identical network shape and values). With the model open a step costs what a single-step model costs (the
+series materialises the step's features); opening the series file is a one-off cost for all its steps (a
+packed series decodes every step's grids once). Fastest of several interleaved runs after a warm-up:
 
 | what | series file | single-step file | ratio |
 |---|---|---|---|
@@ -276,10 +307,13 @@ features; fastest of several interleaved runs):
 {chr(10).join(lines)}
 """
     atomic_write_text(out, text, "report")
-    psnr_over_time_chart([t for t in steps],
-                         {"one small model per step": [float(baseline[t]["psnr"]) for t in steps],
-                          "one model for the series": [float(series[t]["psnr"]) for t in steps]},
-                         CHART, title="viscous fingering, 30 steps: PSNR of every step")
+    every = sorted(series)
+    lines = {"one small model per step": [float(baseline[t]["psnr"]) if t in baseline else math.nan for t in every],
+             "one model for the series": [float(series[t]["psnr"]) for t in every]}
+    second = {int(r["step"]): float(r["psnr"]) for r in _done_rows(SERIES_SEED1_CSV)}
+    if second:
+        lines["one model for the series, seed 1"] = [second.get(t, math.nan) for t in every]
+    psnr_over_time_chart(every, lines, CHART, title="viscous fingering, 30 steps: PSNR of every step")
     print(f"wrote {out} and {CHART}")
 
 
@@ -299,8 +333,14 @@ def main() -> None:
     series.add_argument("--series-iterations", type=int, help="default: the train command's series budget")
     series.add_argument("--keep", type=Path, help="also keep the model file here")
     series.add_argument("--progress", action="store_true")
-    series.add_argument("--voxel-fraction", type=float, default=0.0, help="share of every batch on voxels")
-    series.add_argument("--anchored-grids", type=int, default=0, help="grids that keep their starting placement")
+    series.add_argument("--series-training", choices=("stepwise", "joint"), default="stepwise")
+    series.add_argument("--start", default="auto", help="stepwise: the start step (auto, first, last)")
+    series.add_argument("--bits", type=int, default=10, help="stepwise: bit width the grids are packed to")
+    series.add_argument("--seed", type=int, default=0)
+    series.add_argument("--voxel-fraction", type=float,
+                        help="share of every batch on voxels (default: stepwise 0.5, joint 0)")
+    series.add_argument("--anchored-grids", type=int,
+                        help="grids that keep their starting placement (default: stepwise 1, joint 0)")
     timing = sub.add_parser("timing", help="one step's training time, for the 5x comparison")
     timing.add_argument("--csv", type=Path, default=TIMING_CSV)
     timing.add_argument("--step", type=int, default=15)

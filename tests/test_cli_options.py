@@ -90,7 +90,7 @@ def test_choice_lists_are_the_librarys():
         "--preset-units": choices.PRESET_UNITS,
         "--compressors": choices.COMPRESSORS, "--region-units": choices.REGION_UNITS,
         "--format": choices.EXPORT_FORMATS, "--coefficients": choices.SERIES_COEFFICIENTS,
-        "--storage": choices.SERIES_STORAGE,
+        "--storage": choices.SERIES_STORAGE, "--series-training": choices.SERIES_TRAINING,
         "--vtk-coordinates": ("index", "normalized"),  # the grids command's own: no library list behind it
     }
     seen = set()
@@ -125,6 +125,7 @@ LIBRARY_ONLY = {
     "stop_after_lr_cuts", "samples_per_cell", "table_size", "points", "qat_lr", "sensitivity_points",
     "measure_voxels",
     "steps", "mixing",  # a series' step count comes from its data; weight lattices are a library option
+    "step_lr",  # a stepwise series' fine-tune rate: 0.3 x --lr unless a Python caller sets it
 }
 CHECKS = {"check_int", "check_optional_int", "check_number", "check_choice"}
 

@@ -45,7 +45,8 @@ def truth(pattern) -> np.ndarray:
 @pytest.fixture(scope="module")
 def series_model(tmp_path_factory, pattern):
     out = tmp_path_factory.mktemp("series") / "series.apmgsrn"
-    assert main(["train", pattern, "--out", str(out), "--basis", "2", "--residual", "4", *FAST]) == 0
+    assert main(["train", pattern, "--out", str(out), "--series-training", "joint", "--basis", "2", "--residual", "4",
+                 *FAST]) == 0
     return out
 
 
@@ -53,8 +54,9 @@ def test_train_on_a_glob_reports_every_step(pattern, tmp_path, capsys, truth):
     out = tmp_path / "m.apmgsrn"
     summary = run_json(capsys, ["train", pattern, "--out", str(out), "--json", *FAST])
     assert summary["steps"] == 4 and [row["label"] for row in summary["per_step"]] == [30, 31, 32, 33]
-    model = apmgsrn.load(out)
-    assert model.description.kind == "series" and summary["model_bytes"] == out.stat().st_size
+    model = apmgsrn.load(out)  # stepwise by default: every step's own grids, packed
+    assert model.description.kind == "packed-series" and summary["model_bytes"] == out.stat().st_size
+    assert model.description.series.config.per_step_grids and model.description.packing.report["bits"] == 10
     assert summary["raw_bytes"] == truth.nbytes
     for row in summary["per_step"]:
         assert row["psnr"] == pytest.approx(evaluate(model.field.step_field(row["step"]), truth[row["step"]]).psnr,
@@ -173,7 +175,7 @@ def test_info_describes_the_time_axis(series_model, capsys):
 def _train_command(pattern, out, *extra):
     return [sys.executable, "-m", "apmgsrn", "train", pattern, "--out", str(out), "--iterations", "120",
             "--batch-size", "1024", "--checkpoint-every", "20", "--device", "cpu", "--resolution", "8",
-            "--basis", "2", "--residual", "4", *extra]
+            "--series-training", "joint", "--basis", "2", "--residual", "4", *extra]
 
 
 def test_resume_after_kill_reaches_the_same_series_model(pattern, tmp_path):
@@ -195,5 +197,76 @@ def test_resume_after_kill_reaches_the_same_series_model(pattern, tmp_path):
     assert not out.exists()
     subprocess.run(_train_command(pattern, out, "--resume"), check=True, capture_output=True, env=env)
     a, b = load_file(str(full)), load_file(str(out))
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert not checkpoint.exists()
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--basis", "2"], "--basis shapes a joint series model; add --series-training joint"),
+    (["--series-training", "joint", "--start-step", "2"], "--start-step applies to --series-training stepwise"),
+    (["--start-step", "middle"], "--start-step middle: must be auto, first, last or a step index"),
+    (["--start-step", "7"], "--start-step 7 is outside the series of 4 steps"),
+    (["--bits", "8", "--storage", "float16"], "give one of them"),
+    (["--max-error", "0.1"], "a time series packs to a bit width only"),
+    (["--bricks", "2,1,1", "--series-training", "stepwise"], "stepwise training of bricks is not supported"),
+])
+def test_stepwise_options_that_do_not_apply_exit_2_with_one_line(pattern, tmp_path, capsys, extra, message):
+    out = tmp_path / "m.apmgsrn"
+    assert main(["train", pattern, "--out", str(out), *FAST, *extra]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
+    assert not out.exists()
+
+
+def test_stepwise_series_unpacked_and_at_8_bits(pattern, tmp_path, capsys, truth):
+    """--storage keeps a float series file; --bits 8 packs smaller than the default 10 at a measured cost."""
+    floats = run_json(capsys, ["train", pattern, "--out", str(tmp_path / "f.apmgsrn"), "--storage", "float32",
+                               "--json", *FAST])
+    model = apmgsrn.load(tmp_path / "f.apmgsrn")
+    assert model.description.kind == "series" and model.description.series.config.per_step_grids
+    eight = run_json(capsys, ["train", pattern, "--out", str(tmp_path / "p8.apmgsrn"), "--bits", "8", "--json",
+                              *FAST])
+    ten = run_json(capsys, ["train", pattern, "--out", str(tmp_path / "p10.apmgsrn"), "--json", *FAST])
+    assert eight["model_bytes"] < ten["model_bytes"] < floats["model_bytes"]
+    # Same training, so the steps differ only by how they are stored: 10 bits is within a hair of float32.
+    for f, p in zip(floats["per_step"], ten["per_step"]):
+        assert abs(f["psnr"] - p["psnr"]) < 0.1
+    packed = apmgsrn.load(tmp_path / "p8.apmgsrn")
+    report = packed.description.packing.report
+    assert report["bits"] == 8 and report["psnr"] == pytest.approx(eight["psnr"], abs=1e-3)
+    assert report["float32_psnr"] == pytest.approx(floats["psnr"], abs=1e-3)
+    info = run_json(capsys, ["info", str(tmp_path / "p8.apmgsrn"), "--json"])["series"]
+    start, iterations = info["stepwise"]["start"], info["stepwise"]["step_iterations"]
+    assert start in range(4) and iterations[start] == 0  # the start model's own iterations are not a fine-tune
+    assert all(15 <= n <= 150 for t, n in enumerate(iterations) if t != start)  # a tenth of 150, up to all 150
+    assert main(["info", str(tmp_path / "p8.apmgsrn")]) == 0
+    assert f"trained stepwise from step {info['stepwise']['start']}" in capsys.readouterr().out
+
+
+def test_stepwise_resume_after_kill_reaches_the_same_model(pattern, tmp_path):
+    env = {**__import__("os").environ, "OMP_NUM_THREADS": "1"}
+    command = [sys.executable, "-m", "apmgsrn", "train", pattern, "--iterations", "200", "--batch-size", "1024",
+               "--step-iterations", "150", "--checkpoint-every", "20", "--device", "cpu", "--resolution", "8"]
+    full = tmp_path / "full.apmgsrn"
+    subprocess.run([*command, "--out", str(full)], check=True, capture_output=True, env=env)
+    out = tmp_path / "killed.apmgsrn"
+    checkpoint = Path(str(out) + ".ckpt")
+    process = subprocess.Popen([*command, "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    import time
+
+    from apmgsrn.io.container import read_header
+
+    deadline = time.time() + 300
+    # Kill once the start model is done and the steps checkpoint holds at least one fine-tuned step.
+    while not (checkpoint.exists() and read_header(checkpoint).kind == "series-steps"
+               and len(read_header(checkpoint).description["done"]) >= 2):
+        assert process.poll() is None, process.stderr.read().decode()
+        assert time.time() < deadline
+        time.sleep(0.02)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    assert not out.exists()
+    subprocess.run([*command, "--out", str(out), "--resume"], check=True, capture_output=True, env=env)
+    a, b = apmgsrn.load(full).field.state_dict(), apmgsrn.load(out).field.state_dict()
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     assert not checkpoint.exists()

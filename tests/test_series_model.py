@@ -29,7 +29,8 @@ from apmgsrn.models.series_field import (
     step_time,
     time_position,
 )
-from apmgsrn.training.fit import fit_series, prepare_values, train_prepared
+from apmgsrn.training.fit import prepare_values, train_prepared
+from apmgsrn.training.series_fit import fit_series
 from apmgsrn.training.trainer import TrainConfig
 
 pytestmark = pytest.mark.usefixtures("one_thread")

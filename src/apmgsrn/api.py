@@ -31,11 +31,10 @@ from apmgsrn.inference.decode import decode_array, decode_volume
 from apmgsrn.inference.query import query
 from apmgsrn.inference.slabs import QUERY_BATCH
 from apmgsrn.io import ModelDescription, SourceInfo, open_model, save_field, save_series
-from apmgsrn.io.container import check_replaceable
+from apmgsrn.io.container import SERIES_FILE_KINDS, check_replaceable
 from apmgsrn.io.decode_plan import DecodePlan, plan_decode
 from apmgsrn.io.description import check_time
 from apmgsrn.io.field_file import FIELD_KIND
-from apmgsrn.io.series_file import SERIES_KIND
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config, training_defaults
 from apmgsrn.render import Camera, RendererConfig, VolumeRenderer, extent_from_shape, make_transfer_function
@@ -197,12 +196,12 @@ class Model(nn.Module):
         Raises:
             ApmgsrnError: a brick model (a folder: copy it), or a file there that is not an apmgsrn model.
         """
-        if self.description.kind not in (FIELD_KIND, SERIES_KIND):
+        if self.description.kind not in (FIELD_KIND, *SERIES_FILE_KINDS):
             raise ApmgsrnError(f"{path}: a {self.description.kind} model is a folder written by brick training; "
                                "copy the folder instead of saving it")
         path = Path(path)
         check_replaceable(path, self.description.kind)
-        if self.description.kind == SERIES_KIND:
+        if self.description.kind in SERIES_FILE_KINDS:  # a packed series saves as float32 (what it loaded as)
             save_series(path, self.field, self.description.source, self.description.training,
                         list(self.description.series.steps))
         else:
@@ -217,14 +216,15 @@ class Model(nn.Module):
         return export_onnx(self.field, path)
 
 
-def load(path: str | os.PathLike, device: torch.device | str = "cpu", precision: str = "auto") -> Model:
+def load(path: str | os.PathLike, device: torch.device | str = "cpu", precision: str = "float32") -> Model:
     """Open a model file or a brick-model folder; never executes code from it.
 
     Args:
         path: the ``.apmgsrn`` file or brick-model folder.
         device: where to put the network: ``"cpu"``, ``"cuda"``, ``"cuda:1"``, ``"auto"`` or a torch device.
-        precision: arithmetic of inference, see :meth:`Model.set_precision` (``"auto"``: bfloat16 on CPUs
-            with native bfloat16, float32 elsewhere).
+        precision: arithmetic of inference, see :meth:`Model.set_precision`: float32 by default (exact to
+            float32 rounding, so a packed file's error bound holds); ``"bfloat16"`` or ``"auto"`` (bfloat16 on
+            CPUs with native bfloat16) trade accuracy for speed.
 
     Raises:
         ApmgsrnError: the file is missing, corrupt, foreign, hostile or from a newer version; an unknown device.

@@ -53,6 +53,8 @@ SERIES_COEFFICIENTS = ("learned", "keyframes", "cumulative")
 #: Dtypes a time-series model stores its feature grids in: float16 halves the file for a rounding far below
 #: the fit's errors.
 SERIES_STORAGE = ("float32", "float16")
+#: How ``train`` fits a time series (apmgsrn.training.series_fit).
+SERIES_TRAINING = ("stepwise", "joint")
 
 #: How a ParaView preset's node positions are read (:func:`apmgsrn.render.paraview.apply_preset`).
 PRESET_UNITS = ("normalized", "data")

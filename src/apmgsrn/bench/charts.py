@@ -117,14 +117,17 @@ def psnr_over_time_chart(labels: list[float], lines: dict[str, list[float]], pat
 
     Args:
         labels: the step numbers (x axis).
-        lines: method name -> PSNR of each step, dB.
+        lines: method name -> PSNR of each step, dB (NaN where a method has no figure: its line joins the
+            steps it has).
         path: PNG file to write.
         title: the chart's title.
     """
     figure = _figure(6.4, 3.4)
     axis = figure.subplots()
     for (name, values), marker in zip(lines.items(), "os^Dv"):
-        axis.plot(labels, values, marker=marker, markersize=3.5, linewidth=1.2, label=name)
+        measured = [(x, y) for x, y in zip(labels, values) if math.isfinite(y)]
+        axis.plot([x for x, _ in measured], [y for _, y in measured], marker=marker, markersize=3.5, linewidth=1.2,
+                  label=name)
     axis.set_xlabel("time step")
     axis.set_ylabel("PSNR (dB)")
     if title:

@@ -71,8 +71,9 @@ def add_precision_argument(parser: argparse.ArgumentParser, default: str, purpos
     parser.add_argument(
         "--precision", choices=DECODER_PRECISIONS, default=default,
         help=f"arithmetic of the network (default {default}{purpose}): float32; bfloat16 hidden layers (fast "
-             "where the CPU multiplies bfloat16 natively, emulated and slow elsewhere, about 0.05 dB); auto = "
-             "bfloat16 on such CPUs, float32 elsewhere")
+             "where the CPU multiplies bfloat16 natively, emulated and slow elsewhere; values move by up to about "
+             "1e-3 of the range, and a --max-error bound is not kept); auto = bfloat16 on such CPUs, float32 "
+             "elsewhere")
 
 
 def parse_triple(text: str, option: str) -> tuple[int, int, int]:

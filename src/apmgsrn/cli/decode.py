@@ -42,7 +42,7 @@ def register(subparsers) -> None:
                         help="write nothing: say what would be written (lattice, origin, spacing, variable)")
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
     add_device_argument(parser)
-    add_precision_argument(parser, "auto", "")
+    add_precision_argument(parser, "float32", "")
     parser.set_defaults(func=run, paths=paths)
 
 

@@ -61,9 +61,10 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                           help="grids stop moving by this fraction of the budget (default 0.5; paper 0.8)")
     training.add_argument("--density-normalization", choices=DENSITY_NORMALIZATIONS, default="mass",
                           help="mass (default): share of all grid features; batch: the paper's rho / sum rho")
-    training.add_argument("--decoder-precision", choices=DECODER_PRECISIONS, default="auto",
-                          help="decoder hidden layers while training: auto (default: bfloat16 on CPUs with "
-                               "native bfloat16, else float32), float32, bfloat16")
+    training.add_argument("--decoder-precision", choices=DECODER_PRECISIONS, default="float32",
+                          help="decoder hidden layers while training: float32 (default), bfloat16, or auto "
+                               "(bfloat16 on CPUs with native bfloat16: 1.5x faster there, but up to 0.75 dB "
+                               "lower PSNR on accurate models)")
     training.add_argument("--seed", type=int, default=0)
     training.add_argument("--checkpoint-every", type=int, default=250)
     training.add_argument("--resume", action="store_true",
@@ -83,11 +84,16 @@ def build_configs(args: argparse.Namespace, device, steps: int | None = None):
         ApmgsrnError: an option out of range (the configs refuse it), or an invalid model size.
     """
     from apmgsrn.models.registry import preset_config, training_defaults
+    from apmgsrn.training.series_steps import STEPWISE_VOXEL_FRACTION
     from apmgsrn.training.trainer import SERIES_ANCHORED_GRIDS, TrainConfig, default_budget, series_budget
 
     iterations, batch_size = default_budget(device)
-    if steps is not None:
+    stepwise = steps is not None and getattr(args, "series_training", "joint") == "stepwise"
+    if steps is not None and not stepwise:  # stepwise: the budget is the start step's, as for one volume
         iterations = series_budget(iterations, steps)
+    voxel_fraction = args.voxel_fraction
+    if stepwise and voxel_fraction is None:
+        voxel_fraction = STEPWISE_VOXEL_FRACTION
     overrides = {
         "grids": args.grids,
         "features": args.features,
@@ -112,7 +118,7 @@ def build_configs(args: argparse.Namespace, device, steps: int | None = None):
             batch_size=batch_size if args.batch_size is None else args.batch_size,
             lr=args.lr,
             placement_lr=args.placement_lr,
-            **training_defaults(args.model, lr_schedule=args.lr_schedule, voxel_fraction=args.voxel_fraction),
+            **training_defaults(args.model, lr_schedule=args.lr_schedule, voxel_fraction=voxel_fraction),
             density_start=args.density_start,
             freeze_fraction=args.freeze_fraction,
             density_normalization=args.density_normalization,

@@ -60,6 +60,9 @@ FLAGS = {
     "residual": "--residual",
     "storage": "--storage",
     "steps_per_iteration": "--steps-per-iteration",
+    "series_training": "--series-training",
+    "start": "--start-step",
+    "step_iterations": "--step-iterations",
     # packing
     "bits": "--bits",
     "psnr_loss": "--psnr-loss",

@@ -1,5 +1,5 @@
-"""``apmgsrn pack``: a trained model into a small packed file, optionally with an error bound; and the packing
-options ``train`` shares (training then packs its model at the end)."""
+"""``apmgsrn pack``: a trained model into a small packed file, optionally with an error bound; a time-series model
+at a fixed bit width; and the packing options ``train`` shares (training then packs its model at the end)."""
 
 from __future__ import annotations
 
@@ -15,12 +15,15 @@ from apmgsrn.cli.common import (
     compression_text,
     format_bytes,
     open_data,
+    volume_options,
 )
 from apmgsrn.cli.paths import CommandPaths, Output
 from apmgsrn.errors import ApmgsrnError
 
 #: The packing options (dest names); ``train`` packs when any of them is given.
 PACK_OPTIONS = ("bits", "psnr_loss", "size", "ratio", "max_error", "qat_iterations")
+#: Of those, what a time series cannot take (it packs at a fixed bit width).
+SINGLE_FIELD_OPTIONS = ("psnr_loss", "size", "ratio", "max_error", "qat_iterations")
 
 
 def add_pack_arguments(parser: argparse.ArgumentParser, title: str = "packing") -> None:
@@ -112,10 +115,13 @@ def register(subparsers) -> None:
         help="pack a model into a small file (quantised, entropy-coded, optional error bound)",
         description="Quantise and entropy-code a trained model against the volume it was trained on; the file "
                     "loads like any model. The volume measures the PSNR cost (stored in the file) and makes "
-                    "the correction of --max-error.",
+                    "the correction of --max-error. A time-series model packs at --bits (default 10) and is "
+                    "measured on its series.",
     )
-    parser.add_argument("model", help="trained model file (float32 or packed)")
-    parser.add_argument("data", help="the volume the model was trained on")
+    parser.add_argument("model", help="trained model file (float32 or packed; one volume or a time series)")
+    parser.add_argument("data", nargs="+",
+                        help="the volume the model was trained on; for a time-series model its series (several "
+                             "files, a quoted glob, a .pvd, or one file with --time all)")
     parser.add_argument("--out", required=True,
                         help="packed model file to write (an existing apmgsrn model there is replaced atomically)")
     add_data_arguments(parser)
@@ -126,7 +132,7 @@ def register(subparsers) -> None:
 
 
 def paths(args: argparse.Namespace) -> CommandPaths:
-    return CommandPaths(reads=[args.model, args.data], writes=[Output(args.out, "--out", "packed model", model=True)])
+    return CommandPaths(reads=[args.model, *args.data], writes=[Output(args.out, "--out", "packed model", model=True)])
 
 
 def run(args: argparse.Namespace) -> int:
@@ -136,9 +142,13 @@ def run(args: argparse.Namespace) -> int:
 
     device = resolve_device(args.device)
     model = apmgsrn.load(args.model, device=device)
-    if model.description.kind == "bricks":
+    if model.description.bricks is not None:
         raise ApmgsrnError(f"{args.model}: is a brick model; pack a single model file")
-    volume = open_data(args, args.data)
+    if model.description.series is not None:
+        return run_series_pack(args, model)
+    if len(args.data) != 1:
+        raise ApmgsrnError(f"{len(args.data)} inputs given where one volume is read; name one file")
+    volume = open_data(args, args.data[0])
     check_volume_shape(volume.shape, model.description.volume_shape, str(args.data))
     config = pack_config(args, volume.stored_bytes)
     field = model.field
@@ -156,3 +166,62 @@ def run(args: argparse.Namespace) -> int:
     for line in packing_lines(result.report, result.file_bytes, compression):
         print(line)
     return 0
+
+
+def run_series_pack(args: argparse.Namespace, model) -> int:
+    """``apmgsrn pack`` of a time-series model: every grid at ``--bits``, the PSNR cost measured on every step
+    of its series (per step in the file, which ``info`` shows).
+
+    Imports nothing of :mod:`apmgsrn.cli.series`, which imports this module (the packing options).
+    """
+    from apmgsrn.data.series import open_series
+    from apmgsrn.inference.evaluate import evaluate_series
+    from apmgsrn.training.series_packing import (
+        DEFAULT_SERIES_BITS,
+        pack_series,
+        packed_series_field,
+        series_packing_report,
+        write_packed_series,
+    )
+
+    for option in SINGLE_FIELD_OPTIONS:
+        if getattr(args, option) is not None:
+            raise ApmgsrnError(f"--{option.replace('_', '-')}: a time-series model packs at a fixed bit width; "
+                               f"only --bits applies (default {DEFAULT_SERIES_BITS})")
+    layout = model.description.series
+    series = open_series(args.data, **volume_options(args, allow_series=True))
+    if len(series) != len(layout.steps):
+        raise ApmgsrnError(f"{args.model}: the model holds {len(layout.steps)} steps but the data names "
+                           f"{len(series)}; pass the series it was trained on")
+    bits = DEFAULT_SERIES_BITS if args.bits is None else args.bits
+    field = model.field.cpu().eval()
+    log = (lambda line: None) if args.json else print
+    packed = pack_series(field, bits)
+    options = dict(trained_shape=model.description.volume_shape, progress=not args.json)
+    log(f"measuring the float32 model on {len(series)} steps")
+    before = evaluate_series(field.step_field, series, **options)
+    log(f"measuring the packed model on {len(series)} steps")
+    after = evaluate_series(packed_series_field(field, packed).step_field, series, **options)
+    report = series_packing_report(field, bits, before, after)
+    training = {**model.description.training,
+                "steps": [{"psnr": e.psnr, "max_abs_error": e.max_abs_error} for e in after.steps]}
+    out = Path(args.out)
+    file_bytes = write_packed_series(out, field, packed, model.description.source, training, list(layout.steps),
+                                     report)
+    compression = compression_figures(math.prod(series.shape) * len(series), str(series.dtype),
+                                      series.dtype.itemsize, file_bytes)
+    if args.json:
+        rows = [{"step": t, "psnr": _finite(e.psnr), "max_abs_error": e.max_abs_error}
+                for t, e in enumerate(after.steps)]
+        print(json.dumps({"model": str(out), "file_bytes": file_bytes, **report, **compression, "per_step": rows}))
+        return 0
+    print(f"model       {out} ({len(series)} steps)")
+    for line in packing_lines(report, file_bytes, compression):
+        print(line)
+    print(f"worst step  {report['worst_step_psnr_cost']:.3f} dB below its float32 PSNR")
+    return 0
+
+
+def _finite(value: float) -> float | None:
+    """``value``, or None (JSON null) for an exact step's infinite PSNR."""
+    return value if math.isfinite(value) else None

@@ -18,27 +18,41 @@ from apmgsrn.errors import ApmgsrnError
 
 #: Placeholder of ``decode --time all --out``: one file per step.
 STEP_FIELD = "{step}"
+#: Options of a joint series model (refused for stepwise training).
+JOINT_OPTIONS = ("basis", "coefficients", "residual", "steps_per_iteration")
 
 
 def add_series_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``train`` on a time series (the model and training options apply as for one volume)."""
-    from apmgsrn.choices import SERIES_COEFFICIENTS, SERIES_STORAGE
+    from apmgsrn.choices import SERIES_COEFFICIENTS, SERIES_STORAGE, SERIES_TRAINING
     from apmgsrn.models.series_options import SERIES_DEFAULTS
 
     group = parser.add_argument_group(
         "time series (DATA: several files, a quoted glob such as 'run/*.vti', a .pvd, or --time all|A:B[:S])"
     )
+    group.add_argument("--series-training", choices=SERIES_TRAINING,
+                       help="stepwise (default): a model of the step with the most detail, then every other step's "
+                            "own grids fine-tuned from its neighbour's, placement and decoder shared, stored packed "
+                            "(--bits, default 10); joint (the default and only choice with --bricks): one model of "
+                            "all steps trained at once (the options below)")
+    group.add_argument("--start-step", metavar="auto|first|last|K",
+                       help="stepwise: the step the first model is trained on (default auto: the most detail)")
+    group.add_argument("--step-iterations", type=int, metavar="N",
+                       help="stepwise: fine-tune iterations of every other step (default: a tenth of --iterations)")
     group.add_argument("--basis", type=int, metavar="K",
-                       help=f"basis grids shared by the steps (default {SERIES_DEFAULTS['basis']}, at most the steps)")
+                       help=f"joint: basis grids shared by the steps (default {SERIES_DEFAULTS['basis']}, at most "
+                            "the steps)")
     group.add_argument("--coefficients", choices=SERIES_COEFFICIENTS,
-                       help="learned: every step mixes the basis its own way (default); keyframes: linear "
+                       help="joint: learned: every step mixes the basis its own way (default); keyframes: linear "
                             "interpolation in time between K evenly spaced keyframes")
     group.add_argument("--residual", type=int, metavar="R",
-                       help=f"per-step residual grids of R^3 nodes (0: none; default {SERIES_DEFAULTS['residual']})")
+                       help="joint: per-step residual grids of R^3 nodes (0: none; default "
+                            f"{SERIES_DEFAULTS['residual']})")
     group.add_argument("--steps-per-iteration", type=int, metavar="G",
-                       help="steps each iteration's points are spread over (default 4)")
+                       help="joint: steps each iteration's points are spread over (default 4)")
     group.add_argument("--storage", choices=SERIES_STORAGE,
-                       help=f"dtype the feature grids are stored in (default {SERIES_DEFAULTS['storage']})")
+                       help="store the feature grids unpacked in this dtype (default: joint "
+                            f"{SERIES_DEFAULTS['storage']}; stepwise packed, see --bits)")
 
 
 def is_series(args: argparse.Namespace) -> bool:
@@ -57,7 +71,7 @@ def single_input(args: argparse.Namespace) -> str:
     """
     if len(args.data) != 1:
         raise ApmgsrnError(f"{len(args.data)} inputs given where one volume is read; name one file")
-    for option in ("basis", "coefficients", "residual", "steps_per_iteration", "storage"):
+    for option in (*JOINT_OPTIONS, "storage", "series_training", "start_step", "step_iterations"):
         if getattr(args, option, None) is not None:
             flag = "--" + option.replace("_", "-")
             raise ApmgsrnError(f"{flag} applies to a time series (several files, a glob, a .pvd or --time all); "
@@ -82,15 +96,16 @@ def run_series_train(args: argparse.Namespace, series, field_config, train_confi
         field_config, train_config: from the command line (the budget sized for the series).
     """
     from apmgsrn.device import resolve_device
-    from apmgsrn.training.fit import fit_series
+    from apmgsrn.training.series_fit import fit_series
     from apmgsrn.training.trainer import TrainingInterrupted
 
     device = resolve_device(args.device)  # the same device build_configs sized the budget for
     config = build_series_config(args, field_config, len(series))
+    stepwise, bits = series_training(args)
     out = Path(args.out)
     try:
         result = fit_series(series, config, train_config, out, device, transform=args.transform,
-                            log_offset=args.log_offset, resume=args.resume)
+                            log_offset=args.log_offset, resume=args.resume, stepwise=stepwise, bits=bits)
     except TrainingInterrupted as exc:
         print(f"{exc}; run the same command with --resume to continue")
         return 130
@@ -126,6 +141,34 @@ def run_series_train(args: argparse.Namespace, series, field_config, train_confi
     return 0
 
 
+def series_training(args: argparse.Namespace):
+    """(StepwiseConfig or None for a joint model, bit width to pack to or None) of the command line.
+
+    Raises:
+        ApmgsrnError: a packing option a series does not take, --bits with --storage, or a bad --start-step.
+    """
+    from apmgsrn.cli.pack import PACK_OPTIONS
+    from apmgsrn.training.series_packing import DEFAULT_SERIES_BITS
+    from apmgsrn.training.series_steps import StepwiseConfig
+
+    for option in PACK_OPTIONS:
+        if option != "bits" and getattr(args, option, None) is not None:
+            flag = "--" + option.replace("_", "-")
+            raise ApmgsrnError(f"{flag}: a time series packs to a bit width only (--bits B); drop {flag}")
+    if args.bits is not None and args.storage is not None:
+        raise ApmgsrnError("--bits packs the grids, --storage keeps them unpacked: give one of them")
+    if args.series_training == "joint":
+        return None, args.bits
+    start = args.start_step or "auto"
+    if start not in ("auto", "first", "last"):
+        try:
+            start = int(start)
+        except ValueError:
+            raise ApmgsrnError(f"--start-step {start}: must be auto, first, last or a step index") from None
+    stepwise = StepwiseConfig(start=start, step_iterations=args.step_iterations)
+    return stepwise, args.bits if args.bits is not None else (None if args.storage else DEFAULT_SERIES_BITS)
+
+
 def build_series_config(args: argparse.Namespace, field_config, steps: int):
     """The time-series model the command line asks for (defaults where options are not given).
 
@@ -133,7 +176,18 @@ def build_series_config(args: argparse.Namespace, field_config, steps: int):
         ApmgsrnError: options out of range.
     """
     from apmgsrn.models.series_field import series_config
+    from apmgsrn.training.series_steps import stepwise_config
 
+    if args.series_training == "stepwise":
+        given = [option for option in JOINT_OPTIONS if getattr(args, option, None) is not None]
+        if given:
+            flag = "--" + given[0].replace("_", "-")
+            raise ApmgsrnError(f"{flag} shapes a joint series model; add --series-training joint or drop {flag}")
+        return stepwise_config(field_config, steps, args.storage or "float32")
+    for option in ("start_step", "step_iterations"):
+        if getattr(args, option, None) is not None:
+            flag = "--" + option.replace("_", "-")
+            raise ApmgsrnError(f"{flag} applies to --series-training stepwise; drop it for a joint model")
     try:
         return series_config(field_config, steps, args.basis, args.coefficients, args.residual, args.storage)
     except ApmgsrnError:
@@ -277,13 +331,21 @@ def describe_series(model) -> dict:
     for index, step in enumerate(layout.steps):
         figures = per_step[index] if index < len(per_step) and isinstance(per_step[index], dict) else {}
         steps.append({**step.to_dict(), "psnr": figures.get("psnr"), "max_abs_error": figures.get("max_abs_error")})
-    return {"kind": "series", **layout.config.to_dict(), "per_step": steps}
+    stepwise = model.description.training.get("stepwise")
+    return {"kind": "series", **layout.config.to_dict(), "per_step": steps,
+            "stepwise": stepwise if isinstance(stepwise, dict) else None}
 
 
 def print_series_info(info: dict) -> None:
     """The time axis of ``info``'s text output."""
-    print(f"time        {info['steps']} steps; {info['basis']} basis grids per grid, {info['coefficients']} weights"
-          + (f", per-step residual {info['residual']}^3" if info["residual"] else ""))
+    stepwise = info.get("stepwise") or {}
+    counts = [n for n in stepwise.get("step_iterations") or [] if isinstance(n, int) and n > 0]
+    if isinstance(stepwise.get("start"), int) and counts:
+        print(f"time        {info['steps']} steps, each with its own grids: trained stepwise from step "
+              f"{stepwise['start']}, {min(counts)} to {max(counts)} iterations per other step")
+    else:
+        print(f"time        {info['steps']} steps; {info['basis']} basis grids per grid, {info['coefficients']} "
+              "weights" + (f", per-step residual {info['residual']}^3" if info["residual"] else ""))
     print(f"  {'step':>5}  {'number':>8}  {'file':<32}  {'PSNR dB':>8}  {'value range'}")
     for index, step in enumerate(info["per_step"]):
         psnr = step["psnr"]
@@ -302,9 +364,9 @@ def render_steps(args: argparse.Namespace) -> tuple[dict, int | None, list[int]]
     """
     from apmgsrn.data.series import TimeSelection
     from apmgsrn.io import model_kind
-    from apmgsrn.io.series_file import SERIES_KIND
+    from apmgsrn.io.container import SERIES_FILE_KINDS
 
-    if model_kind(args.input) != SERIES_KIND:
+    if model_kind(args.input) not in SERIES_FILE_KINDS:
         return volume_options(args), None, []
     options = volume_options(argparse.Namespace(**{**vars(args), "time": None}))
     if not isinstance(args.time, TimeSelection):

@@ -22,6 +22,7 @@ from apmgsrn.cli.fit_options import add_fit_arguments, build_configs
 from apmgsrn.cli.pack import add_pack_arguments, pack_config, pack_model, packing_lines, packing_requested
 from apmgsrn.cli.paths import CommandPaths, Output
 from apmgsrn.cli.train_bricks import add_brick_arguments, run_bricks
+from apmgsrn.errors import ApmgsrnError
 
 #: What ``--out`` may replace; README.md and docs/security.md say the same.
 OUT_HELP = (
@@ -71,7 +72,14 @@ def run(args: argparse.Namespace) -> int:
     from apmgsrn.cli.series import is_series, open_series_data, run_series_train, single_input
     from apmgsrn.device import resolve_device
 
+    if args.bricks and packing_requested(args):
+        raise ApmgsrnError("packing options (--bits, --max-error, ...) apply to single models and time series, "
+                           "not --bricks")
     if is_series(args):
+        if args.bricks and args.series_training == "stepwise":
+            raise ApmgsrnError("--bricks trains every (brick, group of steps) as one joint model; stepwise "
+                               "training of bricks is not supported: drop --series-training stepwise")
+        args.series_training = args.series_training or ("joint" if args.bricks else "stepwise")
         if args.bricks:
             from apmgsrn.cli.train_bricks import run_series_bricks
 
@@ -80,10 +88,6 @@ def run(args: argparse.Namespace) -> int:
         return run_series_train(args, series, *build_configs(args, resolve_device(args.device), steps=len(series)))
     args.data = single_input(args)
     if args.bricks:
-        if packing_requested(args):
-            from apmgsrn.errors import ApmgsrnError
-
-            raise ApmgsrnError("packing options (--bits, --max-error, ...) apply to single models, not --bricks")
         return run_bricks(args)
     from apmgsrn.training.fit import fit_volume
     from apmgsrn.training.trainer import TrainingInterrupted

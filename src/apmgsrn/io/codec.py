@@ -2,7 +2,10 @@
 
 1. Predictor (chosen per tensor by the packer: whichever codes smallest): ``none``; ``delta`` (each value
    minus the previous one along the last axis); ``lorenzo`` (the 3-D Lorenzo predictor over the last three
-   axes, as SZ uses on volumes: exact on trilinear fields, so smooth feature grids leave small residuals).
+   axes, as SZ uses on volumes: exact on trilinear fields, so smooth feature grids leave small residuals);
+   ``time`` (each value minus the one before it along the first axis: for the per-step grids of a time
+   series, ``[T, M, C, D, H, W]``, whose consecutive steps are close; offered only by
+   :func:`series_predictors_for`, so single fields code as before).
 2. Residuals are zigzag-mapped to unsigned integers (``0, -1, 1, -2, ...`` -> ``0, 1, 2, 3, ...``) and
    stored in the fewest whole bytes that hold the largest; wider values are split into byte planes (all low
    bytes, then all high bytes) so that the mostly-zero high bytes compress to almost nothing.
@@ -31,7 +34,7 @@ import numpy as np
 
 from apmgsrn.errors import ApmgsrnError
 
-PREDICTORS = ("none", "delta", "lorenzo")
+PREDICTORS = ("none", "delta", "lorenzo", "time")
 #: LZMA settings: for parameter integers no literal context (values are close to independent), for text
 #: (the JSON description) the default contexts.
 CODECS = {"numbers": {"lc": 0, "lp": 0, "pb": 0}, "text": {}}
@@ -162,6 +165,8 @@ def predict(levels: np.ndarray, shape: tuple[int, ...], predictor: str) -> np.nd
         for axis in (-1, -2, -3):
             out = np.diff(out, axis=axis, prepend=0)
         return out.reshape(-1)
+    if predictor == "time":
+        return np.diff(values, axis=0, prepend=0).reshape(-1)
     raise ValueError(f"unknown predictor {predictor!r}")
 
 
@@ -173,6 +178,8 @@ def reconstruct(residuals: np.ndarray, shape: tuple[int, ...], predictor: str) -
     elif predictor == "lorenzo":
         for axis in (-3, -2, -1):
             values = np.cumsum(values, axis=axis)
+    elif predictor == "time":
+        values = np.cumsum(values, axis=0)
     elif predictor != "none":
         raise ValueError(f"unknown predictor {predictor!r}")
     return values.reshape(-1)
@@ -186,6 +193,16 @@ def predictors_for(shape: tuple[int, ...]) -> tuple[str, ...]:
     if len(shape) >= 3 and min(shape[-3:]) > 1:
         names.append("lorenzo")
     return tuple(names)
+
+
+def series_predictors_for(shape: tuple[int, ...]) -> tuple[str, ...]:
+    """Predictors that make sense for a tensor with a leading time axis (a series' grids ``[T, M, C, D, H, W]``
+    or residuals): those of :func:`predictors_for`, plus ``time`` where there are at least four axes and two
+    steps."""
+    names = predictors_for(shape)
+    if len(shape) >= 4 and shape[0] > 1:
+        names += ("time",)
+    return names
 
 
 # ------------------------------------------------------------------------------------------ byte layout

@@ -34,6 +34,10 @@ MAX_HEADER_BYTES = 64 * 1024 * 1024
 #: (:mod:`apmgsrn.io.packed`). A model of either kind may replace a model file of the other.
 FIELD_KIND, PACKED_KIND = "field", "packed-field"
 MODEL_FILE_KINDS = (FIELD_KIND, PACKED_KIND)
+#: Kinds of time-series model files: float32 (:mod:`apmgsrn.io.series_file`) and packed
+#: (:mod:`apmgsrn.io.packed_series`). Either may replace a file of the other, never a single-volume model.
+SERIES_KIND, PACKED_SERIES_KIND = "series", "packed-series"
+SERIES_FILE_KINDS = (SERIES_KIND, PACKED_SERIES_KIND)
 #: Element sizes of the dtypes a model file may hold.
 DTYPE_BYTES = {"F64": 8, "F32": 4, "F16": 2, "BF16": 2, "I64": 8, "I32": 4, "I16": 2, "I8": 1, "U8": 1, "BOOL": 1}
 
@@ -180,8 +184,9 @@ def check_replaceable(path: str | os.PathLike, kind: str, what: str = "model fil
     """Refuse to write a file of ``kind`` where anything but an older file of the same kind lies.
 
     A model replaces an older model of any single-file kind (:data:`MODEL_FILE_KINDS`; atomically, once the
-    new one is complete) and a training checkpoint an older checkpoint; a volume, an image, a file of another
-    kind or one this version cannot read is never overwritten by one.
+    new one is complete), a time-series model an older one of either series kind (:data:`SERIES_FILE_KINDS`)
+    and a training checkpoint an older checkpoint; a volume, an image, a file of another kind or one this
+    version cannot read is never overwritten by one.
 
     Raises:
         ApmgsrnError: ``path`` exists and is not a readable apmgsrn file of ``kind``.
@@ -189,7 +194,7 @@ def check_replaceable(path: str | os.PathLike, kind: str, what: str = "model fil
     path = Path(path)
     if not path.exists() or path.is_dir():
         return  # nothing to lose; a folder is refused by the writer
-    replaceable = MODEL_FILE_KINDS if kind in MODEL_FILE_KINDS else (kind,)
+    replaceable = next((kinds for kinds in (MODEL_FILE_KINDS, SERIES_FILE_KINDS) if kind in kinds), (kind,))
     try:
         same_kind = read_header(path).kind in replaceable
     except ApmgsrnError:

@@ -19,6 +19,10 @@ single-field file's, :func:`~apmgsrn.io.field_file.parse_field_description`), th
 parameter against the shapes the config implies; each section's decompressed size is computed from those
 shapes (never read from the file), bounded by what LZMA can expand to, and decompression stops there.
 Dequantising gives float32 parameters, so the loaded field evaluates any point on CPU or GPU like any other.
+
+The packed time-series file (:mod:`apmgsrn.io.packed_series`) is laid out and read the same way, through the
+public helpers here (:func:`payload_file_bytes`, :func:`read_payload_file`, :func:`parse_tensor_entries`,
+:func:`decode_tensors`, :func:`packing_summary`).
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -167,7 +172,7 @@ def packed_file_bytes(
         correction: the voxel correction of an error bound, or None.
     """
     description = {
-        **field_description(field, source, {k: v for k, v in training.items() if k in SUMMARY_KEYS}),
+        **field_description(field, source, trimmed_training(training)),
         "tensors": [t.entry() for t in tensors],
         "packing": report,
         "correction": None,
@@ -180,9 +185,21 @@ def packed_file_bytes(
             "gap_width": gap_width, "level_width": level_width,
         }
         sections += [gaps, levels]
-    sections.insert(0, codec.compress_description(_json_bytes(description)))
+    return payload_file_bytes(PACKED_KIND, description, sections)
+
+
+def trimmed_training(training: dict, keys: tuple[str, ...] = SUMMARY_KEYS) -> dict:
+    """The entries ``keys`` of a training summary (what a packed file keeps of it)."""
+    return {k: v for k, v in training.items() if k in keys}
+
+
+def payload_file_bytes(kind: str, description: dict, sections: list[bytes]) -> bytes:
+    """The bytes of a packed container file of ``kind``: the description (coded with
+    :func:`~apmgsrn.io.codec.compress_description`) and then ``sections``, one after another in the ``payload``
+    tensor, their sizes in the header."""
+    sections = [codec.compress_description(_json_bytes(description)), *sections]
     payload = torch.frombuffer(bytearray(b"".join(sections)), dtype=torch.uint8)
-    return file_bytes({PAYLOAD: payload}, PACKED_KIND,
+    return file_bytes({PAYLOAD: payload}, kind,
                       {"sections": [len(s) for s in sections], "coding": codec.DESCRIPTION_CODING})
 
 
@@ -209,6 +226,48 @@ class _Layout:
     shapes: dict[str, tuple[int, ...]]
     correction: dict | None
     report: dict
+
+
+@dataclass(frozen=True)
+class PayloadFile:
+    """A packed container file as read, before its description is checked.
+
+    Attributes:
+        header: the validated header.
+        sections: the compressed size of every section, description first (sums to the payload).
+        chunks: the sections' bytes.
+        description: the decompressed description (a JSON object, nothing in it checked yet).
+    """
+
+    header: Header
+    sections: list[int]
+    chunks: list[bytes]
+    description: dict
+
+
+def read_payload_file(path: Path, kind: str, what: str) -> PayloadFile:
+    """Read a packed container file of ``kind``: header, section sizes against the payload, and the
+    description (decompressed to at most :data:`MAX_DESCRIPTION_BYTES`).
+
+    Args:
+        path: the file.
+        kind: the kind it must be.
+        what: the file wanted, for the message (``"a packed model"``).
+
+    Raises:
+        ApmgsrnError: unreadable, of another kind, or a payload or description that is not ours.
+    """
+    header = header_of_kind(path, kind, what)
+    not_ours = f"{path}: not an apmgsrn model file (corrupt, truncated or another format)"
+    sections = _section_sizes(header, not_ours)
+    payload = load_tensors(path)[PAYLOAD].numpy().tobytes()
+    offsets = np.cumsum([0] + sections).tolist()
+    chunks = [payload[offsets[i]:offsets[i + 1]] for i in range(len(sections))]
+    text = _description_text(header, chunks[0], f"{path}: description", not_ours)
+    description = parse_json(text, not_ours)
+    if not isinstance(description, dict):
+        raise ApmgsrnError(not_ours)
+    return PayloadFile(header, sections, chunks, description)
 
 
 def _section_sizes(header: Header, not_ours: str) -> list[int]:
@@ -250,6 +309,88 @@ def _check_expansion(name: str, expected: int, stored: int) -> None:
         raise DescriptionError(f"{name} declares {expected} bytes, more than its {stored} stored bytes can hold")
 
 
+def parse_tensor_entries(value, shapes: dict[str, tuple[int, ...]], stored: list[int],
+                         predictors: Callable[[str, tuple[int, ...]], tuple[str, ...]] | None = None) -> list[dict]:
+    """Check the ``tensors`` entry of a packed description against the parameters the config implies and the
+    sizes of their sections (nothing decompressed yet).
+
+    Args:
+        value: the description's ``tensors`` (one entry per parameter, in the config's order).
+        shapes: name -> shape of every parameter, from the validated config.
+        stored: the compressed size of each parameter's section, in the same order.
+        predictors: ``(name, shape) -> predictors allowed`` (default: :func:`~apmgsrn.io.codec.predictors_for`
+            of the shape).
+
+    Returns:
+        One dict per parameter: ``name``, ``encoding`` and, when quantised, ``group``, ``predictor``, ``width``.
+
+    Raises:
+        DescriptionError, ValueError, TypeError: anything missing, mistyped, out of range or inconsistent.
+    """
+    if sum(math.prod(s) for s in shapes.values()) > MAX_PACKED_PARAMETERS:
+        raise DescriptionError("the model config declares more parameters than a packed file may hold")
+    if not isinstance(value, list) or len(value) != len(shapes) or not all(isinstance(e, list) for e in value):
+        raise DescriptionError("stored tensors do not match the model config")
+    entries = [_tensor_entry(name, entry) for name, entry in zip(shapes, value)]
+    for entry, size in zip(entries, stored, strict=True):
+        name, numel = entry["name"], math.prod(shapes[entry["name"]])
+        if entry["encoding"] == "float32":
+            _check_expansion(name, numel * 4, size)
+            continue
+        group = require_int(entry["group"], f"{name} group", 1, max(numel, 1))
+        groups = group_count(numel, group)
+        if groups > MAX_GROUPS:
+            raise DescriptionError(f"tensor {name} declares more than {MAX_GROUPS} groups")
+        allowed = predictors(name, shapes[name]) if predictors is not None else codec.predictors_for(shapes[name])
+        if entry["predictor"] not in allowed:
+            raise DescriptionError(f"tensor {name} names an unknown predictor")
+        if entry["width"] not in (1, 2, 4):
+            raise DescriptionError(f"tensor {name} has an invalid width")
+        if size < 2 * groups:
+            raise DescriptionError(f"tensor {name} is shorter than its steps")
+        _check_expansion(name, numel * entry["width"], size - 2 * groups)
+    return entries
+
+
+def parse_report(value) -> dict:
+    """A packed description's ``packing`` report: an object of numbers, strings or null."""
+    report = require_dict(value, "packing")
+    if not all(isinstance(k, str) and (v is None or isinstance(v, (int, float, str))) for k, v in report.items()):
+        raise DescriptionError("packing report holds something other than numbers and text")
+    return report
+
+
+def decode_tensors(entries: list[dict], shapes: dict[str, tuple[int, ...]], chunks: list[bytes], path: Path
+                   ) -> tuple[dict[str, torch.Tensor], list[PackedPart]]:
+    """Every parameter from its section (entries from :func:`parse_tensor_entries`): float32 tensors by name,
+    and a part per section for the :class:`PackingSummary`.
+
+    Raises:
+        ApmgsrnError: a section that does not decompress to what its entry declares.
+        DescriptionError: steps that are not positive and finite.
+    """
+    state, parts = {}, []
+    for entry, data in zip(entries, chunks, strict=True):
+        name, shape = entry["name"], shapes[entry["name"]]
+        state[name], bits = _decode_tensor(entry, shape, data, f"{path}: {name}")
+        parts.append(PackedPart(name, entry["encoding"], math.prod(shape), len(data), bits))
+    return state, parts
+
+
+def packing_summary(path: Path, sections: list[int], parts: list[PackedPart], parameters: int, report: dict,
+                    correction: VoxelCorrection | None = None) -> PackingSummary:
+    """What a loaded packed file holds: its parts, the container framing around them, the float32 size of its
+    ``parameters``, the packing ``report`` and the error bound of ``correction``."""
+    return PackingSummary(
+        parts=tuple(parts),
+        container_bytes=path.stat().st_size - sum(sections),
+        float32_bytes=4 * parameters,
+        report=report,
+        max_error=correction.max_error if correction is not None else None,
+        corrected_voxels=int(correction.indices.size) if correction is not None else 0,
+    )
+
+
 def _parse_layout(description: dict, sections: list[int]) -> _Layout:
     """Check a packed description and the section sizes it implies (nothing decompressed yet).
 
@@ -258,32 +399,11 @@ def _parse_layout(description: dict, sections: list[int]) -> _Layout:
     """
     parsed = parse_field_description(description)
     shapes = parsed.config.parameter_shapes()
-    if sum(math.prod(s) for s in shapes.values()) > MAX_PACKED_PARAMETERS:
-        raise DescriptionError("the model config declares more parameters than a packed file may hold")
-    entries = description.get("tensors")
-    if not isinstance(entries, list) or len(entries) != len(shapes) or not all(isinstance(e, list) for e in entries):
-        raise DescriptionError("stored tensors do not match the model config")
-    entries = [_tensor_entry(name, entry) for name, entry in zip(shapes, entries)]
     correction = description.get("correction")
-    expected_sections = 1 + len(entries) + (2 if correction is not None else 0)
+    expected_sections = 1 + len(shapes) + (2 if correction is not None else 0)
     if len(sections) != expected_sections:
         raise DescriptionError(f"the file has {len(sections)} sections, the description implies {expected_sections}")
-    for entry, stored in zip(entries, sections[1:]):
-        name, numel = entry["name"], math.prod(shapes[entry["name"]])
-        if entry["encoding"] == "float32":
-            _check_expansion(name, numel * 4, stored)
-            continue
-        group = require_int(entry["group"], f"{name} group", 1, max(numel, 1))
-        groups = group_count(numel, group)
-        if groups > MAX_GROUPS:
-            raise DescriptionError(f"tensor {name} declares more than {MAX_GROUPS} groups")
-        if entry["predictor"] not in codec.predictors_for(shapes[name]):
-            raise DescriptionError(f"tensor {name} names an unknown predictor")
-        if entry["width"] not in (1, 2, 4):
-            raise DescriptionError(f"tensor {name} has an invalid width")
-        if stored < 2 * groups:
-            raise DescriptionError(f"tensor {name} is shorter than its steps")
-        _check_expansion(name, numel * entry["width"], stored - 2 * groups)
+    entries = parse_tensor_entries(description.get("tensors"), shapes, sections[1:1 + len(shapes)])
     if correction is not None:
         correction = require_dict(correction, "correction")
         if set(correction) != {"max_error", "step", "count", "gap_width", "level_width"}:
@@ -300,10 +420,7 @@ def _parse_layout(description: dict, sections: list[int]) -> _Layout:
             if correction[key] not in (1, 2, 4):
                 raise DescriptionError(f"correction.{key} is invalid")
             _check_expansion(f"correction {key}", count * correction[key], stored)
-    report = require_dict(description.get("packing", {}), "packing")
-    if not all(isinstance(k, str) and (v is None or isinstance(v, (int, float, str))) for k, v in report.items()):
-        raise DescriptionError("packing report holds something other than numbers and text")
-    return _Layout(parsed, entries, shapes, correction, report)
+    return _Layout(parsed, entries, shapes, correction, parse_report(description.get("packing", {})))
 
 
 def load_packed(path: str | os.PathLike, device: torch.device | str = "cpu") -> tuple[NeuralField, ModelDescription]:
@@ -321,24 +438,12 @@ def load_packed(path: str | os.PathLike, device: torch.device | str = "cpu") -> 
         ApmgsrnError: unreadable, foreign, newer, inconsistent or hostile file.
     """
     path = Path(path)
-    header = header_of_kind(path, PACKED_KIND, "a packed model")
-    not_ours = f"{path}: not an apmgsrn model file (corrupt, truncated or another format)"
-    sections = _section_sizes(header, not_ours)
-    payload = load_tensors(path)[PAYLOAD].numpy().tobytes()
-    offsets = np.cumsum([0] + sections).tolist()
-    chunk = [payload[offsets[i]:offsets[i + 1]] for i in range(len(sections))]
+    file = read_payload_file(path, PACKED_KIND, "a packed model")
+    sections, chunk = file.sections, file.chunks
     try:
-        text = _description_text(header, chunk[0], f"{path}: description", not_ours)
-        description = parse_json(text, not_ours)
-        if not isinstance(description, dict):
-            raise ApmgsrnError(not_ours)
-        layout = _parse_layout(description, sections)
-        state = {}
-        parts = [PackedPart("description", "json", 0, sections[0])]
-        for entry, data in zip(layout.entries, chunk[1:]):
-            name, shape = entry["name"], layout.shapes[entry["name"]]
-            state[name], bits = _decode_tensor(entry, shape, data, f"{path}: {name}")
-            parts.append(PackedPart(name, entry["encoding"], math.prod(shape), len(data), bits))
+        layout = _parse_layout(file.description, sections)
+        state, parts = decode_tensors(layout.entries, layout.shapes, chunk[1:1 + len(layout.entries)], path)
+        parts.insert(0, PackedPart("description", "json", 0, sections[0]))
         correction = None
         if layout.correction is not None:
             correction = _decode_correction(layout.correction, layout.parsed.volume_shape, chunk[-2], chunk[-1],
@@ -350,14 +455,7 @@ def load_packed(path: str | os.PathLike, device: torch.device | str = "cpu") -> 
         raise inconsistent(path, exc) from None
     field = build_field(layout.parsed, state, correction, path)
     parameters = field.parameter_count()
-    summary = PackingSummary(
-        parts=tuple(parts),
-        container_bytes=path.stat().st_size - sum(sections),
-        float32_bytes=4 * parameters,
-        report=layout.report,
-        max_error=correction.max_error if correction is not None else None,
-        corrected_voxels=int(correction.indices.size) if correction is not None else 0,
-    )
+    summary = packing_summary(path, sections, parts, parameters, layout.report, correction)
     model_description = ModelDescription(
         kind=PACKED_KIND,
         config=layout.parsed.config,
@@ -368,7 +466,7 @@ def load_packed(path: str | os.PathLike, device: torch.device | str = "cpu") -> 
         training=layout.parsed.training,
         parameters=parameters,
         file_bytes=path.stat().st_size,
-        format_version=header.version,
+        format_version=file.header.version,
         packing=summary,
     )
     return field.to(device).eval(), model_description

@@ -1,6 +1,6 @@
 """One door to every model format: a loader per kind, registered by the layer that can build it.
 
-Single-field files, float32 or packed, load here. Brick models need the brick router, which lives in
+Single-field and time-series files, float32 or packed, load here. Brick models need the brick router, which lives in
 :mod:`apmgsrn.decomposition` (a layer above this one): it registers its loader on import, and
 :func:`apmgsrn.load` imports it, so callers of the public API open every kind.
 """
@@ -17,10 +17,11 @@ from torch import nn
 
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.io.brick_folder import BRICKS_KIND, MANIFEST_NAME, is_brick_folder, read_manifest
-from apmgsrn.io.container import PACKED_KIND, read_header
+from apmgsrn.io.container import PACKED_KIND, PACKED_SERIES_KIND, read_header
 from apmgsrn.io.description import ModelDescription
 from apmgsrn.io.field_file import FIELD_KIND, load_field
 from apmgsrn.io.packed import load_packed
+from apmgsrn.io.packed_series import load_packed_series
 from apmgsrn.io.series_file import SERIES_KIND, load_series
 from apmgsrn.io.series_folder import SERIES_BRICKS_KIND, is_series_brick_folder, read_series_manifest
 
@@ -44,6 +45,7 @@ _LOADERS: dict[str, Loader] = {
     FIELD_KIND: lambda path, device: load_field(path, device),
     SERIES_KIND: lambda path, device: load_series(path, device),
     PACKED_KIND: lambda path, device: load_packed(path, device),
+    PACKED_SERIES_KIND: lambda path, device: load_packed_series(path, device),
 }
 
 

@@ -18,7 +18,15 @@ from pathlib import Path
 
 import torch
 
-from apmgsrn.io.container import Header, header_of_kind, load_tensors, save_tensors
+from apmgsrn.io.container import (
+    PACKED_SERIES_KIND,
+    SERIES_KIND,
+    Header,
+    header_of_kind,
+    load_tensors,
+    read_header,
+    save_tensors,
+)
 from apmgsrn.io.description import (
     DescriptionError,
     ModelDescription,
@@ -38,14 +46,13 @@ from apmgsrn.io.field_file import (
     parse_field_description,
     restore_field,
 )
+from apmgsrn.io.packed import read_payload_file
 from apmgsrn.models.encoders.adaptive_multigrid import MAX_RESOLUTION
 from apmgsrn.models.series_field import SeriesConfig, SeriesField, SeriesFieldConfig
 from apmgsrn.models.series_options import COEFFICIENT_KINDS, MAX_BASIS, MAX_STEPS, STORAGE_KINDS
 
 #: The safetensors name of each dtype a series file stores.
 SAFETENSORS_DTYPES = {torch.float32: "F32", torch.float16: "F16"}
-
-SERIES_KIND = "series"
 
 
 def save_series(path: str | os.PathLike, field: SeriesField, source: SourceInfo, training: dict,
@@ -62,18 +69,34 @@ def save_series(path: str | os.PathLike, field: SeriesField, source: SourceInfo,
     Returns:
         Bytes written.
     """
+    description = series_description(field, source, training, steps)
+    stored = field.config.stored_dtypes()
+    tensors = {name: tensor.to(stored[name]) for name, tensor in field.state_dict().items()}
+    return save_tensors(path, tensors, SERIES_KIND, description)
+
+
+def series_description(field: SeriesField, source: SourceInfo, training: dict, steps: list[SeriesStepInfo]) -> dict:
+    """The description of a series file (a packed series file extends it): a single-field file's entries with
+    the spatial field's config, plus ``series`` and ``steps``.
+
+    Raises:
+        ValueError: not one step entry per step of ``field``.
+    """
     if len(steps) != field.steps:
         raise ValueError(f"{len(steps)} step entries for a series of {field.steps} steps")
     description = field_description(field, source, training)
     description["field"] = field.config.field.to_dict()  # the spatial field; the series part beside it
     description["series"] = field.config.series.to_dict()
     description["steps"] = [step.to_dict() for step in steps]
-    stored = field.config.stored_dtypes()
-    tensors = {name: tensor.to(stored[name]) for name, tensor in field.state_dict().items()}
-    return save_tensors(path, tensors, SERIES_KIND, description)
+    return description
 
 
-def _series_config(value) -> SeriesConfig:
+def parse_series_config(value) -> SeriesConfig:
+    """A description's ``series`` entry, checked entry by entry (a packed series file reads it too).
+
+    Raises:
+        DescriptionError, ValueError: a missing, mistyped or out-of-range entry.
+    """
     data = require_dict(value, "series")
     if set(data) - {"steps", "basis", "coefficients", "residual", "storage", "mixing"}:
         raise DescriptionError("series holds unknown entries")
@@ -92,7 +115,12 @@ def _series_config(value) -> SeriesConfig:
     )
 
 
-def _step_entries(value, count: int) -> tuple[SeriesStepInfo, ...]:
+def parse_step_entries(value, count: int) -> tuple[SeriesStepInfo, ...]:
+    """A description's ``steps`` entry: ``count`` steps, each with its number, file name and value range.
+
+    Raises:
+        DescriptionError: not a list of ``count`` well-formed entries.
+    """
     if not isinstance(value, list) or len(value) != count:
         raise DescriptionError(f"steps is not a list of {count} entries")
     entries = []
@@ -111,14 +139,19 @@ def _step_entries(value, count: int) -> tuple[SeriesStepInfo, ...]:
 
 
 def declared_steps(path: str | os.PathLike) -> int:
-    """Number of steps a time-series model file declares, from its header alone (no tensor is read).
+    """Number of steps a time-series model file declares: from the header of a float32 one (no tensor is read),
+    from the description section of a packed one (no parameter is decoded).
 
     Raises:
         ApmgsrnError: not a readable time-series model file.
     """
-    header = header_of_kind(path, SERIES_KIND, "a time-series model")
+    header = read_header(path)
+    if header.kind == PACKED_SERIES_KIND:
+        description = read_payload_file(Path(path), PACKED_SERIES_KIND, "a time-series model").description
+    else:
+        description = header_of_kind(path, SERIES_KIND, "a time-series model", header).description
     try:
-        return _series_config(header.description.get("series")).steps
+        return parse_series_config(description.get("series")).steps
     except (DescriptionError, ValueError, TypeError) as exc:
         raise inconsistent(path, exc) from None
 
@@ -142,8 +175,8 @@ def load_series(path: str | os.PathLike, device: torch.device | str = "cpu",
     header = header_of_kind(path, SERIES_KIND, "a time-series model", header)
     try:
         parsed = parse_field_description(header.description)
-        config = SeriesFieldConfig(parsed.config, _series_config(header.description.get("series")))
-        steps = _step_entries(header.description.get("steps"), config.series.steps)
+        config = SeriesFieldConfig(parsed.config, parse_series_config(header.description.get("series")))
+        steps = parse_step_entries(header.description.get("steps"), config.series.steps)
         check_declared_tensors(header, config, SAFETENSORS_DTYPES)
     except (DescriptionError, ValueError, TypeError) as exc:
         raise inconsistent(path, exc) from None

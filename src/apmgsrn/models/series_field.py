@@ -78,6 +78,11 @@ class SeriesConfig:
             raise InvalidArgument(f"mixing={self.mixing}: a lattice of weights needs coefficients=learned",
                                   arguments=("mixing", "coefficients"))
 
+    @property
+    def per_step_grids(self) -> bool:
+        """Every step has its own grid set (keyframes at every step): what stepwise training fills."""
+        return self.coefficients == "keyframes" and self.basis == self.steps
+
     def to_dict(self) -> dict:
         return {"steps": self.steps, "basis": self.basis, "coefficients": self.coefficients, "residual": self.residual,
                 "storage": self.storage, "mixing": self.mixing}
@@ -191,6 +196,10 @@ class SeriesMultiGridEncoder(AdaptiveMultiGridEncoder):
         if series.residual:
             # Zero: a step starts as its basis mix; the residual learns what the basis cannot share.
             self.residuals = nn.Parameter(torch.zeros(series.steps, *shapes["grids"][:2], *(series.residual,) * 3))
+        if series.per_step_grids:
+            # The keyframe weights would be the identity [T, M, C, T]: a step reads its own slice instead.
+            self.register_buffer("coefficients", torch.ones(series.steps, 1, 1, 1), persistent=False)
+            return
         weights = keyframe_weights(series.steps, series.basis)  # [T, K]
         if series.coefficients == "cumulative":
             weights = cumulative(weights, dim=1)
@@ -214,12 +223,13 @@ class SeriesMultiGridEncoder(AdaptiveMultiGridEncoder):
 
     def step_grids(self, steps: torch.Tensor) -> torch.Tensor:
         """Feature grids of whole steps: ``steps`` ``[G]`` indices -> ``[G, M, C, D, H, W]``."""
-        weights = self.coefficients[steps]  # [G, M, C, K] or [G, M, C, K, r, r, r]
-        if self.series.mixing == 1:
-            grids = torch.einsum("gmck,kmcdhw->gmcdhw", weights, self.grids)
+        if self.series.per_step_grids:
+            grids = self.grids[steps]  # one grid set per step
+        elif self.series.mixing == 1:
+            grids = torch.einsum("gmck,kmcdhw->gmcdhw", self.coefficients[steps], self.grids)  # weights [G, M, C, K]
         else:
-            # Every node mixes the basis with the weights of the lattice around it.
-            grids = (self._upsampled(weights) * self.grids.permute(1, 2, 0, 3, 4, 5)).sum(3)  # [G, M, C, D, H, W]
+            # Every node mixes the basis with the weights of the lattice around it ([G, M, C, K, r, r, r]).
+            grids = (self._upsampled(self.coefficients[steps]) * self.grids.permute(1, 2, 0, 3, 4, 5)).sum(3)
         if self.series.residual:
             residuals = cumulative(self.residuals, dim=0) if self.series.coefficients == "cumulative" else self.residuals
             grids = grids + self._upsampled(residuals[steps])

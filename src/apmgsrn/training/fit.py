@@ -1,8 +1,8 @@
 """The fitting pipeline: prepare the values, build the field, train it, measure it, save it.
 
-Every fit goes through here: ``apmgsrn train`` (:func:`fit_volume`; :func:`fit_series` for a time series,
-one model for every step), each brick of a brick model
-(:mod:`apmgsrn.decomposition.brick_training`) and the replay behind the grid animation
+Every fit goes through here: ``apmgsrn train`` (:func:`fit_volume`;
+:func:`~apmgsrn.training.series_fit.fit_series` for a time series, one model for every step), each brick of a
+brick model (:mod:`apmgsrn.decomposition.brick_training`) and the replay behind the grid animation
 (:func:`train_prepared` with a callback). The steps take an array and plain metadata, not a volume
 object, so data that is not one volume (a time series) can be prepared its own way and fitted the same.
 
@@ -15,29 +15,29 @@ object, so data that is not one volume (a time series) can be prepared its own w
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
+from dataclasses import field as dataclass_field
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from apmgsrn.data import Volume
-from apmgsrn.data.fingerprint import series_fingerprint, volume_fingerprint
-from apmgsrn.data.series import VolumeSeries
+from apmgsrn.data.fingerprint import volume_fingerprint
 from apmgsrn.device import keep_large_allocations_cached
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.inference.evaluate import Evaluation, SeriesEvaluation, evaluate, evaluate_series
 from apmgsrn.io import SeriesStepInfo, SourceInfo, save_field, save_series
-from apmgsrn.io.container import check_replaceable
+from apmgsrn.io.container import PACKED_SERIES_KIND, SERIES_KIND, check_replaceable
 from apmgsrn.io.field_file import FIELD_KIND
-from apmgsrn.io.series_file import SERIES_KIND
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.models.series_field import SeriesField, SeriesFieldConfig
 from apmgsrn.models.value_transform import ValueTransform, fit_value_transform
 from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.checkpoint import checkpoint_path_for
+from apmgsrn.training.series_packing import pack_series, series_packing_report, write_packed_series
 from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, TrainingState
 
 
@@ -131,11 +131,14 @@ class TrainedField:
         field: the trained field, in eval mode.
         state: the trainer's final state (iterations, time, history); a fresh one for a constant volume.
         resumed_from: iteration the run resumed at from a checkpoint (0: fresh).
+        summary: entries the training adds to the model file's training summary (a stepwise series: its
+            start step and every step's iterations).
     """
 
     field: NeuralField | SeriesField
     state: TrainingState
     resumed_from: int
+    summary: dict = dataclass_field(default_factory=dict)
 
 
 def train_prepared(
@@ -231,6 +234,8 @@ def fit(
     psnr_voxels: int | None = None,
     summary_extra: dict | None = None,
     steps: Sequence[SeriesStepInfo] | None = None,
+    train: Callable[..., TrainedField] = train_prepared,
+    bits: int | None = None,
 ) -> FitResult:
     """Train a field on prepared values, measure it against the truth and save it to ``out``.
 
@@ -250,16 +255,28 @@ def fit(
         psnr_voxels: measure on a regular subset of about this many voxels (None: every voxel).
         summary_extra: more entries of the training summary (e.g. the brick's box).
         steps: a series: each step's number, name and value range, saved in the file.
+        train: trains the field (:func:`train_prepared`'s signature; a series trained step by step passes
+            :func:`~apmgsrn.training.series_steps.train_stepwise`).
+        bits: a series: pack its grids to this bit width (a ``packed-series`` file; None: the series file of
+            its config's storage dtype).
     """
     out = Path(out)
     series = isinstance(field_config, SeriesFieldConfig)
-    check_output(out, resume, SERIES_KIND if series else FIELD_KIND)
+    kind = (PACKED_SERIES_KIND if bits is not None else SERIES_KIND) if series else FIELD_KIND
+    check_output(out, resume, kind)
     checkpoint = checkpoint_path_for(out)
-    trained = train_prepared(prepared, field_config, train_config, tuple(truth.shape[-3:]), checkpoint, fingerprint,
-                             callbacks)
+    trained = train(prepared, field_config, train_config, tuple(truth.shape[-3:]), checkpoint, fingerprint, callbacks)
+    packed = None
     if series:
-        trained.field.round_to_storage()  # measure what the file will give back
+        if bits is None:
+            trained.field.round_to_storage()  # measure what the file will give back
+        else:
+            before = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
+            packed = pack_series(trained.field, bits)
+            trained.field.load_state_dict(packed.state)  # measure what the file will give back
         evaluation = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
+        if packed is not None:
+            report = series_packing_report(trained.field, bits, before, evaluation)
         summary_extra = {"steps": [{"psnr": e.psnr, "max_abs_error": e.max_abs_error} for e in evaluation.steps],
                          **(summary_extra or {})}
     else:
@@ -279,8 +296,11 @@ def fit(
         "config": asdict(train_config),
         "history": state.history,
         **(summary_extra or {}),
+        **trained.summary,
     }
-    if series:
+    if packed is not None:
+        write_packed_series(out, trained.field, packed, source, summary, list(steps), report)
+    elif series:
         save_series(out, trained.field, source, summary, list(steps))
     else:
         save_field(out, trained.field, source, summary)
@@ -333,51 +353,6 @@ def fit_volume(
                    "transform": asdict(prepared.transform)}
     return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
                callbacks=[TrainingProgress(enabled=progress)])
-
-
-def fit_series(
-    series: VolumeSeries,
-    field_config: SeriesFieldConfig,
-    train_config: TrainConfig,
-    out: Path,
-    device: torch.device,
-    transform: str = "none",
-    log_offset: float = 0.0,
-    resume: bool = False,
-    progress: bool = True,
-) -> FitResult:
-    """Train one time-series model on every step of a series and save it to ``out`` (``train`` on a series).
-
-    The steps are read one at a time into one ``[T, D, H, W]`` array; the value transform and scaling are
-    fitted on all of them, so every step shares the decoder's output range.
-
-    Args:
-        series: the data.
-        field_config: the model to build; its series config must have ``len(series)`` steps.
-        train_config: how to train (the batch is split over ``steps_per_iteration`` steps).
-        out: model file to write (atomically).
-        device: training device.
-        transform: value transform (``none``, ``log10``, ``zscore``).
-        log_offset: offset for ``log10``.
-        resume: continue from ``out.ckpt`` if it exists.
-        progress: show training progress (see :mod:`apmgsrn.progress`).
-
-    Returns:
-        The result; its evaluation is a :class:`~apmgsrn.inference.evaluate.SeriesEvaluation`.
-    """
-    if field_config.series.steps != len(series):
-        raise ValueError(f"the model has {field_config.series.steps} steps, the series {len(series)}")
-    check_output(out, resume, SERIES_KIND)  # before reading what may be a large series
-    data = series.to_numpy()  # [T, D, H, W] float32, data units
-    prepared = prepare_values(data, transform, log_offset, series.describe(), device)
-    source = SourceInfo(series.step_name(0), series.variable, series.describe())
-    steps = [SeriesStepInfo(label, series.step_name(t), (float(data[t].min()), float(data[t].max())))
-             for t, label in enumerate(series.labels)]
-    # A resume must continue on the same steps: each file's real path and a hash of a sample of its values.
-    fingerprint = {"data": series_fingerprint(series), "field": field_config.to_dict(),
-                   "transform": asdict(prepared.transform)}
-    return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
-               callbacks=[TrainingProgress(enabled=progress)], steps=steps)
 
 
 def _last_finite(values: list[float]) -> float | None:

@@ -1,0 +1,357 @@
+"""Warm-started steps: a time series trained one step after another, every step with its own feature grids.
+
+The default way ``apmgsrn train`` fits a series (measured against one shared model of all steps in
+docs/time_series.md):
+
+1. **Start step.** The step with the most detail (largest mean gradient magnitude of its values,
+   :func:`choose_start`) gets a single-step model trained on it alone, with the whole budget of one volume.
+   Its grid placement is the one every step shares, so it is taken where the structures are richest (in a
+   viscous-finger run, the last step, where the fingers have spread furthest).
+2. **The other steps**, moving away from the start one neighbour at a time (:func:`step_order`), start from
+   the neighbour's grids and fine-tune only their own feature grids at a lower learning rate, for a tenth of
+   that budget, more for a step that differs much from its neighbour (:meth:`StepwiseConfig.step_config`);
+   placement and decoder stay the start model's, frozen.
+
+The result is a :class:`~apmgsrn.models.series_field.SeriesField` with one basis slice per step (keyframe
+weights, ``K = T``: the identity), so decoding, rendering and querying a step cost what a single-step model
+costs. Consecutive steps' grids are close, which is what the packed series file's time predictor codes.
+
+Resume: while the start model trains, its trainer checkpoints to ``MODEL.ckpt`` as for one volume; once it is
+done, ``MODEL.ckpt`` becomes a *steps* checkpoint (kind ``series-steps``: the series field so far and the
+steps done), rewritten atomically after every step. A kill loses at most the step in progress.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import torch
+
+from apmgsrn.arguments import check_int, check_number
+from apmgsrn.atomic import atomic_write
+from apmgsrn.errors import ApmgsrnError, InvalidArgument
+from apmgsrn.io.container import file_bytes, load_tensors, read_header
+from apmgsrn.io.description import DescriptionError, require_int, require_number
+from apmgsrn.models.field import NeuralField
+from apmgsrn.models.registry import FieldConfig
+from apmgsrn.models.series_field import SeriesConfig, SeriesField, SeriesFieldConfig
+from apmgsrn.progress import Progress
+from apmgsrn.training.checkpoint import CHECKPOINT_KIND, TrainingState, check_tensors
+from apmgsrn.training.fit import PreparedValues, TrainedField, train_prepared
+from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, TrainingInterrupted, as_json
+
+STEPS_CHECKPOINT_KIND = "series-steps"
+#: Start choices besides a step index.
+STARTS = ("auto", "first", "last")
+#: A step's fine-tune, as a share of the start model's iterations and learning rate (200 iterations at
+#: lr 0.003 after 2,000 at 0.01: every viscous-finger step within 0.0-0.9 dB of its own model).
+STEP_ITERATION_SHARE, STEP_LR_SHARE = 0.1, 0.3
+#: A step that differs from its neighbour by more than this many times the start model's RMS error gets
+#: proportionally more iterations, up to ``STEP_ITERATION_CAP`` times the share above (the start model's whole
+#: budget). Consecutive viscous-finger steps differ by 4-9 times the error (200 iterations enough); steps 40
+#: apart by about 75 times, where 200 iterations left them 7 dB below their own models and 2,000 put them above.
+STEP_CHANGE_SCALE, STEP_ITERATION_CAP = 8.0, 10.0
+#: Voxels compared to measure how much a step differs from its neighbour (a regular subset of larger steps).
+CHANGE_VOXELS = 1 << 20
+#: Share of every batch at voxel positions that a stepwise series trains with unless told otherwise
+#: (what it was measured with; uniform points alone cost 2-4 dB on the viscous-finger steps).
+STEPWISE_VOXEL_FRACTION = 0.5
+
+
+@dataclass(frozen=True)
+class StepwiseConfig:
+    """How a series is trained step by step.
+
+    Attributes:
+        start: the step the first model is trained on: ``"auto"`` (the step with the most detail),
+            ``"first"``, ``"last"``, or a step index.
+        step_iterations: fine-tune iterations of every other step (None: a tenth of the start model's).
+        step_lr: their learning rate (None: 0.3 times the start model's).
+    """
+
+    start: int | str = "auto"
+    step_iterations: int | None = None
+    step_lr: float | None = None
+
+    def __post_init__(self) -> None:
+        """Refuse values training cannot run with (:class:`~apmgsrn.errors.InvalidArgument`)."""
+        if isinstance(self.start, str):
+            if self.start not in STARTS:
+                raise InvalidArgument(f"start={self.start!r}: must be auto, first, last or a step index",
+                                      arguments=("start",))
+        else:
+            check_int("start", self.start, 0)
+        if self.step_iterations is not None:
+            check_int("step_iterations", self.step_iterations, 1)
+        if self.step_lr is not None:
+            check_number("step_lr", self.step_lr, 0.0)
+
+    def base_iterations(self, config: TrainConfig) -> int:
+        """Fine-tune iterations of a step that differs little from its neighbour."""
+        return self.step_iterations or max(1, round(config.iterations * STEP_ITERATION_SHARE))
+
+    def step_config(self, config: TrainConfig, change: float = 0.0, error: float = 1.0) -> TrainConfig:
+        """How a step after the start is fine-tuned: its grids only (the density loss never starts), for
+        :meth:`base_iterations`, more when the step differs from its neighbour by more than
+        :data:`STEP_CHANGE_SCALE` times the start model's error.
+
+        Args:
+            config: the start model's training.
+            change: RMS difference between the step's values and its neighbour's (scaled units).
+            error: the start model's RMS error (scaled units).
+        """
+        factor = min(max(change / (STEP_CHANGE_SCALE * max(error, 1e-12)), 1.0), STEP_ITERATION_CAP)
+        iterations = max(1, round(self.base_iterations(config) * factor))
+        lr = config.lr * STEP_LR_SHARE if self.step_lr is None else self.step_lr
+        return replace(config, iterations=iterations, lr=lr, density_start=iterations + 1, history_every=None,
+                       stop_after_lr_cuts=None)
+
+
+def stepwise_config(field: FieldConfig, steps: int, storage: str = "float32") -> SeriesFieldConfig:
+    """The series model a stepwise run fills: one basis slice per step, keyframe weights (the identity)."""
+    return SeriesFieldConfig(field, SeriesConfig(steps=steps, basis=steps, coefficients="keyframes", storage=storage))
+
+
+def detail(values: torch.Tensor) -> float:
+    """Mean magnitude of the forward differences along the three axes of ``[D, H, W]`` values."""
+    return sum(float(values.diff(dim=axis).abs().mean()) for axis in range(3) if values.shape[axis] > 1)
+
+
+def choose_start(values: torch.Tensor, start: int | str) -> int:
+    """The start step of ``[T, D, H, W]`` values.
+
+    Raises:
+        ApmgsrnError: a step index outside the series.
+    """
+    steps = values.shape[0]
+    if start == "first":
+        return 0
+    if start == "last":
+        return steps - 1
+    if start == "auto":
+        scores = [detail(values[t]) for t in range(steps)]
+        return max(range(steps), key=lambda t: (scores[t], t))
+    if not 0 <= start < steps:
+        raise ApmgsrnError(f"start={start} is outside the series of {steps} steps; pass 0..{steps - 1}",
+                           arguments=("start",))
+    return int(start)
+
+
+def change(values: torch.Tensor, step: int, neighbour: int) -> float:
+    """RMS difference between two steps of ``[T, D, H, W]`` values (a regular subset of at most about
+    :data:`CHANGE_VOXELS` voxels)."""
+    stride = max(1, values[step].numel() // CHANGE_VOXELS)
+    difference = values[step].reshape(-1)[::stride] - values[neighbour].reshape(-1)[::stride]
+    return float(difference.square().mean().sqrt())
+
+
+def step_order(start: int, steps: int) -> list[tuple[int, int]]:
+    """``(step, neighbour)`` pairs in training order: away from ``start``, nearest first, each step starting
+    from its neighbour on the start's side (already trained when its turn comes)."""
+    order = sorted(range(steps), key=lambda t: (abs(t - start), t))[1:]
+    return [(t, t + 1 if t < start else t - 1) for t in order]
+
+
+# ------------------------------------------------------------------------------------ steps checkpoint
+@dataclass
+class _Progress:
+    """Where a stepwise run stands: the start step, the steps done in order, each one's fine-tune iterations
+    (0 for the start), the start model's RMS error and the training state so far."""
+
+    start: int
+    done: list[int]
+    iterations: list[int]
+    error: float
+    state: TrainingState
+
+
+def _save_steps(path: Path, field: SeriesField, progress: _Progress, fingerprint: dict) -> None:
+    """The series field so far and the steps done, atomically to ``path`` (it may replace the start model's
+    training checkpoint of the same run)."""
+    state = progress.state
+    description = {"fingerprint": as_json(fingerprint), "start": progress.start, "done": progress.done,
+                   "step_iterations": progress.iterations, "error": progress.error,
+                   "iterations": state.iteration, "seconds": state.elapsed, "frozen_at": state.frozen_at,
+                   "history": state.history}
+    data = file_bytes({k: v.detach().cpu().contiguous() for k, v in field.state_dict().items()},
+                      STEPS_CHECKPOINT_KIND, description)
+    atomic_write(path, lambda temp: Path(temp).write_bytes(data), "training checkpoint")
+
+
+def _load_steps(path: Path, field: SeriesField, fingerprint: dict) -> _Progress:
+    """Restore a steps checkpoint of this run into ``field``, and where the run stands.
+
+    Raises:
+        ApmgsrnError: another run's checkpoint, or a damaged one (checked before anything is loaded).
+    """
+    description = read_header(path).description
+    if description.get("fingerprint") != as_json(fingerprint):
+        raise ApmgsrnError(f"{path}: checkpoint was made with other data or settings; rerun with the same data "
+                           "and options, or delete it to start over")
+    steps = field.steps
+    try:
+        start = require_int(description.get("start"), "start", 0, steps - 1)
+        done = description.get("done")
+        if not isinstance(done, list) or not done or done[0] != start or len(set(done)) != len(done):
+            raise DescriptionError("steps done are not a list that begins with the start")
+        for index, step in enumerate(done):
+            require_int(step, f"done[{index}]", 0, steps - 1)
+        if done != [start] + [t for t, _ in step_order(start, steps)][: len(done) - 1]:
+            raise DescriptionError("steps done are not in training order")
+        iterations = description.get("step_iterations")
+        if not isinstance(iterations, list) or len(iterations) != len(done):
+            raise DescriptionError("step iterations do not match the steps done")
+        for index, count in enumerate(iterations):
+            require_int(count, f"step_iterations[{index}]", 0)
+        error = require_number(description.get("error"), "error")
+        if not error >= 0:
+            raise DescriptionError("error is negative")
+        frozen_at = description.get("frozen_at")
+        state = TrainingState(
+            iteration=require_int(description.get("iterations"), "iterations", 0),
+            elapsed=max(require_number(description.get("seconds"), "seconds"), 0.0),
+            frozen_at=None if frozen_at is None else require_int(frozen_at, "frozen_at", 0),
+        )
+        history = description.get("history")
+        if isinstance(history, dict) and set(history) == set(state.history) and all(
+            isinstance(v, list) and all(isinstance(x, (int, float)) for x in v) for v in history.values()
+        ):
+            state.history = history
+        expected = {k: (tuple(v.shape), v.dtype) for k, v in field.state_dict().items()}
+        tensors = load_tensors(path)
+        check_tensors(tensors, expected)
+    except (DescriptionError, ValueError, TypeError) as exc:
+        raise ApmgsrnError(f"{path}: training checkpoint is damaged ({exc}); delete it to start over") from None
+    field.load_state_dict(tensors)
+    if not all(bool(torch.isfinite(t).all()) for t in tensors.values()):
+        raise ApmgsrnError(f"{path}: training checkpoint holds NaN or Inf; delete it to start over")
+    return _Progress(start, list(done), list(iterations), error, state)
+
+
+# ------------------------------------------------------------------------------------------ training
+def _series_field(prepared: PreparedValues, config: SeriesFieldConfig, volume_shape, seed: int) -> SeriesField:
+    return SeriesField(config, fit_min=prepared.fit_min, fit_max=prepared.fit_max, value_min=prepared.value_min,
+                       value_max=prepared.value_max, transform=prepared.transform, volume_shape=volume_shape,
+                       generator=torch.Generator().manual_seed(seed)).to(prepared.values.device)
+
+
+@torch.no_grad()
+def _adopt(series: SeriesField, start_field: NeuralField) -> None:
+    """The start model's placement, decoder and grids into the series field (its grids become every step's
+    until that step is trained)."""
+    series.encoder.matrices.copy_(start_field.encoder.matrices)
+    series.encoder.translations.copy_(start_field.encoder.translations)
+    series.decoder.load_state_dict(start_field.decoder.state_dict())
+    series.encoder.grids.copy_(start_field.encoder.grids.unsqueeze(0).expand_as(series.encoder.grids))
+
+
+def _worker(series: SeriesField) -> NeuralField:
+    """A single-step field sharing the series' placement and decoder (frozen): the steps' fine-tunes train it."""
+    field = series.step_field(0)  # a materialised copy; its grids are set per step
+    field.train()
+    field.encoder.grids.requires_grad_(True)
+    return field
+
+
+def train_stepwise(
+    prepared: PreparedValues,
+    field_config: SeriesFieldConfig,
+    train_config: TrainConfig,
+    volume_shape: tuple[int, int, int],
+    checkpoint: Path | None = None,
+    fingerprint: dict | None = None,
+    callbacks: list[TrainingCallback] | tuple = (),
+    stepwise: StepwiseConfig = StepwiseConfig(),
+    show_progress: bool = True,
+) -> TrainedField:
+    """Train a series step by step (see the module docstring); the signature of
+    :func:`~apmgsrn.training.fit.train_prepared`, plus how to step.
+
+    Args:
+        prepared: ``[T, D, H, W]`` values and their scaling.
+        field_config: a series config with one basis slice per step (:func:`stepwise_config`).
+        train_config: how the start model trains (the steps' fine-tunes: :meth:`StepwiseConfig.step_config`).
+        volume_shape: ``(D, H, W)`` of every step.
+        checkpoint: the run's checkpoint (resumed when there: the start model's or a steps checkpoint).
+        fingerprint: what a resumed checkpoint must match.
+        callbacks: called around the start model's iterations (its progress display).
+        stepwise: the start step and the steps' fine-tune.
+        show_progress: show one line of progress over the steps.
+
+    Returns:
+        The series field; its state counts every iteration and second of the start model and the steps.
+
+    Raises:
+        ApmgsrnError: a config that does not give every step its grids, or a damaged checkpoint.
+        TrainingInterrupted: Ctrl-C, after the checkpoint is safe.
+    """
+    if not field_config.series.per_step_grids:
+        raise ApmgsrnError("stepwise training fills one grid set per step: basis = steps, keyframe coefficients")
+    values = prepared.values
+    steps = values.shape[0]
+    fingerprint = {**(fingerprint or {}), "stepwise": asdict(stepwise), "train": asdict(train_config)}
+    if prepared.constant:
+        return TrainedField(_series_field(prepared, field_config, volume_shape, train_config.seed).eval(),
+                            TrainingState(), 0)
+    resumed = checkpoint is not None and checkpoint.exists() and read_header(checkpoint).kind == STEPS_CHECKPOINT_KIND
+    if resumed:
+        series = _series_field(prepared, field_config, volume_shape, train_config.seed)
+        progress = _load_steps(checkpoint, series, fingerprint)
+        resumed_from = progress.state.iteration
+    else:
+        start = choose_start(values, stepwise.start)
+        if checkpoint is not None and checkpoint.exists() and read_header(checkpoint).kind != CHECKPOINT_KIND:
+            raise ApmgsrnError(f"{checkpoint}: not a training checkpoint; remove it or pass another out=",
+                               arguments=("out",))
+        first = train_prepared(replace(prepared, values=values[start]), field_config.field, train_config,
+                               volume_shape, checkpoint, {**fingerprint, "start": start}, callbacks)
+        # Built after the start model, which thus starts exactly as a model of that step alone would (building
+        # a decoder draws from the global random generator).
+        series = _series_field(prepared, field_config, volume_shape, train_config.seed)
+        _adopt(series, first.field)
+        error = math.sqrt(_final_loss(first.state))
+        progress = _Progress(start, [start], [0], error, first.state)
+        resumed_from = first.resumed_from
+        if checkpoint is not None:
+            _save_steps(checkpoint, series, progress, fingerprint)
+    worker = _worker(series)
+    state = progress.state
+    todo = [(t, n) for t, n in step_order(progress.start, steps) if t not in progress.done]
+    display = Progress(steps, unit="step", description="steps", initial=steps - len(todo), enabled=show_progress)
+    try:
+        for t, neighbour in todo:
+            began = time.perf_counter()
+            config = stepwise.step_config(train_config, change(values, t, neighbour), progress.error)
+            with torch.no_grad():
+                worker.encoder.grids.copy_(series.encoder.grids[neighbour])
+            Trainer(worker, values[t], config, None, {}, []).run()
+            with torch.no_grad():
+                series.encoder.grids[t].copy_(worker.encoder.grids)
+            progress.done.append(t)
+            progress.iterations.append(config.iterations)
+            state.iteration += config.iterations
+            state.elapsed += time.perf_counter() - began
+            if checkpoint is not None:
+                _save_steps(checkpoint, series, progress, fingerprint)
+            display.set_fields(step=t, iterations=config.iterations)
+            display.update(1)
+    except KeyboardInterrupt:
+        display.close(completed=False)
+        if checkpoint is None:
+            raise
+        raise TrainingInterrupted(state.iteration, checkpoint) from None
+    display.close(completed=True)
+    series.encoder.grids.requires_grad_(True)
+    by_step = dict(zip(progress.done, progress.iterations))
+    summary = {"start": progress.start, "step_iterations": [by_step[t] for t in range(steps)],
+               "step_lr": stepwise.step_config(train_config).lr}
+    return TrainedField(series.eval(), state, resumed_from, summary={"stepwise": summary})
+
+
+def _final_loss(state: TrainingState) -> float:
+    """The start model's last recorded reconstruction loss (mean squared error, scaled units)."""
+    losses = [loss for loss in state.history["reconstruction"] if math.isfinite(loss)]
+    return losses[-1] if losses else 0.0

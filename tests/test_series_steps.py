@@ -1,0 +1,190 @@
+"""Stepwise training of a time series (issue 16): the start step chosen from the data, the order of the steps,
+every step's own grids fine-tuned with placement and decoder shared, and a resume after an interruption that
+reaches the same model. Real data: the four consecutive viscous-fingering steps of tests/data."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from apmgsrn.data.series import open_series
+from apmgsrn.errors import ApmgsrnError
+from apmgsrn.inference.evaluate import evaluate
+from apmgsrn.io.container import read_header
+from apmgsrn.models.registry import preset_config
+from apmgsrn.training import series_steps
+from apmgsrn.training.fit import prepare_values
+from apmgsrn.training.series_steps import (
+    STEPS_CHECKPOINT_KIND,
+    StepwiseConfig,
+    choose_start,
+    step_order,
+    stepwise_config,
+    train_stepwise,
+)
+from apmgsrn.training.trainer import TrainConfig, TrainingInterrupted
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+TINY = preset_config("apmgsrn", "small", grids=4, resolution=(8, 8, 8), width=16)
+TRAIN = TrainConfig(iterations=120, batch_size=2048, voxel_fraction=0.5, anchored_grids=1, checkpoint_every=40)
+
+
+@pytest.fixture(scope="module")
+def truth(test_data) -> np.ndarray:
+    return open_series(str(test_data / "viscous_fingers_run01" / "*.vti")).to_numpy()  # [4, 32, 32, 32]
+
+
+@pytest.fixture(scope="module")
+def prepared(truth):
+    return prepare_values(truth, "none", 0.0, "viscous fingers", torch.device("cpu"))
+
+
+@pytest.fixture(scope="module")
+def trained(prepared):
+    config = stepwise_config(TINY, 4)
+    return train_stepwise(prepared, config, TRAIN, (32, 32, 32), stepwise=StepwiseConfig(start=1), show_progress=False)
+
+
+def test_the_start_is_the_step_with_the_most_detail(prepared):
+    values = prepared.values.clone()
+    assert choose_start(values, "first") == 0 and choose_start(values, "last") == 3 and choose_start(values, 2) == 2
+    # Fine structure added to one step makes it the richest: auto picks it, whichever it is.
+    ripple = 0.05 * torch.sin(torch.arange(32.0) * 2.5)  # alternates quickly along x
+    for step in (0, 2):
+        richer = values.clone()
+        richer[step] += ripple
+        assert choose_start(richer, "auto") == step
+    with pytest.raises(ApmgsrnError, match="start=4 is outside the series of 4 steps"):
+        choose_start(values, 4)
+
+
+@pytest.mark.parametrize("start, steps", [(0, 5), (4, 5), (2, 5), (1, 2), (0, 1), (3, 8)])
+def test_every_step_is_trained_once_from_a_neighbour_already_trained(start, steps):
+    order = step_order(start, steps)
+    assert sorted([start] + [t for t, _ in order]) == list(range(steps))
+    trained = {start}
+    for step, neighbour in order:
+        assert abs(step - neighbour) == 1 and neighbour in trained
+        trained.add(step)
+    # Nearest the start first: the distance never falls.
+    distances = [abs(t - start) for t, _ in order]
+    assert distances == sorted(distances)
+
+
+def test_steps_share_placement_and_decoder_and_each_fits_its_own_data(trained, truth):
+    field = trained.field
+    assert field.config.series.per_step_grids and field.steps == 4
+    # The start model's iterations and every step's fine-tune are counted.
+    counts = trained.summary["stepwise"]["step_iterations"]
+    assert trained.summary["stepwise"]["start"] == 1 and counts[1] == 0
+    assert trained.state.iteration == TRAIN.iterations + sum(counts)
+    grids = field.encoder.grids.detach()
+    for t in range(4):
+        own = evaluate(field.step_field(t), truth[t]).psnr
+        # Every step's grids differ from its neighbours' and fit its own data better than theirs do.
+        for other in (t - 1, t + 1):
+            if 0 <= other < 4:
+                assert not torch.equal(grids[t], grids[other])
+                assert own > evaluate(field.step_field(other), truth[t]).psnr
+        step = field.step_field(t)
+        assert torch.equal(step.encoder.matrices, field.encoder.matrices)
+        assert all(torch.equal(a, b) for a, b in zip(step.decoder.parameters(), field.decoder.parameters()))
+
+
+def test_the_step_config_fine_tunes_grids_only_longer_the_more_a_step_changes():
+    start = TrainConfig(iterations=2000, lr=0.01)
+    config = StepwiseConfig().step_config(start)
+    assert config.iterations == 200 and config.lr == pytest.approx(0.003)
+    assert config.density_start > config.iterations  # the placement never moves
+    assert StepwiseConfig(step_iterations=7, step_lr=0.5).step_config(TRAIN).iterations == 7
+    # A step that differs from its neighbour by up to 8 times the start model's error: the base; more: more,
+    # in proportion, up to the start model's whole budget.
+    counts = [StepwiseConfig().step_config(start, change, 0.001).iterations for change in (0.004, 0.008, 0.016, 0.5)]
+    assert counts == [200, 200, 400, 2000]
+
+
+def test_a_step_far_from_its_neighbour_gets_more_iterations(prepared, truth):
+    """Steps 0 and 3 as a series of two: they differ more than neighbours do, so the step trained second gets
+    a longer fine-tune, recorded in the summary."""
+    far = replace(prepared, values=prepared.values[[3, 0]])
+    near = replace(prepared, values=prepared.values[[3, 2]])
+    runs = [train_stepwise(values, stepwise_config(TINY, 2), TRAIN, (32, 32, 32),
+                           stepwise=StepwiseConfig(start="first"), show_progress=False) for values in (far, near)]
+    (_, far_count), (_, near_count) = (run.summary["stepwise"]["step_iterations"] for run in runs)
+    assert series_steps.change(far.values, 1, 0) > series_steps.change(near.values, 1, 0)
+    assert far_count >= near_count >= StepwiseConfig().base_iterations(TRAIN)
+
+
+def test_bad_stepwise_options_are_refused():
+    for options in ({"start": "middle"}, {"start": -1}, {"step_iterations": 0}, {"step_lr": -1.0}):
+        with pytest.raises(ApmgsrnError):
+            StepwiseConfig(**options)
+
+
+def test_an_interrupted_run_resumes_from_its_last_step_to_the_same_model(prepared, trained, tmp_path, monkeypatch):
+    checkpoint = tmp_path / "m.apmgsrn.ckpt"
+    config = stepwise_config(TINY, 4)
+    calls = []
+    real_run = series_steps.Trainer.run
+
+    def interrupted_run(self):
+        calls.append(1)
+        if len(calls) == 3:  # the start model, one step done, then Ctrl-C in the second step
+            raise KeyboardInterrupt
+        return real_run(self)
+
+    monkeypatch.setattr(series_steps.Trainer, "run", interrupted_run)
+    with pytest.raises(TrainingInterrupted):
+        train_stepwise(prepared, config, TRAIN, (32, 32, 32), checkpoint, {}, stepwise=StepwiseConfig(start=1),
+                       show_progress=False)
+    header = read_header(checkpoint)
+    assert header.kind == STEPS_CHECKPOINT_KIND and header.description["done"] == [1, 0]
+    monkeypatch.setattr(series_steps.Trainer, "run", real_run)
+    resumed = train_stepwise(prepared, config, TRAIN, (32, 32, 32), checkpoint, {}, stepwise=StepwiseConfig(start=1),
+                             show_progress=False)
+    counts = trained.summary["stepwise"]["step_iterations"]
+    assert resumed.resumed_from == TRAIN.iterations + counts[0]  # the start model and step 0 were done
+    assert resumed.summary == trained.summary and resumed.state.iteration == trained.state.iteration
+    expected, got = trained.field.state_dict(), resumed.field.state_dict()
+    assert all(torch.equal(expected[k], got[k]) for k in expected)
+
+
+def test_a_checkpoint_of_other_data_or_tampered_is_refused(prepared, tmp_path, monkeypatch):
+    checkpoint = tmp_path / "m.apmgsrn.ckpt"
+    config = stepwise_config(TINY, 4)
+    quick = replace(TRAIN, iterations=20)
+    real_run = series_steps.Trainer.run
+    calls = []
+
+    def interrupted_run(self):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real_run(self)
+
+    monkeypatch.setattr(series_steps.Trainer, "run", interrupted_run)
+    with pytest.raises(TrainingInterrupted):
+        train_stepwise(prepared, config, quick, (32, 32, 32), checkpoint, {"data": "a"}, show_progress=False)
+    monkeypatch.setattr(series_steps.Trainer, "run", real_run)
+    with pytest.raises(ApmgsrnError, match="other data or settings"):
+        train_stepwise(prepared, config, quick, (32, 32, 32), checkpoint, {"data": "b"}, show_progress=False)
+    # The steps done rewritten out of training order.
+    from apmgsrn.io.container import file_bytes, load_tensors
+
+    description = read_header(checkpoint).description
+    description["done"] = [description["done"][0], 0 if description["done"][0] != 0 else 2]
+    Path(checkpoint).write_bytes(file_bytes(load_tensors(checkpoint), STEPS_CHECKPOINT_KIND, description))
+    with pytest.raises(ApmgsrnError, match="damaged"):
+        train_stepwise(prepared, config, quick, (32, 32, 32), checkpoint, {"data": "a"}, show_progress=False)
+
+
+def test_a_config_without_grids_per_step_is_refused(prepared):
+    from apmgsrn.models.series_field import series_config
+
+    with pytest.raises(ApmgsrnError, match="one grid set per step"):
+        train_stepwise(prepared, series_config(TINY, 4, basis=2), TRAIN, (32, 32, 32), show_progress=False)
