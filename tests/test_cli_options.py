@@ -126,6 +126,7 @@ LIBRARY_ONLY = {
     "measure_voxels",
     "steps", "mixing",  # a series' step count comes from its data; weight lattices are a library option
     "step_lr",  # a stepwise series' fine-tune rate: 0.3 x --lr unless a Python caller sets it
+    "min_bits",  # the smallest bit width a series' size target may lower to
 }
 CHECKS = {"check_int", "check_optional_int", "check_number", "check_choice"}
 

@@ -324,9 +324,21 @@ def test_pack_info_and_eval_of_a_series_model(field, pattern, tmp_path, capsys):
     assert main(["info", str(out)]) == 0 and "time        4 steps" in capsys.readouterr().out
 
 
+def test_pack_a_series_to_a_size_takes_the_largest_bit_width_that_fits(field, pattern, tmp_path, capsys):
+    float32 = tmp_path / "s.apmgsrn"
+    save_series(float32, field, SourceInfo(), {}, step_entries(4))
+    sizes = {bits: len(b"".join(t.data for t in pack_series(field, bits).tensors)) for bits in (6, 7, 8)}
+    budget = sizes[7] + 1024 + 64 * 4 + 10  # the file: coded parameters, description and framing
+    code, packed = run_json(["pack", str(float32), pattern, "--out", str(tmp_path / "p.apmgsrn"),
+                             "--size", str(budget)], capsys)
+    assert code == 0 and packed["bits"] == 7 and packed["file_bytes"] <= budget
+    assert apmgsrn.load(tmp_path / "p.apmgsrn").description.packing.report["target_bytes"] == budget
+
+
 @pytest.mark.parametrize("options, message", [
-    (["--size", "1000"], "--size: a time-series model packs at a fixed bit width; only --bits applies"),
-    (["--max-error", "0.1"], "--max-error: .*only --bits applies"),
+    (["--size", "1000", "--ratio", "10"], "--size and --ratio both set the file size"),
+    (["--max-error", "0.1"], "--max-error: a time series packs to a bit width or a size only"),
+    (["--size", "2000"], r"--size 2000: the series' parameters alone take .* bytes even at 2 bits"),
     (["--bits", "1"], "--bits"),
     (["--bits", "32"], "--bits"),
 ])

@@ -206,8 +206,9 @@ def test_resume_after_kill_reaches_the_same_series_model(pattern, tmp_path):
     (["--series-training", "joint", "--start-step", "2"], "--start-step applies to --series-training stepwise"),
     (["--start-step", "middle"], "--start-step middle: must be auto, first, last or a step index"),
     (["--start-step", "7"], "--start-step 7 is outside the series of 4 steps"),
-    (["--bits", "8", "--storage", "float16"], "give one of them"),
-    (["--max-error", "0.1"], "a time series packs to a bit width only"),
+    (["--bits", "8", "--storage", "float16"], "--storage keeps them unpacked: give one"),
+    (["--ratio", "50", "--storage", "float32"], "--storage keeps them unpacked: give one"),
+    (["--max-error", "0.1"], "a time series packs to a bit width or a size only"),
     (["--bricks", "2,1,1", "--series-training", "stepwise"], "stepwise training of bricks is not supported"),
 ])
 def test_stepwise_options_that_do_not_apply_exit_2_with_one_line(pattern, tmp_path, capsys, extra, message):
@@ -234,6 +235,16 @@ def test_stepwise_series_unpacked_and_at_8_bits(pattern, tmp_path, capsys, truth
     packed = apmgsrn.load(tmp_path / "p8.apmgsrn")
     report = packed.description.packing.report
     assert report["bits"] == 8 and report["psnr"] == pytest.approx(eight["psnr"], abs=1e-3)
+    # The default: 10 bits within five single-step models (of this preset: float32 parameters).
+    single = 4 * apmgsrn.load(tmp_path / "p10.apmgsrn").field.step_field(0).parameter_count()
+    default = apmgsrn.load(tmp_path / "p10.apmgsrn").description.packing.report
+    assert default["bits"] == 10 and ten["model_bytes"] <= default["target_bytes"] == 5 * single
+    # A size (here a ratio of the series' float32 bytes) lowers the bit width until the file fits.
+    ratio = truth.nbytes / (eight["model_bytes"] + 200)
+    sized = run_json(capsys, ["train", pattern, "--out", str(tmp_path / "r.apmgsrn"), "--ratio", f"{ratio:.4f}",
+                              "--json", *FAST])
+    assert sized["model_bytes"] <= eight["model_bytes"] + 200
+    assert apmgsrn.load(tmp_path / "r.apmgsrn").description.packing.report["bits"] <= 8
     assert report["float32_psnr"] == pytest.approx(floats["psnr"], abs=1e-3)
     info = run_json(capsys, ["info", str(tmp_path / "p8.apmgsrn"), "--json"])["series"]
     start, iterations = info["stepwise"]["start"], info["stepwise"]["step_iterations"]

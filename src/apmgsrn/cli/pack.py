@@ -22,8 +22,6 @@ from apmgsrn.errors import ApmgsrnError
 
 #: The packing options (dest names); ``train`` packs when any of them is given.
 PACK_OPTIONS = ("bits", "psnr_loss", "size", "ratio", "max_error", "qat_iterations")
-#: Of those, what a time series cannot take (it packs at a fixed bit width).
-SINGLE_FIELD_OPTIONS = ("psnr_loss", "size", "ratio", "max_error", "qat_iterations")
 
 
 def add_pack_arguments(parser: argparse.ArgumentParser, title: str = "packing") -> None:
@@ -115,8 +113,8 @@ def register(subparsers) -> None:
         help="pack a model into a small file (quantised, entropy-coded, optional error bound)",
         description="Quantise and entropy-code a trained model against the volume it was trained on; the file "
                     "loads like any model. The volume measures the PSNR cost (stored in the file) and makes "
-                    "the correction of --max-error. A time-series model packs at --bits (default 10) and is "
-                    "measured on its series.",
+                    "the correction of --max-error. A time-series model packs at --bits (default 10) or to "
+                    "--size / --ratio (the largest bit width that fits) and is measured on its series.",
     )
     parser.add_argument("model", help="trained model file (float32 or packed; one volume or a time series)")
     parser.add_argument("data", nargs="+",
@@ -169,40 +167,37 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_series_pack(args: argparse.Namespace, model) -> int:
-    """``apmgsrn pack`` of a time-series model: every grid at ``--bits``, the PSNR cost measured on every step
+    """``apmgsrn pack`` of a time-series model: every grid at ``--bits`` (or the largest bit width that fits
+    ``--size`` / ``--ratio``), the PSNR cost measured on every step
     of its series (per step in the file, which ``info`` shows).
 
-    Imports nothing of :mod:`apmgsrn.cli.series`, which imports this module (the packing options).
+    :mod:`apmgsrn.cli.series` (imported here, when it runs) reads ``--bits``, ``--size`` and ``--ratio``.
     """
+    from apmgsrn.cli.series import series_packing
     from apmgsrn.data.series import open_series
     from apmgsrn.inference.evaluate import evaluate_series
     from apmgsrn.training.series_packing import (
-        DEFAULT_SERIES_BITS,
-        pack_series,
+        SeriesPacking,
         packed_series_field,
         series_packing_report,
         write_packed_series,
     )
 
-    for option in SINGLE_FIELD_OPTIONS:
-        if getattr(args, option) is not None:
-            raise ApmgsrnError(f"--{option.replace('_', '-')}: a time-series model packs at a fixed bit width; "
-                               f"only --bits applies (default {DEFAULT_SERIES_BITS})")
     layout = model.description.series
     series = open_series(args.data, **volume_options(args, allow_series=True))
     if len(series) != len(layout.steps):
         raise ApmgsrnError(f"{args.model}: the model holds {len(layout.steps)} steps but the data names "
                            f"{len(series)}; pass the series it was trained on")
-    bits = DEFAULT_SERIES_BITS if args.bits is None else args.bits
+    packing = series_packing(args, series.raw_bytes) or SeriesPacking()
     field = model.field.cpu().eval()
     log = (lambda line: None) if args.json else print
-    packed = pack_series(field, bits)
+    packed = packing.pack(field)
     options = dict(trained_shape=model.description.volume_shape, progress=not args.json)
     log(f"measuring the float32 model on {len(series)} steps")
     before = evaluate_series(field.step_field, series, **options)
     log(f"measuring the packed model on {len(series)} steps")
     after = evaluate_series(packed_series_field(field, packed).step_field, series, **options)
-    report = series_packing_report(field, bits, before, after)
+    report = series_packing_report(field, packed.bits, before, after, packing.target_bytes)
     training = {**model.description.training,
                 "steps": [{"psnr": e.psnr, "max_abs_error": e.max_abs_error} for e in after.steps]}
     out = Path(args.out)

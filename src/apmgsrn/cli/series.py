@@ -33,8 +33,9 @@ def add_series_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--series-training", choices=SERIES_TRAINING,
                        help="stepwise (default): a model of the step with the most detail, then every other step's "
                             "own grids fine-tuned from its neighbour's, placement and decoder shared, stored packed "
-                            "(--bits, default 10); joint (the default and only choice with --bricks): one model of "
-                            "all steps trained at once (the options below)")
+                            "(--bits, default 10, lowered to 6 at most to stay within 5 single-step models; or "
+                            "--size, --ratio); joint (the default and only choice with --bricks): one model of all "
+                            "steps trained at once (the options below)")
     group.add_argument("--start-step", metavar="auto|first|last|K",
                        help="stepwise: the step the first model is trained on (default auto: the most detail)")
     group.add_argument("--step-iterations", type=int, metavar="N",
@@ -101,11 +102,11 @@ def run_series_train(args: argparse.Namespace, series, field_config, train_confi
 
     device = resolve_device(args.device)  # the same device build_configs sized the budget for
     config = build_series_config(args, field_config, len(series))
-    stepwise, bits = series_training(args)
+    stepwise, packing = series_training(args, config, series.raw_bytes)
     out = Path(args.out)
     try:
         result = fit_series(series, config, train_config, out, device, transform=args.transform,
-                            log_offset=args.log_offset, resume=args.resume, stepwise=stepwise, bits=bits)
+                            log_offset=args.log_offset, resume=args.resume, stepwise=stepwise, packing=packing)
     except TrainingInterrupted as exc:
         print(f"{exc}; run the same command with --resume to continue")
         return 130
@@ -141,24 +142,25 @@ def run_series_train(args: argparse.Namespace, series, field_config, train_confi
     return 0
 
 
-def series_training(args: argparse.Namespace):
-    """(StepwiseConfig or None for a joint model, bit width to pack to or None) of the command line.
+def series_training(args: argparse.Namespace, config, raw_bytes: int):
+    """(StepwiseConfig or None for a joint model, SeriesPacking or None for a float file) of the command line.
+
+    Args:
+        args: the command line.
+        config: the series model (sizes the default packing).
+        raw_bytes: the series' bytes as float32 (``--ratio`` divides them).
 
     Raises:
-        ApmgsrnError: a packing option a series does not take, --bits with --storage, or a bad --start-step.
+        ApmgsrnError: a packing option a series does not take, packing with --storage, or a bad --start-step.
     """
-    from apmgsrn.cli.pack import PACK_OPTIONS
-    from apmgsrn.training.series_packing import DEFAULT_SERIES_BITS
+    from apmgsrn.training.series_packing import default_series_packing
     from apmgsrn.training.series_steps import StepwiseConfig
 
-    for option in PACK_OPTIONS:
-        if option != "bits" and getattr(args, option, None) is not None:
-            flag = "--" + option.replace("_", "-")
-            raise ApmgsrnError(f"{flag}: a time series packs to a bit width only (--bits B); drop {flag}")
-    if args.bits is not None and args.storage is not None:
-        raise ApmgsrnError("--bits packs the grids, --storage keeps them unpacked: give one of them")
+    packing = series_packing(args, raw_bytes)
+    if packing is not None and args.storage is not None:
+        raise ApmgsrnError("--bits, --size and --ratio pack the grids, --storage keeps them unpacked: give one")
     if args.series_training == "joint":
-        return None, args.bits
+        return None, packing
     start = args.start_step or "auto"
     if start not in ("auto", "first", "last"):
         try:
@@ -166,7 +168,37 @@ def series_training(args: argparse.Namespace):
         except ValueError:
             raise ApmgsrnError(f"--start-step {start}: must be auto, first, last or a step index") from None
     stepwise = StepwiseConfig(start=start, step_iterations=args.step_iterations)
-    return stepwise, args.bits if args.bits is not None else (None if args.storage else DEFAULT_SERIES_BITS)
+    if packing is None and args.storage is None:
+        packing = default_series_packing(config)
+    return stepwise, packing
+
+
+def series_packing(args: argparse.Namespace, raw_bytes: int):
+    """The :class:`~apmgsrn.training.series_packing.SeriesPacking` that ``--bits``, ``--size`` or ``--ratio``
+    ask for (``train`` and ``pack`` of a series), None when none is given.
+
+    Raises:
+        ApmgsrnError: another packing option (a series packs to a bit width or a size only), or both a size
+            and a ratio.
+    """
+    from apmgsrn.cli.pack import PACK_OPTIONS
+    from apmgsrn.training.series_packing import DEFAULT_SERIES_BITS, SeriesPacking
+
+    for option in PACK_OPTIONS:
+        if option not in ("bits", "size", "ratio") and getattr(args, option, None) is not None:
+            flag = "--" + option.replace("_", "-")
+            raise ApmgsrnError(f"{flag}: a time series packs to a bit width or a size only (--bits, --size, "
+                               f"--ratio); drop {flag}")
+    if args.size is not None and args.ratio is not None:
+        raise ApmgsrnError("--size and --ratio both set the file size: give one of them")
+    if args.ratio is not None and not (math.isfinite(args.ratio) and args.ratio > 0):
+        raise ApmgsrnError(f"--ratio {args.ratio}: must be a positive number such as 100")
+    size = args.size if args.ratio is None else max(int(raw_bytes / args.ratio), 1)
+    if size is not None:
+        return SeriesPacking(args.bits or DEFAULT_SERIES_BITS, size)
+    if args.bits is not None:
+        return SeriesPacking(args.bits, min_bits=args.bits)
+    return None
 
 
 def build_series_config(args: argparse.Namespace, field_config, steps: int):

@@ -37,7 +37,7 @@ from apmgsrn.models.series_field import SeriesField, SeriesFieldConfig
 from apmgsrn.models.value_transform import ValueTransform, fit_value_transform
 from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.checkpoint import checkpoint_path_for
-from apmgsrn.training.series_packing import pack_series, series_packing_report, write_packed_series
+from apmgsrn.training.series_packing import SeriesPacking, series_packing_report, write_packed_series
 from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, TrainingState
 
 
@@ -235,7 +235,7 @@ def fit(
     summary_extra: dict | None = None,
     steps: Sequence[SeriesStepInfo] | None = None,
     train: Callable[..., TrainedField] = train_prepared,
-    bits: int | None = None,
+    packing: SeriesPacking | None = None,
 ) -> FitResult:
     """Train a field on prepared values, measure it against the truth and save it to ``out``.
 
@@ -257,26 +257,26 @@ def fit(
         steps: a series: each step's number, name and value range, saved in the file.
         train: trains the field (:func:`train_prepared`'s signature; a series trained step by step passes
             :func:`~apmgsrn.training.series_steps.train_stepwise`).
-        bits: a series: pack its grids to this bit width (a ``packed-series`` file; None: the series file of
-            its config's storage dtype).
+        packing: a series: how to pack its grids (a ``packed-series`` file; None: the series file of its
+            config's storage dtype).
     """
     out = Path(out)
     series = isinstance(field_config, SeriesFieldConfig)
-    kind = (PACKED_SERIES_KIND if bits is not None else SERIES_KIND) if series else FIELD_KIND
+    kind = (PACKED_SERIES_KIND if packing is not None else SERIES_KIND) if series else FIELD_KIND
     check_output(out, resume, kind)
     checkpoint = checkpoint_path_for(out)
     trained = train(prepared, field_config, train_config, tuple(truth.shape[-3:]), checkpoint, fingerprint, callbacks)
     packed = None
     if series:
-        if bits is None:
+        if packing is None:
             trained.field.round_to_storage()  # measure what the file will give back
         else:
             before = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
-            packed = pack_series(trained.field, bits)
+            packed = packing.pack(trained.field)
             trained.field.load_state_dict(packed.state)  # measure what the file will give back
         evaluation = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
         if packed is not None:
-            report = series_packing_report(trained.field, bits, before, evaluation)
+            report = series_packing_report(trained.field, packed.bits, before, evaluation, packing.target_bytes)
         summary_extra = {"steps": [{"psnr": e.psnr, "max_abs_error": e.max_abs_error} for e in evaluation.steps],
                          **(summary_extra or {})}
     else:

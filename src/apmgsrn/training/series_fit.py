@@ -25,6 +25,7 @@ from apmgsrn.io.container import PACKED_SERIES_KIND, SERIES_KIND
 from apmgsrn.models.series_field import SeriesFieldConfig
 from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.fit import FitResult, check_output, fit, prepare_values
+from apmgsrn.training.series_packing import SeriesPacking
 from apmgsrn.training.series_steps import StepwiseConfig, train_stepwise
 from apmgsrn.training.trainer import TrainConfig
 
@@ -40,7 +41,7 @@ def fit_series(
     resume: bool = False,
     progress: bool = True,
     stepwise: StepwiseConfig | None = None,
-    bits: int | None = None,
+    packing: SeriesPacking | None = None,
 ) -> FitResult:
     """Train one time-series model on every step of a series and save it to ``out``.
 
@@ -60,14 +61,14 @@ def fit_series(
         resume: continue from ``out.ckpt`` if it exists.
         progress: show training progress (see :mod:`apmgsrn.progress`).
         stepwise: train step by step (None: one joint model of all steps).
-        bits: pack the grids to this bit width (a ``packed-series`` file); None: a float series file.
+        packing: how to pack the grids (a ``packed-series`` file); None: a float series file.
 
     Returns:
         The result; its evaluation is a :class:`~apmgsrn.inference.evaluate.SeriesEvaluation`.
     """
     if field_config.series.steps != len(series):
         raise ValueError(f"the model has {field_config.series.steps} steps, the series {len(series)}")
-    check_output(out, resume, SERIES_KIND if bits is None else PACKED_SERIES_KIND)  # before reading the series
+    check_output(out, resume, SERIES_KIND if packing is None else PACKED_SERIES_KIND)  # before reading the series
     data = series.to_numpy()  # [T, D, H, W] float32, data units
     prepared = prepare_values(data, transform, log_offset, series.describe(), device)
     source = SourceInfo(series.step_name(0), series.variable, series.describe())
@@ -78,7 +79,8 @@ def fit_series(
                    "transform": asdict(prepared.transform)}
     if stepwise is None:
         return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
-                   callbacks=[TrainingProgress(enabled=progress)], steps=steps, bits=bits)
+                   callbacks=[TrainingProgress(enabled=progress)], steps=steps, packing=packing)
     train = partial(train_stepwise, stepwise=stepwise, show_progress=progress)
     return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
-               callbacks=[TrainingProgress("start step", enabled=progress)], steps=steps, bits=bits, train=train)
+               callbacks=[TrainingProgress("start step", enabled=progress)], steps=steps, packing=packing,
+               train=train)

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from apmgsrn.arguments import check_int
+from apmgsrn.errors import InvalidArgument
 from apmgsrn.inference.evaluate import SeriesEvaluation
 from apmgsrn.io import SeriesStepInfo, SourceInfo
 from apmgsrn.io.packed import PackedTensor, encode_float32, encode_quantized
@@ -114,6 +115,64 @@ def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS) -> PackedSe
     return PackedSeries(tensors, state, bits)
 
 
+@dataclass(frozen=True)
+class SeriesPacking:
+    """How a series is packed: at ``bits``, or at the largest bit width from ``bits`` down to ``min_bits`` whose
+    coded parameters fit in ``target_bytes``.
+
+    Attributes:
+        bits: the bit width (the largest tried, with a target).
+        target_bytes: bytes the file may take (None: no limit; the description and framing are allowed for,
+            :func:`parameter_budget`).
+        min_bits: the smallest bit width tried for a target.
+        strict: refuse to pack when not even ``min_bits`` fits (False: pack at ``min_bits`` anyway, as the
+            default cap of ``train`` does).
+    """
+
+    bits: int = DEFAULT_SERIES_BITS
+    target_bytes: int | None = None
+    min_bits: int = MIN_BITS
+    strict: bool = True
+
+    def __post_init__(self) -> None:
+        """Refuse values packing cannot run with (:class:`~apmgsrn.errors.InvalidArgument`)."""
+        check_int("bits", self.bits, MIN_BITS, MAX_BITS)
+        check_int("min_bits", self.min_bits, MIN_BITS, self.bits)
+        if self.target_bytes is not None:
+            check_int("target_bytes", self.target_bytes, 1)
+
+    def pack(self, field: SeriesField) -> PackedSeries:
+        """The packed field (with a target: each bit width from the largest down, until one fits)."""
+        budget = None if self.target_bytes is None else parameter_budget(self.target_bytes, field.steps)
+        for bits in range(self.bits, self.min_bits - 1, -1):
+            packed = pack_series(field, bits)
+            if budget is None or packed.parameter_bytes <= budget:
+                return packed
+        if self.strict:
+            raise InvalidArgument(f"target_bytes={self.target_bytes}: the series' parameters alone take "
+                                  f"{packed.parameter_bytes:,} bytes even at {self.min_bits} bits; allow more bytes "
+                                  "or train a smaller model", arguments=("target_bytes",))
+        return packed
+
+
+#: A stepwise series is packed within this many single-step float32 models of its preset unless the command
+#: line says otherwise (``--bits`` or ``--size``), lowering the bit width from 10 to at most 6 if it must: the 30
+#: viscous-finger steps take 4.2 at 10 bits; steps that change more code less well along time.
+DEFAULT_SERIES_MODELS, DEFAULT_SERIES_MIN_BITS = 5, 6
+
+
+def default_series_packing(field_config) -> SeriesPacking:
+    """How ``train`` packs a stepwise series of ``field_config`` (a :class:`SeriesFieldConfig`) by default."""
+    single = 4 * sum(math.prod(shape) for shape in field_config.field.parameter_shapes().values())
+    return SeriesPacking(DEFAULT_SERIES_BITS, DEFAULT_SERIES_MODELS * single, DEFAULT_SERIES_MIN_BITS, strict=False)
+
+
+def parameter_budget(file_bytes: int, steps: int) -> int:
+    """Bytes the coded parameters may take in a packed series file of ``file_bytes`` with ``steps`` steps (the
+    description, which lists every step, and the container framing take the rest)."""
+    return max(1, file_bytes - 1024 - 64 * steps)
+
+
 def packed_series_field(field: SeriesField, packed: PackedSeries) -> SeriesField:
     """A copy of ``field`` (CPU, eval) holding the packed values: what the packed file loads as."""
     restored = copy.deepcopy(field).cpu().eval()
@@ -141,15 +200,17 @@ def write_packed_series(path: str | os.PathLike, field: SeriesField, packed: Pac
     return save_packed_series(path, packed_series_bytes(field, packed.tensors, source, training, steps, report))
 
 
-def series_packing_report(field: SeriesField, bits: int, before: SeriesEvaluation, after: SeriesEvaluation) -> dict:
+def series_packing_report(field: SeriesField, bits: int, before: SeriesEvaluation, after: SeriesEvaluation,
+                          target_bytes: int | None = None) -> dict:
     """What packing a series at ``bits`` cost, as the file's ``packing`` entry (``info`` shows it).
 
     Args:
         field: the series field (its float32 parameter count).
         bits: the bit width packed to.
         before, after: the field measured on every step before and after packing.
+        target_bytes: the bytes the coded parameters were to fit in, if any.
     """
-    report = {"mode": "bits", "bits": bits, "float32_psnr": before.psnr, "float32_max_abs_error": before.max_abs_error,
+    report = {"mode": "bits" if target_bytes is None else "size", "bits": bits, "target_bytes": target_bytes, "float32_psnr": before.psnr, "float32_max_abs_error": before.max_abs_error,
               "float32_parameter_bytes": 4 * field.parameter_count(), "qat_iterations": 0, "psnr": after.psnr,
               "max_abs_error": after.max_abs_error, "psnr_cost": _cost(before.psnr, after.psnr),
               "worst_step_psnr_cost": max(_cost(b.psnr, a.psnr) for b, a in zip(before.steps, after.steps))}
