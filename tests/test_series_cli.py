@@ -281,3 +281,18 @@ def test_stepwise_resume_after_kill_reaches_the_same_model(pattern, tmp_path):
     a, b = apmgsrn.load(full).field.state_dict(), apmgsrn.load(out).field.state_dict()
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
     assert not checkpoint.exists()
+
+
+def test_fit_in_python_takes_a_series_and_trains_it_stepwise(pattern, truth):
+    """apmgsrn.fit on a glob: the notebook's way to the same stepwise, packed model as train."""
+    model = apmgsrn.fit(pattern, iterations=120, batch_size=2048, resolution=8, width=32, progress=False)
+    assert model.description.kind == "packed-series" and model.description.series.config.per_step_grids
+    assert model.path is None and len(model.description.series.steps) == 4
+    stepwise = model.description.training["stepwise"]
+    assert stepwise["start"] in range(4) and stepwise["step_iterations"][stepwise["start"]] == 0
+    for t in range(4):
+        assert evaluate(model.step_field(t), truth[t]).psnr == pytest.approx(
+            model.description.training["steps"][t]["psnr"], abs=1e-6)
+    files = sorted(Path(pattern).parent.glob("*.vti"))[:2]
+    assert apmgsrn.fit([str(f) for f in files], iterations=40, batch_size=1024, resolution=8, width=16,
+                       progress=False).description.series.steps[1].label == 31

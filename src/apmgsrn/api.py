@@ -23,6 +23,7 @@ from torch import nn
 import apmgsrn.decomposition.brick_model  # noqa: F401 - registers the brick-model loader
 import apmgsrn.decomposition.series_bricks  # noqa: F401 - registers the time-series brick-model loader
 from apmgsrn.data import ArrayVolume, Volume, open_volume
+from apmgsrn.data.series import is_series_input, open_series, parse_time
 from apmgsrn.data.grid import AxisCoordinates, Region, VolumeMetadata, plain_attributes
 from apmgsrn.device import inference_dtype, resolve_device
 from apmgsrn.errors import ApmgsrnError
@@ -43,7 +44,10 @@ from apmgsrn.render.raymarch import default_batch_size
 from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.fit import fit as fit_prepared
 from apmgsrn.training.fit import prepare_values
-from apmgsrn.training.trainer import TrainConfig, default_budget
+from apmgsrn.training.series_fit import fit_series
+from apmgsrn.training.series_packing import default_series_packing
+from apmgsrn.training.series_steps import STEPWISE_VOXEL_FRACTION, StepwiseConfig, stepwise_config
+from apmgsrn.training.trainer import SERIES_ANCHORED_GRIDS, TrainConfig, default_budget
 
 
 class Model(nn.Module):
@@ -275,22 +279,13 @@ def fit(
         ApmgsrnError: unreadable data, NaN/Inf voxels without ``fill_nonfinite``, an invalid option.
     """
     device = _device(device)
+    if isinstance(time, str):
+        time = parse_time(time)  # "all" or "A:B[:S]": a series along a time dimension
+    if (isinstance(data, (str, os.PathLike)) or _is_path_list(data)) and is_series_input(data, time):
+        return _fit_series(data, preset, model, iterations, batch_size, device, transform, log_offset, variable,
+                           time, fill_nonfinite, progress, options)
     volume = _as_volume(data, variable=variable, time=time, fill_nonfinite=fill_nonfinite)
-    train_names = {f.name for f in dataclass_fields(TrainConfig)}
-    train_options = {k: v for k, v in options.items() if k in train_names}
-    model_options = {k: v for k, v in options.items() if k not in train_names}
-    if isinstance(model_options.get("resolution"), (int, np.integer)):
-        model_options["resolution"] = (int(model_options["resolution"]),) * 3  # R -> (R, R, R), as --resolution
-    default_iterations, default_batch = default_budget(device)
-    train_options = {**training_defaults(model), **train_options}  # what is given wins, None included
-    train_config = TrainConfig(iterations=default_iterations if iterations is None else iterations,
-                               batch_size=default_batch if batch_size is None else batch_size, **train_options)
-    try:
-        field_config = preset_config(model, preset, **model_options)
-    except ApmgsrnError:
-        raise  # names the argument already
-    except (TypeError, ValueError) as exc:
-        raise ApmgsrnError(f"invalid model options: {exc}") from None
+    field_config, train_config = _configs(model, preset, iterations, batch_size, device, options)
     truth = volume.to_numpy()  # [D, H, W] float32, data units
     prepared = prepare_values(truth, transform, log_offset, str(volume.path), device)
     with tempfile.TemporaryDirectory(prefix="apmgsrn-fit-") as folder:
@@ -300,6 +295,52 @@ def fit(
                      callbacks=[TrainingProgress(enabled=progress)])
         fitted = load(out, device)
     fitted.path = None  # the file was a temporary one
+    return fitted
+
+
+def _is_path_list(data) -> bool:
+    return isinstance(data, (list, tuple)) and bool(data) and all(isinstance(d, (str, os.PathLike)) for d in data)
+
+
+def _configs(model: str, preset: str, iterations, batch_size, device: torch.device, options: dict,
+             defaults: dict | None = None):
+    """(FieldConfig, TrainConfig) of :func:`fit`'s arguments: ``options`` split into model and training options,
+    over the model kind's training defaults and ``defaults``.
+
+    Raises:
+        ApmgsrnError: an invalid option.
+    """
+    train_names = {f.name for f in dataclass_fields(TrainConfig)}
+    train_options = {k: v for k, v in options.items() if k in train_names}
+    model_options = {k: v for k, v in options.items() if k not in train_names}
+    if isinstance(model_options.get("resolution"), (int, np.integer)):
+        model_options["resolution"] = (int(model_options["resolution"]),) * 3  # R -> (R, R, R), as --resolution
+    default_iterations, default_batch = default_budget(device)
+    train_options = {**training_defaults(model), **(defaults or {}), **train_options}  # what is given wins
+    train_config = TrainConfig(iterations=default_iterations if iterations is None else iterations,
+                               batch_size=default_batch if batch_size is None else batch_size, **train_options)
+    try:
+        return preset_config(model, preset, **model_options), train_config
+    except ApmgsrnError:
+        raise  # names the argument already
+    except (TypeError, ValueError) as exc:
+        raise ApmgsrnError(f"invalid model options: {exc}") from None
+
+
+def _fit_series(data, preset, model, iterations, batch_size, device, transform, log_offset, variable, time,
+                fill_nonfinite, progress, options) -> Model:
+    """:func:`fit` of a time series: trained stepwise and packed, as ``apmgsrn train`` does by default."""
+    series = open_series(data, variable=variable, time=time, fill_nonfinite=fill_nonfinite)
+    field_config, train_config = _configs(model, preset, iterations, batch_size, device, options,
+                                          {"voxel_fraction": STEPWISE_VOXEL_FRACTION,
+                                           "anchored_grids": SERIES_ANCHORED_GRIDS})
+    config = stepwise_config(field_config, len(series))
+    with tempfile.TemporaryDirectory(prefix="apmgsrn-fit-") as folder:
+        out = Path(folder) / "model.apmgsrn"
+        fit_series(series, config, train_config, out, device, transform=transform, log_offset=log_offset,
+                   progress=progress, stepwise=StepwiseConfig(), packing=default_series_packing(config))
+        fitted = load(out, device)
+    fitted.path = None
     return fitted
 
 

@@ -61,18 +61,26 @@ def pack_config(args: argparse.Namespace, stored_bytes: int):
     """
     from apmgsrn.training.packing import PackConfig
 
-    if args.size is not None and args.ratio is not None:
-        raise ApmgsrnError("--size and --ratio both set the file size: give one of them")
-    target = args.size
-    if args.ratio is not None:
-        if not (math.isfinite(args.ratio) and args.ratio > 0):
-            raise ApmgsrnError(f"--ratio {args.ratio}: must be a positive number such as 1000")
-        target = max(int(stored_bytes / args.ratio), 1)
-    options = {"bits": args.bits, "target_bytes": target, "max_error": args.max_error,
+    options = {"bits": args.bits, "target_bytes": target_bytes(args, stored_bytes), "max_error": args.max_error,
                "qat_iterations": args.qat_iterations or 0}
     if args.psnr_loss is not None:
         options["psnr_loss"] = args.psnr_loss
     return PackConfig(**options)
+
+
+def target_bytes(args: argparse.Namespace, stored_bytes: int) -> int | None:
+    """The file size ``--size`` or ``--ratio`` (of ``stored_bytes``) asks for; None when neither is given.
+
+    Raises:
+        ApmgsrnError: both given, or a ratio that is not a positive number.
+    """
+    if args.size is not None and args.ratio is not None:
+        raise ApmgsrnError("--size and --ratio both set the file size: give one of them")
+    if args.ratio is None:
+        return args.size
+    if not (math.isfinite(args.ratio) and args.ratio > 0):
+        raise ApmgsrnError(f"--ratio {args.ratio}: must be a positive number such as 1000")
+    return max(int(stored_bytes / args.ratio), 1)
 
 
 def pack_model(field, volume, config, training: dict, device, out: Path, log=print):
@@ -105,6 +113,29 @@ def packing_lines(report: dict, file_bytes: int, compression: dict) -> list[str]
                      f"over every voxel ({report['corrected_voxels']:,} voxels corrected), "
                      f"PSNR {report['bounded_psnr']:.2f} dB")
     return lines
+
+
+def series_packing(args: argparse.Namespace, raw_bytes: int):
+    """The :class:`~apmgsrn.training.series_packing.SeriesPacking` that ``--bits``, ``--size`` or ``--ratio``
+    ask for (``train`` and ``pack`` of a series), None when none is given.
+
+    Raises:
+        ApmgsrnError: another packing option (a series packs to a bit width or a size only), or both a size
+            and a ratio.
+    """
+    from apmgsrn.training.series_packing import DEFAULT_SERIES_BITS, SeriesPacking
+
+    for option in PACK_OPTIONS:
+        if option not in ("bits", "size", "ratio") and getattr(args, option, None) is not None:
+            flag = "--" + option.replace("_", "-")
+            raise ApmgsrnError(f"{flag}: a time series packs to a bit width or a size only (--bits, --size, "
+                               f"--ratio); drop {flag}")
+    size = target_bytes(args, raw_bytes)
+    if size is not None:
+        return SeriesPacking(args.bits or DEFAULT_SERIES_BITS, size)
+    if args.bits is not None:
+        return SeriesPacking(args.bits, min_bits=args.bits)
+    return None
 
 
 def register(subparsers) -> None:
@@ -171,9 +202,8 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
     ``--size`` / ``--ratio``), the PSNR cost measured on every step
     of its series (per step in the file, which ``info`` shows).
 
-    :mod:`apmgsrn.cli.series` (imported here, when it runs) reads ``--bits``, ``--size`` and ``--ratio``.
+    Imports nothing of :mod:`apmgsrn.cli.series`, which imports this module (the packing options).
     """
-    from apmgsrn.cli.series import series_packing
     from apmgsrn.data.series import open_series
     from apmgsrn.inference.evaluate import evaluate_series
     from apmgsrn.training.series_packing import (

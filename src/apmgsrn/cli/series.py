@@ -153,6 +153,7 @@ def series_training(args: argparse.Namespace, config, raw_bytes: int):
     Raises:
         ApmgsrnError: a packing option a series does not take, packing with --storage, or a bad --start-step.
     """
+    from apmgsrn.cli.pack import series_packing
     from apmgsrn.training.series_packing import default_series_packing
     from apmgsrn.training.series_steps import StepwiseConfig
 
@@ -171,34 +172,6 @@ def series_training(args: argparse.Namespace, config, raw_bytes: int):
     if packing is None and args.storage is None:
         packing = default_series_packing(config)
     return stepwise, packing
-
-
-def series_packing(args: argparse.Namespace, raw_bytes: int):
-    """The :class:`~apmgsrn.training.series_packing.SeriesPacking` that ``--bits``, ``--size`` or ``--ratio``
-    ask for (``train`` and ``pack`` of a series), None when none is given.
-
-    Raises:
-        ApmgsrnError: another packing option (a series packs to a bit width or a size only), or both a size
-            and a ratio.
-    """
-    from apmgsrn.cli.pack import PACK_OPTIONS
-    from apmgsrn.training.series_packing import DEFAULT_SERIES_BITS, SeriesPacking
-
-    for option in PACK_OPTIONS:
-        if option not in ("bits", "size", "ratio") and getattr(args, option, None) is not None:
-            flag = "--" + option.replace("_", "-")
-            raise ApmgsrnError(f"{flag}: a time series packs to a bit width or a size only (--bits, --size, "
-                               f"--ratio); drop {flag}")
-    if args.size is not None and args.ratio is not None:
-        raise ApmgsrnError("--size and --ratio both set the file size: give one of them")
-    if args.ratio is not None and not (math.isfinite(args.ratio) and args.ratio > 0):
-        raise ApmgsrnError(f"--ratio {args.ratio}: must be a positive number such as 100")
-    size = args.size if args.ratio is None else max(int(raw_bytes / args.ratio), 1)
-    if size is not None:
-        return SeriesPacking(args.bits or DEFAULT_SERIES_BITS, size)
-    if args.bits is not None:
-        return SeriesPacking(args.bits, min_bits=args.bits)
-    return None
 
 
 def build_series_config(args: argparse.Namespace, field_config, steps: int):
