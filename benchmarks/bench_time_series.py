@@ -5,6 +5,7 @@
     python benchmarks/bench_time_series.py timing --threads 1     # one step's training right before and after
     python benchmarks/bench_time_series.py speed --model M        # decode/render one step: series vs single file
     python benchmarks/bench_time_series.py report                 # docs/time_series_results.md + chart
+    python benchmarks/bench_time_series.py moving --out DIR        # a series whose structures move (then --data DIR)
 
 Protocol (REFERENCE.md, CPU): 2,000 iterations x 32,768 points, lr 0.01, seed 0, the small preset, PSNR
 over every voxel of each step at native resolution. Rows are appended as they finish, so a killed run
@@ -92,15 +93,21 @@ def run_baseline(args: argparse.Namespace) -> None:
 
 
 def _series_files(folder: Path) -> list[Path]:
-    return sorted(p for p in Path(folder).iterdir() if p.suffix == ".vti")
+    """The volume files of a folder (.vti, .npy, .nc, ...), in name order."""
+    from apmgsrn.data.readers import SUPPORTED_SUFFIXES
+
+    suffixes = {s for names in SUPPORTED_SUFFIXES.values() for s in names}
+    return sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in suffixes)
 
 
 def run_series(args: argparse.Namespace) -> None:
     """One time-series model for every step, through ``fit_series`` (the ``train`` command's pipeline)."""
+    import apmgsrn
     from apmgsrn.data.series import open_series
     from apmgsrn.models.registry import preset_config
     from apmgsrn.models.series_field import series_config
     from apmgsrn.training.series_fit import fit_series
+    from apmgsrn.training.series_packing import SeriesPacking, default_series_packing
     from apmgsrn.training.series_steps import STEPWISE_VOXEL_FRACTION, StepwiseConfig, stepwise_config
     from apmgsrn.training.trainer import SERIES_ANCHORED_GRIDS, TrainConfig, series_budget
 
@@ -112,13 +119,14 @@ def run_series(args: argparse.Namespace) -> None:
         if joint:
             raise SystemExit(f"--{joint[0].replace('_', '-')} shapes a joint model: add --series-training joint")
         iterations, config = args.iterations, stepwise_config(small, len(series))
-        stepwise, bits = StepwiseConfig(start=args.start), args.bits
+        stepwise = StepwiseConfig(start=args.start)
+        packing = default_series_packing(config) if args.bits is None else SeriesPacking(args.bits, min_bits=args.bits)
         voxel_fraction = STEPWISE_VOXEL_FRACTION if args.voxel_fraction is None else args.voxel_fraction
         anchored = SERIES_ANCHORED_GRIDS if args.anchored_grids is None else args.anchored_grids
     else:
         iterations = args.series_iterations or series_budget(args.iterations, len(series))
         config = series_config(small, len(series), args.basis, args.coefficients, args.residual, args.storage)
-        stepwise, bits = None, None
+        stepwise, packing = None, None
         voxel_fraction, anchored = args.voxel_fraction or 0.0, args.anchored_grids or 0
     train_config = TrainConfig(iterations=iterations, batch_size=args.batch_size, lr=0.01, seed=args.seed,
                                voxel_fraction=voxel_fraction, anchored_grids=anchored)
@@ -126,10 +134,11 @@ def run_series(args: argparse.Namespace) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "series.apmgsrn"
         result = fit_series(series, config, train_config, out, torch.device("cpu"), progress=args.progress,
-                            stepwise=stepwise, bits=bits)
+                            stepwise=stepwise, packing=packing)
         model_bytes = out.stat().st_size
         if args.keep:
             args.keep.write_bytes(out.read_bytes())
+        bits = apmgsrn.load(out).description.packing.report["bits"] if packing is not None else None
     if stepwise is not None:
         described = (f"stepwise start={args.start} iterations={iterations} bits={bits} "
                      f"voxel_fraction={voxel_fraction:g} anchored_grids={anchored}"
@@ -149,6 +158,21 @@ def run_series(args: argparse.Namespace) -> None:
             "cpu": _cpu()})
     print(f"series model: {model_bytes:,} bytes, {result.seconds:.1f} s, lowest step PSNR "
           f"{min(e.psnr for e in result.evaluation.steps):.2f} dB", flush=True)
+
+
+def write_moving(args: argparse.Namespace) -> None:
+    """A series whose structures move: one real volume shifted along x by ``--shift`` voxels more at every step
+    (periodic wrap), written as ``step_NN.npy`` files to ``--out``. The steps share everything but where
+    things are, which is what a placement shared by all steps finds hardest."""
+    import numpy as np
+
+    from apmgsrn.data import open_volume
+
+    values = open_volume(args.volume).to_numpy()  # [D, H, W]
+    args.out.mkdir(parents=True, exist_ok=True)
+    for step in range(args.steps):
+        np.save(args.out / f"step_{step:02d}.npy", np.roll(values, step * args.shift, axis=2))
+    print(f"wrote {args.steps} steps of {values.shape} to {args.out}, shifted {args.shift} voxels per step")
 
 
 def run_timing(args: argparse.Namespace) -> None:
@@ -335,7 +359,9 @@ def main() -> None:
     series.add_argument("--progress", action="store_true")
     series.add_argument("--series-training", choices=("stepwise", "joint"), default="stepwise")
     series.add_argument("--start", default="auto", help="stepwise: the start step (auto, first, last)")
-    series.add_argument("--bits", type=int, default=10, help="stepwise: bit width the grids are packed to")
+    series.add_argument("--bits", type=int,
+                        help="stepwise: bit width the grids are packed to (default: as train packs, 10 bits within "
+                             "five single-step models)")
     series.add_argument("--seed", type=int, default=0)
     series.add_argument("--voxel-fraction", type=float,
                         help="share of every batch on voxels (default: stepwise 0.5, joint 0)")
@@ -352,14 +378,19 @@ def main() -> None:
     speed.add_argument("--repeats", type=int, default=5)
     speed.add_argument("--image-size", type=int, default=256)
     speed.add_argument("--threads", type=int, default=1)
+    moving = sub.add_parser("moving", help="write a series of one volume shifted further at every step")
+    moving.add_argument("--volume", type=Path, default=ROOT.parent / "shared" / "data" / "viscous_fingers_t050.vti")
+    moving.add_argument("--steps", type=int, default=10)
+    moving.add_argument("--shift", type=int, default=4, help="voxels along x per step")
+    moving.add_argument("--out", type=Path, required=True)
     report = sub.add_parser("report", help="the per-step table and chart in docs/")
     report.add_argument("--out", type=Path, default=DOCS / "time_series_results.md")
     for p in (base, series, timing):
-        p.add_argument("--data", type=Path, default=SERIES)
-        p.add_argument("--threads", type=int, default=1)
+        p.add_argument("--data", type=Path, default=SERIES, help="a folder of volume files, one per step")
         p.add_argument("--iterations", type=int, default=2000)
         p.add_argument("--batch-size", type=int, default=32768)
-    report.add_argument("--threads", type=int, default=1)
+    for p in (base, series, timing, moving, report):
+        p.add_argument("--threads", type=int, default=1)
     report.add_argument("--timing-steps", help="baseline steps trained alongside the series model, e.g. 15,10,20,25: "
                                                "their mean time is the one-step time of the 5x criterion")
     args = parser.parse_args()
@@ -373,6 +404,8 @@ def main() -> None:
         run_timing(args)
     elif args.command == "speed":
         run_speed(args)
+    elif args.command == "moving":
+        write_moving(args)
     else:
         write_report(args.out, [int(t) for t in args.timing_steps.split(",")] if args.timing_steps else None)
     print(f"done in {time.perf_counter() - start:.0f} s")
