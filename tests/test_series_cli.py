@@ -210,6 +210,7 @@ def test_resume_after_kill_reaches_the_same_series_model(pattern, tmp_path):
     (["--ratio", "50", "--storage", "float32"], "--storage keeps them unpacked: give one"),
     (["--max-error", "0.1"], "a time series packs to a bit width or a size only"),
     (["--bricks", "2,1,1", "--series-training", "stepwise"], "stepwise training of bricks is not supported"),
+    (["--model", "fvsrn"], "a time-series model extends adaptive grids (apmgsrn), not 'fvsrn'"),
 ])
 def test_stepwise_options_that_do_not_apply_exit_2_with_one_line(pattern, tmp_path, capsys, extra, message):
     out = tmp_path / "m.apmgsrn"

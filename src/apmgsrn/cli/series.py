@@ -183,17 +183,16 @@ def build_series_config(args: argparse.Namespace, field_config, steps: int):
     from apmgsrn.models.series_field import series_config
     from apmgsrn.training.series_steps import stepwise_config
 
-    if args.series_training == "stepwise":
-        given = [option for option in JOINT_OPTIONS if getattr(args, option, None) is not None]
-        if given:
-            flag = "--" + given[0].replace("_", "-")
-            raise ApmgsrnError(f"{flag} shapes a joint series model; add --series-training joint or drop {flag}")
-        return stepwise_config(field_config, steps, args.storage or "float32")
-    for option in ("start_step", "step_iterations"):
+    stepwise = args.series_training == "stepwise"
+    for option in JOINT_OPTIONS if stepwise else ("start_step", "step_iterations"):
         if getattr(args, option, None) is not None:
             flag = "--" + option.replace("_", "-")
-            raise ApmgsrnError(f"{flag} applies to --series-training stepwise; drop it for a joint model")
+            raise ApmgsrnError(f"{flag} shapes a joint series model; add --series-training joint or drop {flag}"
+                               if stepwise else
+                               f"{flag} applies to --series-training stepwise; drop it for a joint model")
     try:
+        if stepwise:
+            return stepwise_config(field_config, steps, args.storage or "float32")
         return series_config(field_config, steps, args.basis, args.coefficients, args.residual, args.storage)
     except ApmgsrnError:
         raise  # names the option already (translated by the command line)
