@@ -297,3 +297,19 @@ def test_fit_in_python_takes_a_series_and_trains_it_stepwise(pattern, truth):
     files = sorted(Path(pattern).parent.glob("*.vti"))[:2]
     assert apmgsrn.fit([str(f) for f in files], iterations=40, batch_size=1024, resolution=8, width=16,
                        progress=False).description.series.steps[1].label == 31
+
+
+def test_train_names_the_steps_that_drifted_from_the_start(tmp_path, capsys, pattern):
+    """A step whose structures moved far away fits worse than the start step: train says which, in the text and
+    the JSON (here one real step shifted by half the domain after three that are not)."""
+    steps = open_series(pattern).to_numpy()
+    for t, values in enumerate([steps[0], steps[0], steps[0], np.roll(steps[0], 16, axis=2)]):
+        np.save(tmp_path / f"step_{t}.npy", values)
+    argv = ["train", str(tmp_path / "step_*.npy"), "--out", str(tmp_path / "m.apmgsrn"), "--start-step", "0",
+            "--step-iterations", "5", *FAST]
+    summary = run_json(capsys, [*argv, "--json"])
+    assert summary["start_step"] == 0 and summary["drifted_steps"] == [3]
+    psnr = [row["psnr"] for row in summary["per_step"]]
+    assert psnr[0] - psnr[3] > 6 and all(abs(psnr[0] - p) < 6 for p in psnr[1:3])
+    assert main([*argv, "--out", str(tmp_path / "n.apmgsrn")]) == 0
+    assert "1 step(s) (3) fit more than 6 dB worse than the start step 0" in capsys.readouterr().out

@@ -128,6 +128,10 @@ def run_series_train(args: argparse.Namespace, series, field_config, train_confi
         "grids_frozen_at": result.frozen_at,
         "per_step": step_rows(series.labels, [series.step_name(t) for t in range(len(series))], evaluation),
     }
+    start = (result.training.get("stepwise") or {}).get("start")
+    if start is not None:
+        summary["start_step"] = start
+        summary["drifted_steps"] = drifted_steps(evaluation, start)
     if args.json:
         print(json.dumps(strict_json(summary)))
         return 0
@@ -139,7 +143,23 @@ def run_series_train(args: argparse.Namespace, series, field_config, train_confi
     if result.iterations:
         print(f"training    {result.iterations} iterations in {result.seconds:.1f} s "
               f"({summary['ms_per_iteration']:.1f} ms/iteration), grids frozen at {result.frozen_at}")
+    if summary.get("drifted_steps"):
+        drifted = summary["drifted_steps"]
+        listed = ", ".join(map(str, drifted[:8])) + (" ..." if len(drifted) > 8 else "")
+        print(f"note        {len(drifted)} step(s) ({listed}) fit more than {DRIFT_DB:g} dB worse than the start step "
+              f"{start}: their structures may have moved away from where the shared grids sit "
+              "(docs/time_series.md, 'Where it fails')")
     return 0
+
+
+#: A stepwise step this many dB below the start step's PSNR is reported as drifted.
+DRIFT_DB = 6.0
+
+
+def drifted_steps(evaluation, start: int) -> list[int]:
+    """Steps of a stepwise series whose PSNR is more than :data:`DRIFT_DB` below the start step's."""
+    reference = evaluation.steps[start].psnr
+    return [t for t, e in enumerate(evaluation.steps) if reference - e.psnr > DRIFT_DB]
 
 
 def series_training(args: argparse.Namespace, config, raw_bytes: int):

@@ -200,6 +200,7 @@ class FitResult:
         stopped_early: training ended before the budget (early stop, or a constant volume).
         resumed_from: iteration the run resumed at (0: fresh).
         evaluation: PSNR and largest error against the truth, data units (per step and overall for a series).
+        training: what the training function added to the file's summary (:attr:`TrainedField.summary`).
     """
 
     field: NeuralField | SeriesField
@@ -211,6 +212,7 @@ class FitResult:
     stopped_early: bool
     resumed_from: int
     evaluation: Evaluation | SeriesEvaluation
+    training: dict = dataclass_field(default_factory=dict)
 
     @property
     def psnr(self) -> float:
@@ -316,6 +318,7 @@ def fit(
         stopped_early=summary["stopped_early"],
         resumed_from=trained.resumed_from,
         evaluation=evaluation,
+        training=trained.summary,
     )
 
 
