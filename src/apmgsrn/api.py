@@ -23,8 +23,8 @@ from torch import nn
 import apmgsrn.decomposition.brick_model  # noqa: F401 - registers the brick-model loader
 import apmgsrn.decomposition.series_bricks  # noqa: F401 - registers the time-series brick-model loader
 from apmgsrn.data import ArrayVolume, Volume, open_volume
-from apmgsrn.data.series import is_series_input, open_series, parse_time
 from apmgsrn.data.grid import AxisCoordinates, Region, VolumeMetadata, plain_attributes
+from apmgsrn.data.series import is_series_input, open_series, parse_time
 from apmgsrn.device import inference_dtype, resolve_device
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.export import export_onnx
@@ -256,7 +256,9 @@ def fit(
 
     Args:
         data: a 3-D numpy array ``[D, H, W]`` (z, y, x; x fastest), an ``xarray.DataArray`` (its name,
-            attributes, dimensions and coordinates are kept for decoding) or a volume file path.
+            attributes, dimensions and coordinates are kept for decoding) or a volume file path; or a time
+            series (a list of files, a glob such as ``"run/*.vti"``, a ``.pvd``, or one file with ``time``
+            ``"all"`` or ``"A:B[:S]"``), trained stepwise and packed as ``apmgsrn train`` does.
         preset: size preset, ``small``, ``medium`` or ``large``.
         model: model kind: ``apmgsrn`` (the paper's), ``fvsrn``, ``ngp`` or ``hybrid`` (docs/models.md).
         iterations: training iterations (default: 3000 on a CPU, 50000 on a GPU).
@@ -265,7 +267,8 @@ def fit(
         transform: value transform before fitting (``none``, ``log10``, ``zscore``).
         log_offset: offset added before ``log10``.
         variable: the variable of a file holding several.
-        time: the time step of a file or DataArray with a leading time dimension.
+        time: the time step of a file or DataArray with a leading time dimension (``"all"`` or ``"A:B[:S]"``:
+            its steps as a series).
         fill_nonfinite: replace NaN/Inf voxels by this value instead of refusing them.
         progress: show training progress (a widget in Jupyter).
         options: model options (``grids``, ``features``, ``resolution`` as an integer or three,
@@ -334,7 +337,10 @@ def _fit_series(data, preset, model, iterations, batch_size, device, transform, 
     field_config, train_config = _configs(model, preset, iterations, batch_size, device, options,
                                           {"voxel_fraction": STEPWISE_VOXEL_FRACTION,
                                            "anchored_grids": SERIES_ANCHORED_GRIDS})
-    config = stepwise_config(field_config, len(series))
+    try:
+        config = stepwise_config(field_config, len(series))
+    except ValueError as exc:  # a model kind a series cannot extend
+        raise ApmgsrnError(f"invalid time-series options: {exc}") from None
     with tempfile.TemporaryDirectory(prefix="apmgsrn-fit-") as folder:
         out = Path(folder) / "model.apmgsrn"
         fit_series(series, config, train_config, out, device, transform=transform, log_offset=log_offset,
