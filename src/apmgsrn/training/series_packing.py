@@ -74,7 +74,11 @@ def shared_steps(grids: np.ndarray, bits: int) -> tuple[np.ndarray, int]:
     """
     slices = grids.shape[0]
     channels, cells = math.prod(grids.shape[1:3]), math.prod(grids.shape[3:])
-    merged = next(n for n in range(1, channels + 1) if channels % n == 0 and slices * (channels // n) <= MAX_GROUPS)
+    merged = next((n for n in range(1, channels + 1) if channels % n == 0 and slices * (channels // n) <= MAX_GROUPS),
+                  None)
+    if merged is None:
+        raise InvalidArgument(f"steps={slices}: a packed series holds at most {MAX_GROUPS} steps; store it unpacked",
+                              arguments=("steps",))
     group = merged * cells
     blocks = grids.reshape(slices, channels // merged, group).transpose(1, 0, 2)  # [G, K, group]
     steps = steps_for_bits(blocks, slices * group, bits)  # [G], one per group over all slices
