@@ -142,7 +142,7 @@ def test_a_packed_series_loads_into_the_field_the_packer_measured(field, packed_
     assert sum(p.bytes for p in packing.parts) + packing.container_bytes == path.stat().st_size
     assert [p.name for p in packing.parts] == ["description", *field.config.parameter_shapes()]
     assert "history" not in description.training
-    # What 8 bits cost on the real steps (the float32 field fits them at about 23-27 dB).
+    # What 8 bits cost on the real steps.
     truth = open_series(pattern)
     before = evaluate_series(field.step_field, truth)
     after = evaluate_series(model.field.step_field, truth)
