@@ -1,5 +1,5 @@
 """``apmgsrn pack``: a trained model into a small packed file, optionally with an error bound; a time-series model
-at a fixed bit width; and the packing options ``train`` shares (training then packs its model at the end)."""
+at a bit width or to a size; and the packing options ``train`` shares (training then packs its model at the end)."""
 
 from __future__ import annotations
 
@@ -199,8 +199,8 @@ def run(args: argparse.Namespace) -> int:
 
 def run_series_pack(args: argparse.Namespace, model) -> int:
     """``apmgsrn pack`` of a time-series model: every grid at ``--bits`` (or the largest bit width that fits
-    ``--size`` / ``--ratio``), the PSNR cost measured on every step
-    of its series (per step in the file, which ``info`` shows).
+    ``--size`` / ``--ratio``), the PSNR cost measured on every step of its series (per step in the file, which
+    ``info`` shows).
 
     Imports nothing of :mod:`apmgsrn.cli.series`, which imports this module (the packing options).
     """
@@ -238,7 +238,8 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
     if args.json:
         rows = [{"step": t, "psnr": _finite(e.psnr), "max_abs_error": e.max_abs_error}
                 for t, e in enumerate(after.steps)]
-        print(json.dumps({"model": str(out), "file_bytes": file_bytes, **report, **compression, "per_step": rows}))
+        figures = {k: _finite(v) if isinstance(v, float) else v for k, v in {**report, **compression}.items()}
+        print(json.dumps({"model": str(out), "file_bytes": file_bytes, **figures, "per_step": rows}))
         return 0
     print(f"model       {out} ({len(series)} steps)")
     for line in packing_lines(report, file_bytes, compression):
