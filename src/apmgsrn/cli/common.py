@@ -72,7 +72,7 @@ def add_precision_argument(parser: argparse.ArgumentParser, default: str, purpos
         "--precision", choices=DECODER_PRECISIONS, default=default,
         help=f"arithmetic of the network (default {default}{purpose}): float32; bfloat16 hidden layers (fast "
              "where the CPU multiplies bfloat16 natively, emulated and slow elsewhere; values move by up to about "
-             "1e-3 of the range, and a --max-error bound is not kept); auto = bfloat16 on such CPUs, float32 "
+             "0.5 %% of the range, and a --max-error bound is not kept); auto = bfloat16 on such CPUs, float32 "
              "elsewhere")
 
 
