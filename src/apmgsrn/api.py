@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Callable
 from dataclasses import fields as dataclass_fields
 from pathlib import Path
 from typing import Any
@@ -291,13 +292,19 @@ def fit(
     field_config, train_config = _configs(model, preset, iterations, batch_size, device, options)
     truth = volume.to_numpy()  # [D, H, W] float32, data units
     prepared = prepare_values(truth, transform, log_offset, str(volume.path), device)
+    return _fitted(lambda out: fit_prepared(prepared, truth, field_config, train_config, out,
+                                            SourceInfo.of_volume(volume), {},
+                                            callbacks=[TrainingProgress(enabled=progress)]), device)
+
+
+def _fitted(write: Callable[[Path], object], device: torch.device) -> Model:
+    """The model ``write(path)`` trains and saves, loaded back: the pipeline every fit goes through writes a
+    file, and loading it gives exactly what :meth:`Model.save` writes. The file is a temporary one."""
     with tempfile.TemporaryDirectory(prefix="apmgsrn-fit-") as folder:
-        # The pipeline every fit goes through writes a file; loading it back gives exactly what save() writes.
         out = Path(folder) / "model.apmgsrn"
-        fit_prepared(prepared, truth, field_config, train_config, out, SourceInfo.of_volume(volume), {},
-                     callbacks=[TrainingProgress(enabled=progress)])
+        write(out)
         fitted = load(out, device)
-    fitted.path = None  # the file was a temporary one
+    fitted.path = None
     return fitted
 
 
@@ -341,13 +348,9 @@ def _fit_series(data, preset, model, iterations, batch_size, device, transform, 
         config = stepwise_config(field_config, len(series))
     except ValueError as exc:  # a model kind a series cannot extend
         raise ApmgsrnError(f"invalid time-series options: {exc}") from None
-    with tempfile.TemporaryDirectory(prefix="apmgsrn-fit-") as folder:
-        out = Path(folder) / "model.apmgsrn"
-        fit_series(series, config, train_config, out, device, transform=transform, log_offset=log_offset,
-                   progress=progress, stepwise=StepwiseConfig(), packing=default_series_packing(config))
-        fitted = load(out, device)
-    fitted.path = None
-    return fitted
+    return _fitted(lambda out: fit_series(series, config, train_config, out, device, transform=transform,
+                                          log_offset=log_offset, progress=progress, stepwise=StepwiseConfig(),
+                                          packing=default_series_packing(config)), device)
 
 
 def render(

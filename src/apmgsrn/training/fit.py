@@ -141,6 +141,23 @@ class TrainedField:
     summary: dict = dataclass_field(default_factory=dict)
 
 
+def build_field(prepared: PreparedValues, field_config: FieldConfig | SeriesFieldConfig,
+                volume_shape: tuple[int, int, int], seed: int) -> NeuralField | SeriesField:
+    """A fresh field of ``field_config`` (a :class:`SeriesField` for a series config) with the value scaling of
+    ``prepared``, initialised from ``seed``, on the values' device."""
+    field_class = SeriesField if isinstance(field_config, SeriesFieldConfig) else NeuralField
+    return field_class(
+        field_config,
+        fit_min=prepared.fit_min,
+        fit_max=prepared.fit_max,
+        value_min=prepared.value_min,
+        value_max=prepared.value_max,
+        transform=prepared.transform,
+        volume_shape=volume_shape,
+        generator=torch.Generator().manual_seed(seed),
+    ).to(prepared.values.device)
+
+
 def train_prepared(
     prepared: PreparedValues,
     field_config: FieldConfig | SeriesFieldConfig,
@@ -161,20 +178,9 @@ def train_prepared(
         fingerprint: what a resumed checkpoint must match (data and model).
         callbacks: called around every iteration.
     """
-    device = prepared.values.device
-    if device.type == "cpu":
+    if prepared.values.device.type == "cpu":
         keep_large_allocations_cached()
-    field_class = SeriesField if isinstance(field_config, SeriesFieldConfig) else NeuralField
-    field = field_class(
-        field_config,
-        fit_min=prepared.fit_min,
-        fit_max=prepared.fit_max,
-        value_min=prepared.value_min,
-        value_max=prepared.value_max,
-        transform=prepared.transform,
-        volume_shape=volume_shape,
-        generator=torch.Generator().manual_seed(train_config.seed),
-    ).to(device)
+    field = build_field(prepared, field_config, volume_shape, train_config.seed)
     if prepared.constant:
         # Empty space (a constant brick) is exact without training: the output scaling returns the
         # constant whatever the network says.

@@ -39,8 +39,8 @@ from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.models.series_field import SeriesConfig, SeriesField, SeriesFieldConfig
 from apmgsrn.progress import Progress
-from apmgsrn.training.checkpoint import CHECKPOINT_KIND, TrainingState, check_tensors
-from apmgsrn.training.fit import PreparedValues, TrainedField, train_prepared
+from apmgsrn.training.checkpoint import CHECKPOINT_KIND, TrainingState, check_tensors, state_from_json
+from apmgsrn.training.fit import PreparedValues, TrainedField, build_field, train_prepared
 from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, TrainingInterrupted, as_json
 
 STEPS_CHECKPOINT_KIND = "series-steps"
@@ -171,18 +171,17 @@ class _Progress:
 def _save_steps(path: Path, field: SeriesField, progress: _Progress, fingerprint: dict) -> None:
     """The series field so far and the steps done, atomically to ``path`` (it may replace the start model's
     training checkpoint of the same run)."""
-    state = progress.state
     description = {"fingerprint": as_json(fingerprint), "start": progress.start, "done": progress.done,
                    "step_iterations": progress.iterations, "error": progress.error,
-                   "iterations": state.iteration, "seconds": state.elapsed, "frozen_at": state.frozen_at,
-                   "history": state.history}
+                   "state": asdict(progress.state)}
     data = file_bytes({k: v.detach().cpu().contiguous() for k, v in field.state_dict().items()},
                       STEPS_CHECKPOINT_KIND, description)
     atomic_write(path, lambda temp: Path(temp).write_bytes(data), "training checkpoint")
 
 
-def _load_steps(path: Path, field: SeriesField, fingerprint: dict) -> _Progress:
-    """Restore a steps checkpoint of this run into ``field``, and where the run stands.
+def _load_steps(path: Path, field: SeriesField, fingerprint: dict, iterations: int) -> _Progress:
+    """Restore a steps checkpoint of this run into ``field``, and where the run stands (``iterations``: the
+    most the whole run can take, a bound on every counter of its state).
 
     Raises:
         ApmgsrnError: another run's checkpoint, or a damaged one (checked before anything is loaded).
@@ -201,43 +200,27 @@ def _load_steps(path: Path, field: SeriesField, fingerprint: dict) -> _Progress:
             require_int(step, f"done[{index}]", 0, steps - 1)
         if done != [start] + [t for t, _ in step_order(start, steps)][: len(done) - 1]:
             raise DescriptionError("steps done are not in training order")
-        iterations = description.get("step_iterations")
-        if not isinstance(iterations, list) or len(iterations) != len(done):
+        counts = description.get("step_iterations")
+        if not isinstance(counts, list) or len(counts) != len(done):
             raise DescriptionError("step iterations do not match the steps done")
-        for index, count in enumerate(iterations):
+        for index, count in enumerate(counts):
             require_int(count, f"step_iterations[{index}]", 0)
         error = require_number(description.get("error"), "error")
         if not error >= 0:
             raise DescriptionError("error is negative")
-        frozen_at = description.get("frozen_at")
-        state = TrainingState(
-            iteration=require_int(description.get("iterations"), "iterations", 0),
-            elapsed=max(require_number(description.get("seconds"), "seconds"), 0.0),
-            frozen_at=None if frozen_at is None else require_int(frozen_at, "frozen_at", 0),
-        )
-        history = description.get("history")
-        if isinstance(history, dict) and set(history) == set(state.history) and all(
-            isinstance(v, list) and all(isinstance(x, (int, float)) for x in v) for v in history.values()
-        ):
-            state.history = history
+        state = state_from_json(description.get("state"), iterations)
         expected = {k: (tuple(v.shape), v.dtype) for k, v in field.state_dict().items()}
         tensors = load_tensors(path)
         check_tensors(tensors, expected)
     except (DescriptionError, ValueError, TypeError) as exc:
         raise ApmgsrnError(f"{path}: training checkpoint is damaged ({exc}); delete it to start over") from None
-    field.load_state_dict(tensors)
     if not all(bool(torch.isfinite(t).all()) for t in tensors.values()):
         raise ApmgsrnError(f"{path}: training checkpoint holds NaN or Inf; delete it to start over")
-    return _Progress(start, list(done), list(iterations), error, state)
+    field.load_state_dict(tensors)
+    return _Progress(start, list(done), list(counts), error, state)
 
 
 # ------------------------------------------------------------------------------------------ training
-def _series_field(prepared: PreparedValues, config: SeriesFieldConfig, volume_shape, seed: int) -> SeriesField:
-    return SeriesField(config, fit_min=prepared.fit_min, fit_max=prepared.fit_max, value_min=prepared.value_min,
-                       value_max=prepared.value_max, transform=prepared.transform, volume_shape=volume_shape,
-                       generator=torch.Generator().manual_seed(seed)).to(prepared.values.device)
-
-
 @torch.no_grad()
 def _adopt(series: SeriesField, start_field: NeuralField) -> None:
     """The start model's placement, decoder and grids into the series field (its grids become every step's
@@ -294,12 +277,14 @@ def train_stepwise(
     steps = values.shape[0]
     fingerprint = {**(fingerprint or {}), "stepwise": asdict(stepwise), "train": asdict(train_config)}
     if prepared.constant:
-        return TrainedField(_series_field(prepared, field_config, volume_shape, train_config.seed).eval(),
+        return TrainedField(build_field(prepared, field_config, volume_shape, train_config.seed).eval(),
                             TrainingState(), 0)
     resumed = checkpoint is not None and checkpoint.exists() and read_header(checkpoint).kind == STEPS_CHECKPOINT_KIND
     if resumed:
-        series = _series_field(prepared, field_config, volume_shape, train_config.seed)
-        progress = _load_steps(checkpoint, series, fingerprint)
+        series = build_field(prepared, field_config, volume_shape, train_config.seed)
+        most = train_config.iterations + (steps - 1) * math.ceil(
+            stepwise.base_iterations(train_config) * STEP_ITERATION_CAP)
+        progress = _load_steps(checkpoint, series, fingerprint, most)
         resumed_from = progress.state.iteration
     else:
         start = choose_start(values, stepwise.start)
@@ -310,7 +295,7 @@ def train_stepwise(
                                volume_shape, checkpoint, {**fingerprint, "start": start}, callbacks)
         # Built after the start model, which thus starts exactly as a model of that step alone would (building
         # a decoder draws from the global random generator).
-        series = _series_field(prepared, field_config, volume_shape, train_config.seed)
+        series = build_field(prepared, field_config, volume_shape, train_config.seed)
         _adopt(series, first.field)
         error = math.sqrt(_final_loss(first.state))
         progress = _Progress(start, [start], [0], error, first.state)
