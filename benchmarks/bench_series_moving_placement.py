@@ -33,6 +33,14 @@ from apmgsrn.training.series_steps import STEPWISE_VOXEL_FRACTION, StepwiseConfi
 from apmgsrn.training.trainer import SERIES_ANCHORED_GRIDS, TrainConfig, Trainer
 
 
+def load_series_folder(folder: Path):
+    """The steps of a folder of volume files (name order) as ``[T, D, H, W]`` data units, and prepared for training."""
+    suffixes = {s for names in SUPPORTED_SUFFIXES.values() for s in names}
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in suffixes)
+    data = open_series([str(f) for f in files]).to_numpy()  # [T, D, H, W]
+    return data, prepare_values(data, "none", 0.0, str(folder), torch.device("cpu"))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True, help="a folder of volume files, one per step")
@@ -40,10 +48,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    suffixes = {s for names in SUPPORTED_SUFFIXES.values() for s in names}
-    files = sorted(p for p in args.data.iterdir() if p.suffix.lower() in suffixes)
-    data = open_series([str(f) for f in files]).to_numpy()  # [T, D, H, W]
-    prepared = prepare_values(data, "none", 0.0, str(args.data), torch.device("cpu"))
+    data, prepared = load_series_folder(args.data)
     config = TrainConfig(iterations=2000, voxel_fraction=STEPWISE_VOXEL_FRACTION, anchored_grids=SERIES_ANCHORED_GRIDS,
                          seed=args.seed)
     began = time.perf_counter()

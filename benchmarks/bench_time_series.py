@@ -161,18 +161,27 @@ def run_series(args: argparse.Namespace) -> None:
 
 
 def write_moving(args: argparse.Namespace) -> None:
-    """A series whose structures move: one real volume shifted along x by ``--shift`` voxels more at every step
-    (periodic wrap), written as ``step_NN.npy`` files to ``--out``. The steps share everything but where
-    things are, which is what a placement shared by all steps finds hardest."""
+    """A series whose structures move: one real volume (or the first steps of a real series, ``--series``)
+    shifted along an axis by ``--shift`` voxels more at every step (periodic wrap), written as ``step_NN.npy``
+    files to ``--out``. The steps share everything but where things are (or, from a series, change as the run
+    does and travel too), which is what a placement shared by all steps finds hardest."""
     import numpy as np
 
     from apmgsrn.data import open_volume
 
-    values = open_volume(args.volume).to_numpy()  # [D, H, W]
+    if args.series is not None:
+        files = _series_files(args.series)[: args.steps]
+        if len(files) < args.steps:
+            raise SystemExit(f"{args.series} holds {len(files)} steps, fewer than --steps {args.steps}")
+        volumes = [open_volume(f).to_numpy() for f in files]  # [D, H, W] each
+    else:
+        volumes = [open_volume(args.volume).to_numpy()] * args.steps
+    axis = {"x": 2, "y": 1, "z": 0}[args.axis]
     args.out.mkdir(parents=True, exist_ok=True)
-    for step in range(args.steps):
-        np.save(args.out / f"step_{step:02d}.npy", np.roll(values, step * args.shift, axis=2))
-    print(f"wrote {args.steps} steps of {values.shape} to {args.out}, shifted {args.shift} voxels per step")
+    for step, values in enumerate(volumes):
+        np.save(args.out / f"step_{step:02d}.npy", np.roll(values, step * args.shift, axis=axis))
+    print(f"wrote {args.steps} steps of {volumes[0].shape} to {args.out}, shifted {args.shift} voxels per step "
+          f"along {args.axis}")
 
 
 def run_timing(args: argparse.Namespace) -> None:
@@ -381,7 +390,9 @@ def main() -> None:
     moving = sub.add_parser("moving", help="write a series of one volume shifted further at every step")
     moving.add_argument("--volume", type=Path, default=ROOT.parent / "shared" / "data" / "viscous_fingers_t050.vti")
     moving.add_argument("--steps", type=int, default=10)
-    moving.add_argument("--shift", type=int, default=4, help="voxels along x per step")
+    moving.add_argument("--series", type=Path, help="shift the first --steps steps of this series folder instead")
+    moving.add_argument("--shift", type=int, default=4, help="voxels per step")
+    moving.add_argument("--axis", choices=("x", "y", "z"), default="x")
     moving.add_argument("--out", type=Path, required=True)
     report = sub.add_parser("report", help="the per-step table and chart in docs/")
     report.add_argument("--out", type=Path, default=DOCS / "time_series_results.md")

@@ -141,8 +141,8 @@ def test_empty_batch(cpu_kernel):
     assert out.shape == (0, 6) and torch.count_nonzero(grad) == 0
 
 
-def test_transform_gradients_fall_back_to_reference(cpu_kernel):
-    # The density path may need d features / d maps: the dispatcher must keep autograd exact.
+def test_point_gradients_fall_back_to_reference(cpu_kernel):
+    # d features / d points is not in the kernel: the dispatcher must keep autograd exact.
     points, matrices, translations, grids = random_case(4, 2, (5, 5, 5), n=500, seed=5)
     grads = []
     for backend in ("cpu", "torch"):
@@ -156,6 +156,31 @@ def test_transform_gradients_fall_back_to_reference(cpu_kernel):
     for got, want in zip(grads[0], grads[1]):
         torch.testing.assert_close(got, want)
         assert got.abs().sum() > 0
+
+
+@pytest.mark.parametrize("m,c,size", SHAPES)
+@pytest.mark.parametrize("threads", [1, 2])
+def test_cpu_placement_gradients_match_reference(cpu_kernel, m, c, size, threads):
+    """The reconstruction error moving the placement (a time-series step that drifts): the fused kernel's
+    gradients for the maps and the grids, forward and backward, against the reference's."""
+    points, matrices, translations, grids = random_case(m, c, size, seed=m * 10 + c + 1)
+    results = []
+    for backend in ("cpu", "torch"):
+        before = torch.get_num_threads()
+        torch.set_num_threads(threads if backend == "cpu" else before)
+        try:
+            leaves = [x.clone().requires_grad_(True) for x in (matrices, translations, grids)]
+            out = multigrid_features(points, *leaves, backend=backend)
+            assert ("MultigridFunction" in type(out.grad_fn).__name__) == (backend == "cpu")
+            weights = torch.randn(out.shape, generator=torch.Generator().manual_seed(2))
+            (out * weights).sum().backward()
+        finally:
+            torch.set_num_threads(before)
+        results.append((out.detach(), *(leaf.grad for leaf in leaves)))
+    for got, want in zip(*results):
+        scale = want.abs().max().clamp(min=1.0)
+        torch.testing.assert_close(got / scale, want / scale, atol=2e-5, rtol=1e-4)
+    assert results[1][1].abs().sum() > 0 and results[1][2].abs().sum() > 0
 
 
 def test_float64_falls_back_to_reference(cpu_kernel):

@@ -209,7 +209,7 @@ def test_resume_after_kill_reaches_the_same_series_model(pattern, tmp_path):
     (["--bits", "8", "--storage", "float16"], "--storage keeps them unpacked: give one"),
     (["--ratio", "50", "--storage", "float32"], "--storage keeps them unpacked: give one"),
     (["--max-error", "0.1"], "a time series packs to a bit width or a size only"),
-    (["--bricks", "2,1,1", "--series-training", "stepwise"], "stepwise training of bricks is not supported"),
+    (["--bricks", "2,1,1", "--bits", "8"], "packing options (--bits, --max-error, ...) apply to single models"),
     (["--model", "fvsrn"], "a time-series model extends adaptive grids (apmgsrn), not 'fvsrn'"),
 ])
 def test_stepwise_options_that_do_not_apply_exit_2_with_one_line(pattern, tmp_path, capsys, extra, message):
@@ -309,7 +309,27 @@ def test_train_names_the_steps_that_drifted_from_the_start(tmp_path, capsys, pat
             "--step-iterations", "5", *FAST]
     summary = run_json(capsys, [*argv, "--json"])
     assert summary["start_step"] == 0 and summary["drifted_steps"] == [3]
+    assert set(summary["placement_moved_steps"]) <= {3}  # the steps equal to the start never drift
     psnr = [row["psnr"] for row in summary["per_step"]]
     assert psnr[0] - psnr[3] > 6 and all(abs(psnr[0] - p) < 6 for p in psnr[1:3])
     assert main([*argv, "--out", str(tmp_path / "n.apmgsrn")]) == 0
     assert "1 step(s) (3) fit more than 6 dB worse than the start step 0" in capsys.readouterr().out
+
+
+def test_train_and_info_name_the_steps_whose_placement_followed_their_structures(tmp_path, capsys, pattern):
+    """A real step shifted 8 voxels further at every step: the steps after the start drift, and their grids'
+    placement moves with them; train and info say which."""
+    first = open_series(pattern).to_numpy()[0]
+    for t in range(3):
+        np.save(tmp_path / f"step_{t}.npy", np.roll(first, 8 * t, axis=2))
+    argv = ["train", str(tmp_path / "step_*.npy"), "--out", str(tmp_path / "m.apmgsrn"), "--start-step", "0",
+            "--step-iterations", "100", *FAST, "--iterations", "400", "--batch-size", "4096"]
+    summary = run_json(capsys, [*argv, "--json"])
+    moved = summary["placement_moved_steps"]
+    assert moved and set(moved) <= {1, 2}
+    listed = ", ".join(map(str, moved))
+    assert main([*argv, "--out", str(tmp_path / "n.apmgsrn")]) == 0
+    assert f"placement   moved with the structures at {len(moved)} step(s) ({listed})" in capsys.readouterr().out
+    assert main(["info", str(tmp_path / "n.apmgsrn")]) == 0
+    assert f"grids placed per step; moved with the structures at {len(moved)} step(s) ({listed})" in \
+        capsys.readouterr().out

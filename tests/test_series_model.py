@@ -57,6 +57,8 @@ def random_field(config: SeriesConfig, seed: int = 0) -> SeriesField:
         for name, parameter in field.named_parameters():
             if name.startswith("encoder.") and name not in ("encoder.matrices", "encoder.translations"):
                 parameter.copy_(torch.rand(parameter.shape, generator=generator) * 2 - 1)
+        if config.placement == "per_step":  # every step's grids somewhere else
+            field.encoder.translations.add_(torch.rand(field.encoder.translations.shape, generator=generator) * 0.4 - 0.2)
     return field.eval()
 
 
@@ -76,7 +78,8 @@ def test_time_coordinate_is_corner_aligned_like_space():
     assert time_position(0.25, 5) == 2.5 and time_position(-3.0, 5) == 0.0 and time_position(2.0, 5) == 4.0
 
 
-@pytest.mark.parametrize("config", [SeriesConfig(5, 3, "learned", residual=4), SeriesConfig(5, 2, "keyframes")])
+@pytest.mark.parametrize("config", [SeriesConfig(5, 3, "learned", residual=4), SeriesConfig(5, 2, "keyframes"),
+                                    SeriesConfig(5, 5, "keyframes", placement="per_step")])
 def test_a_materialised_step_is_the_series_field_at_that_step(config):
     field = random_field(config)
     points = torch.rand(300, 3, generator=torch.Generator().manual_seed(2)) * 2 - 1
@@ -107,6 +110,30 @@ def test_between_steps_the_grids_are_interpolated():
     assert torch.equal(field.time_field(step_time(4, 5)).encoder.grids, field.step_field(4).encoder.grids)
 
 
+def test_steps_placed_apart_are_interpolated_by_value_between_steps():
+    field = random_field(SeriesConfig(5, 5, "keyframes", placement="per_step"))
+    assert not torch.equal(field.step_field(2).encoder.translations, field.step_field(3).encoder.translations)
+    points = torch.rand(200, 3, generator=torch.Generator().manual_seed(3)) * 2 - 1
+    with torch.no_grad():
+        between = field(torch.cat([points, torch.full((200, 1), step_time(2.25, 5))], 1))
+        expected = torch.lerp(field.step_field(2)(points), field.step_field(3)(points), 0.25)
+    assert torch.allclose(between, expected, atol=1e-5)
+    with pytest.raises(ValueError, match="no grids between them"):
+        field.time_field(step_time(2.25, 5))
+    assert torch.equal(field.time_field(step_time(3, 5)).encoder.translations, field.encoder.translations[3])
+
+
+def test_a_per_step_placement_reloads_exactly(tmp_path):
+    field = random_field(SeriesConfig(3, 3, "keyframes", placement="per_step"))
+    path = tmp_path / "placed.apmgsrn"
+    steps = [SeriesStepInfo(label=float(t), name=f"s{t}", value_range=(-1.0, 3.0)) for t in range(3)]
+    save_series(path, field, SourceInfo(), {}, steps)
+    loaded = apmgsrn.load(path).field
+    assert loaded.config.series.placement == "per_step" and loaded.encoder.matrices.shape == (3, 4, 3, 3)
+    for name, parameter in field.state_dict().items():
+        assert torch.equal(loaded.state_dict()[name], parameter), name
+
+
 def test_materialising_leaves_the_global_random_state_alone():
     field = random_field(SeriesConfig(3, 2))
     torch.manual_seed(5)
@@ -120,7 +147,8 @@ def test_materialising_leaves_the_global_random_state_alone():
                                  dict(steps=3, residual=1), dict(steps=3, coefficients="splines"),
                                  dict(steps=3, basis=1, coefficients="keyframes"),
                                  dict(steps=3, mixing=2, coefficients="keyframes"), dict(steps=3, mixing=0),
-                                 dict(steps=3, storage="int8")])
+                                 dict(steps=3, storage="int8"), dict(steps=3, placement="moving"),
+                                 dict(steps=3, basis=2, coefficients="keyframes", placement="per_step")])
 def test_series_configs_out_of_range_are_refused(bad):
     with pytest.raises(ValueError):
         SeriesConfig(**{"basis": 1, **bad})
@@ -233,6 +261,8 @@ def _set(keys, value):
     ("an unknown series entry", _set(["series", "splines"], 3)),
     ("a lattice of weights not stored", _set(["series", "mixing"], 2)),
     ("an unknown storage", _set(["series", "storage"], "int4")),
+    ("an unknown placement", _set(["series", "placement"], "moving")),
+    ("a per-step placement of shared grids", _set(["series", "placement"], "per_step")),
 ])
 def test_malformed_series_files_are_refused_before_building(series_file, tmp_path, no_series_built, case, mutate):
     bad = rewrite(series_file, tmp_path / "bad.apmgsrn", description=mutate)

@@ -1,9 +1,11 @@
 """Stepwise training of a time series (issue 16): the start step chosen from the data, the order of the steps,
-every step's own grids fine-tuned with placement and decoder shared, and a resume after an interruption that
-reaches the same model. Real data: the four consecutive viscous-fingering steps of tests/data."""
+every step's own grids fine-tuned with the decoder shared, a step that drifts fine-tuned again with its
+placement moving, and a resume after an interruption that reaches the same model. Real data: the four
+consecutive viscous-fingering steps of tests/data (and one of them shifted further at every step)."""
 
 from __future__ import annotations
 
+import copy
 from dataclasses import replace
 from pathlib import Path
 
@@ -17,16 +19,17 @@ from apmgsrn.inference.evaluate import evaluate
 from apmgsrn.io.container import read_header
 from apmgsrn.models.registry import preset_config
 from apmgsrn.training import series_steps
-from apmgsrn.training.fit import prepare_values
+from apmgsrn.training.fit import prepare_values, train_prepared
 from apmgsrn.training.series_steps import (
     STEPS_CHECKPOINT_KIND,
     StepwiseConfig,
     choose_start,
     step_order,
     stepwise_config,
+    tracking_config,
     train_stepwise,
 )
-from apmgsrn.training.trainer import TrainConfig, TrainingInterrupted
+from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingInterrupted
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -76,7 +79,7 @@ def test_every_step_is_trained_once_from_a_neighbour_already_trained(start, step
     assert distances == sorted(distances)
 
 
-def test_steps_share_placement_and_decoder_and_each_fits_its_own_data(trained, truth):
+def test_steps_share_the_decoder_and_each_fits_its_own_data(trained, truth):
     field = trained.field
     assert field.config.series.per_step_grids and field.steps == 4
     # The start model's iterations and every step's fine-tune are counted.
@@ -91,8 +94,11 @@ def test_steps_share_placement_and_decoder_and_each_fits_its_own_data(trained, t
             if 0 <= other < 4:
                 assert not torch.equal(grids[t], grids[other])
                 assert own > evaluate(field.step_field(other), truth[t]).psnr
+        # Every step reads its own placement; a step whose placement never moved keeps the start model's.
         step = field.step_field(t)
-        assert torch.equal(step.encoder.matrices, field.encoder.matrices)
+        assert torch.equal(step.encoder.matrices, field.encoder.matrices[t])
+        if t not in trained.summary["stepwise"]["tracked_steps"]:
+            assert torch.equal(field.encoder.translations[t], field.encoder.translations[1])
         assert all(torch.equal(a, b) for a, b in zip(step.decoder.parameters(), field.decoder.parameters()))
 
 
@@ -176,11 +182,14 @@ def test_a_checkpoint_of_other_data_or_tampered_is_refused(prepared, tmp_path, m
     # The steps done rewritten out of training order.
     from apmgsrn.io.container import file_bytes, load_tensors
 
-    description = read_header(checkpoint).description
-    description["done"] = [description["done"][0], 0 if description["done"][0] != 0 else 2]
-    Path(checkpoint).write_bytes(file_bytes(load_tensors(checkpoint), STEPS_CHECKPOINT_KIND, description))
-    with pytest.raises(ApmgsrnError, match="damaged"):
-        train_stepwise(prepared, config, quick, (32, 32, 32), checkpoint, {"data": "a"}, show_progress=False)
+    original = read_header(checkpoint).description
+    tensors = load_tensors(checkpoint)
+    out_of_order = {**original, "done": [original["done"][0], 0 if original["done"][0] != 0 else 2]}
+    not_flags = {**original, "tracked": ["no"] * len(original["done"])}
+    for description in (out_of_order, not_flags):
+        Path(checkpoint).write_bytes(file_bytes(tensors, STEPS_CHECKPOINT_KIND, description))
+        with pytest.raises(ApmgsrnError, match="damaged"):
+            train_stepwise(prepared, config, quick, (32, 32, 32), checkpoint, {"data": "a"}, show_progress=False)
 
 
 def test_a_config_without_grids_per_step_is_refused(prepared):
@@ -188,3 +197,58 @@ def test_a_config_without_grids_per_step_is_refused(prepared):
 
     with pytest.raises(ApmgsrnError, match="one grid set per step"):
         train_stepwise(prepared, series_config(TINY, 4, basis=2), TRAIN, (32, 32, 32), show_progress=False)
+
+
+# ------------------------------------------------------------------------------- structures that travel
+WELL_TRAINED = replace(TRAIN, iterations=400, batch_size=4096)
+
+
+@pytest.fixture(scope="module")
+def travelling(truth):
+    """A real step shifted 8 voxels further along x at every step (periodic): structures that travel."""
+    moved = np.stack([np.roll(truth[0], 8 * k, axis=2) for k in range(3)])
+    return moved, prepare_values(moved, "none", 0.0, "travelling", torch.device("cpu"))
+
+
+def test_a_fine_tune_whose_placement_follows_the_error_tracks_a_shifted_volume(truth, prepared):
+    """One step's model fine-tuned on the same volume shifted 4 voxels: with the reconstruction error moving
+    the placement (the anchored grid excepted) it fits better than with the grids alone, same iterations."""
+    start = train_prepared(replace(prepared, values=prepared.values[0]), TINY, WELL_TRAINED, (32, 32, 32), None, {},
+                           []).field
+    shifted = np.roll(truth[0], 4, axis=2)
+    values = prepare_values(shifted, "none", 0.0, "shifted", torch.device("cpu")).values
+    config = StepwiseConfig(step_iterations=100).step_config(WELL_TRAINED)
+    psnr, moved = {}, {}
+    for track in (False, True):
+        field = copy.deepcopy(start).train().requires_grad_(False)
+        field.encoder.grids.requires_grad_(True)
+        for parameter in field.encoder.placement_parameters():
+            parameter.requires_grad_(track)
+        before = field.encoder.translations.detach().clone()
+        state = Trainer(field, values, tracking_config(config) if track else config, None, {}, []).run()
+        assert state.iteration == config.iterations
+        psnr[track] = evaluate(field.eval(), shifted).psnr
+        moved[track] = (field.encoder.translations.detach() - before).abs().amax(1)  # [M]
+    assert psnr[True] > psnr[False] + 0.5
+    assert not moved[False].any()
+    assert moved[True][0] == 0 and (moved[True][1:] > 1e-3).all()  # the anchored grid stays
+
+
+def test_a_step_that_drifts_is_fine_tuned_again_with_its_placement_moving(travelling, monkeypatch):
+    truth, prepared = travelling
+    stepwise = StepwiseConfig(start="first", step_iterations=100)
+    runs = {}
+    for name, track_db in (("tracked", series_steps.TRACK_DB), ("frozen", float("inf"))):
+        monkeypatch.setattr(series_steps, "TRACK_DB", track_db)
+        runs[name] = train_stepwise(prepared, stepwise_config(TINY, 3), WELL_TRAINED, (32, 32, 32),
+                                    stepwise=stepwise, show_progress=False)
+    tracked, frozen = runs["tracked"], runs["frozen"]
+    moved = tracked.summary["stepwise"]["tracked_steps"]
+    assert moved and not frozen.summary["stepwise"]["tracked_steps"]
+    counts = tracked.summary["stepwise"]["step_iterations"]
+    assert all(counts[t] == 2 * 100 for t in moved)  # both fine-tunes counted
+    encoder = tracked.field.encoder
+    for t in moved:
+        assert not torch.equal(encoder.translations[t], encoder.translations[0])
+    psnr = {run: [evaluate(runs[run].field.step_field(t), truth[t]).psnr for t in range(3)] for run in runs}
+    assert min(psnr["tracked"][t] - psnr["frozen"][t] for t in moved) > 0.5

@@ -108,7 +108,10 @@ class RenderSource:
         if not 0 <= int(step) < self.steps:
             raise ApmgsrnError(f"{self.name}: step {step} is outside the series of {self.steps} steps (0..{self.steps - 1})")
         step = int(step)
-        return replace(self, field=self.series.step_field(step), step=step,
+        field = self.series.step_field(step)
+        # A series whose steps place their grids themselves shows the step's own grids.
+        grid_boxes = _grid_boxes_of(field) if self.grid_boxes is not None else None
+        return replace(self, field=field, step=step, grid_boxes=grid_boxes,
                        description=_step_text(self.description, step, self.step_labels))
 
     @property
@@ -193,7 +196,8 @@ def _load_model(path: Path, name: str, device: torch.device, step: int | None = 
         labels = tuple(step.label for step in description.series.steps)
         bricks = description.bricks
         if bricks is None:
-            parts, grid_boxes, brick_boxes = f"{description.config.encoder.grids} feature grids", _grid_boxes_of(field), None
+            parts, grid_boxes, brick_boxes = (f"{description.config.encoder.grids} feature grids",
+                                              _grid_boxes_of(field.step_field(0)), None)
         else:
             counts = bricks.counts
             parts, grid_boxes, brick_boxes = f"{counts[0]}x{counts[1]}x{counts[2]} bricks", None, routing_boxes(counts)

@@ -32,10 +32,11 @@ def add_series_arguments(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument("--series-training", choices=SERIES_TRAINING,
                        help="stepwise (default): a model of the step with the most detail, then every other step's "
-                            "own grids fine-tuned from its neighbour's, placement and decoder shared, stored packed "
-                            "(--bits, default 10, lowered to 6 at most to stay within 5 single-step models; or "
-                            "--size, --ratio); joint (the default and only choice with --bricks): one model of all "
-                            "steps trained at once (the options below)")
+                            "own grids fine-tuned from its neighbour's, decoder shared, placement shared unless a "
+                            "step drifts, stored packed (--bits, default 10, lowered to 6 at most to stay within 5 "
+                            "single-step models; or --size, --ratio; with --bricks, every brick and group of steps "
+                            "so, at the default packing); joint: one model of all steps trained at once (the "
+                            "options below)")
     group.add_argument("--start-step", metavar="auto|first|last|K",
                        help="stepwise: the step the first model is trained on (default auto: the most detail)")
     group.add_argument("--step-iterations", type=int, metavar="N",
@@ -128,9 +129,11 @@ def run_series_train(args: argparse.Namespace, series, field_config, train_confi
         "grids_frozen_at": result.frozen_at,
         "per_step": step_rows(series.labels, [series.step_name(t) for t in range(len(series))], evaluation),
     }
-    start = (result.training.get("stepwise") or {}).get("start")
+    stepwise = result.training.get("stepwise") or {}
+    start = stepwise.get("start")
     if start is not None:
         summary["start_step"] = start
+        summary["placement_moved_steps"] = stepwise.get("tracked_steps", [])
         summary["drifted_steps"] = drifted_steps(evaluation, start)
     if args.json:
         print(json.dumps(strict_json(summary)))
@@ -143,13 +146,23 @@ def run_series_train(args: argparse.Namespace, series, field_config, train_confi
     if result.iterations:
         print(f"training    {result.iterations} iterations in {result.seconds:.1f} s "
               f"({summary['ms_per_iteration']:.1f} ms/iteration), grids frozen at {result.frozen_at}")
+    if summary.get("placement_moved_steps"):
+        from apmgsrn.training.series_steps import TRACK_DB
+
+        moved = summary["placement_moved_steps"]
+        print(f"placement   moved with the structures at {len(moved)} step(s) ({_listed(moved)}), which fit more "
+              f"than {TRACK_DB:g} dB worse than the start step with the start's")
     if summary.get("drifted_steps"):
         drifted = summary["drifted_steps"]
-        listed = ", ".join(map(str, drifted[:8])) + (" ..." if len(drifted) > 8 else "")
-        print(f"note        {len(drifted)} step(s) ({listed}) fit more than {DRIFT_DB:g} dB worse than the start step "
-              f"{start}: their structures may have moved away from where the shared grids sit "
+        print(f"note        {len(drifted)} step(s) ({_listed(drifted)}) fit more than {DRIFT_DB:g} dB worse than the "
+              f"start step {start}: their structures may have changed more than the shared decoder follows "
               "(docs/time_series.md, 'Where it fails')")
     return 0
+
+
+def _listed(steps: list[int]) -> str:
+    """At most eight step indices, comma-separated."""
+    return ", ".join(map(str, steps[:8])) + (" ..." if len(steps) > 8 else "")
 
 
 #: A stepwise step this many dB below the start step's PSNR is reported as drifted.
@@ -367,6 +380,10 @@ def print_series_info(info: dict) -> None:
     if isinstance(stepwise.get("start"), int) and counts:
         print(f"time        {info['steps']} steps, each with its own grids: trained stepwise from step "
               f"{stepwise['start']}, {min(counts)} to {max(counts)} iterations per other step")
+        moved = [t for t in stepwise.get("tracked_steps") or [] if isinstance(t, int)]
+        if moved:
+            print(f"            grids placed per step; moved with the structures at {len(moved)} step(s) "
+                  f"({_listed(moved)})")
     else:
         print(f"time        {info['steps']} steps; {info['basis']} basis grids per grid, {info['coefficients']} "
               "weights" + (f", per-step residual {info['residual']}^3" if info["residual"] else ""))

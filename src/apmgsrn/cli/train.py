@@ -76,10 +76,7 @@ def run(args: argparse.Namespace) -> int:
         raise ApmgsrnError("packing options (--bits, --max-error, ...) apply to single models and time series, "
                            "not --bricks")
     if is_series(args):
-        if args.bricks and args.series_training == "stepwise":
-            raise ApmgsrnError("--bricks trains every (brick, group of steps) as one joint model; stepwise "
-                               "training of bricks is not supported: drop --series-training stepwise")
-        args.series_training = args.series_training or ("joint" if args.bricks else "stepwise")
+        args.series_training = args.series_training or "stepwise"
         if args.bricks:
             from apmgsrn.cli.train_bricks import run_series_bricks
 

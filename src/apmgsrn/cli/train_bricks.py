@@ -98,8 +98,9 @@ def run_bricks(args: argparse.Namespace) -> int:
 
 
 def run_series_bricks(args: argparse.Namespace) -> int:
-    """Train (or finish) a time-series brick model: one job per (brick, group of ``--group-steps`` steps)."""
-    from apmgsrn.cli.series import build_series_config, open_series_data
+    """Train (or finish) a time-series brick model: one job per (brick, group of ``--group-steps`` steps), each
+    stepwise from the group's own start step (packed) unless ``--series-training joint``."""
+    from apmgsrn.cli.series import build_series_config, open_series_data, series_training
     from apmgsrn.decomposition.coordinator import BrickProgress
     from apmgsrn.decomposition.executor import ExecutorConfig, open_job_queue
     from apmgsrn.decomposition.planner import DecompositionConfig
@@ -114,13 +115,14 @@ def run_series_bricks(args: argparse.Namespace) -> int:
     # Each group trains with the budget of its own number of steps.
     field_config, train_config = build_configs(args, resolve_device(args.device), steps=len(groups[0]))
     config = build_series_config(args, field_config, len(series))
+    stepwise, packing = series_training(args, config, series.raw_bytes)
     out = Path(args.out)
     executor = ExecutorConfig(scheduler=args.scheduler, workers=args.workers, retries=args.retries)
     with open_job_queue(executor) as queue:
         summary = train_series_bricks(
             series, DecompositionConfig(counts, args.ghost_cells, args.blend), config, train_config, out, queue,
             group_steps=args.group_steps, transform=args.transform, log_offset=args.log_offset, device=args.device,
-            progress=BrickProgress(),
+            progress=BrickProgress(), stepwise=stepwise, packing=packing,
         )
     result = {"model": str(out), "bricks": list(counts), "steps": len(series), "groups": len(groups),
               "complete": summary.complete, "failed": summary.failed, "model_bytes": summary.model_bytes,

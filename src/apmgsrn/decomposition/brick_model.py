@@ -25,7 +25,8 @@ from apmgsrn.io.brick_folder import (
     read_manifest,
 )
 from apmgsrn.io.field_file import FIELD_KIND
-from apmgsrn.io.series_file import SERIES_KIND
+from apmgsrn.io.packed_series import load_packed_series
+from apmgsrn.io.series_file import PACKED_SERIES_KIND, SERIES_KIND
 from apmgsrn.models.series_field import SeriesFieldConfig
 
 
@@ -111,7 +112,7 @@ def load_bricks(directory: Path, device: torch.device) -> LoadedBricks:
             f"{directory}: brick model is unfinished ({state}); run the same brick training again to finish it"
         )
     layout = brick_layout(manifest)
-    load = load_series if kind == SERIES_KIND else load_field
+    load = {SERIES_KIND: load_series, PACKED_SERIES_KIND: load_packed_series}.get(kind, load_field)
     fields = []
     total_bytes = manifest_path(directory).stat().st_size
     for brick, entry in zip(plan.bricks, layout.entries):

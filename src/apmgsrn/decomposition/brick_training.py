@@ -12,6 +12,7 @@ import pickle
 import resource
 import socket
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +28,9 @@ from apmgsrn.errors import ApmgsrnError
 from apmgsrn.data.series import VolumeSeries
 from apmgsrn.io import SeriesStepInfo, SourceInfo
 from apmgsrn.models.registry import FieldConfig
-from apmgsrn.training.fit import fit, prepare_values
+from apmgsrn.training.fit import fit, prepare_values, train_prepared
+from apmgsrn.training.series_packing import SeriesPacking
+from apmgsrn.training.series_steps import StepwiseConfig, train_stepwise
 from apmgsrn.training.trainer import TrainConfig
 
 #: Paper (SPEC section 6): a brick is done after the plateau scheduler's third learning-rate cut.
@@ -55,6 +58,9 @@ class BrickJob:
         psnr_voxels: measure the brick's PSNR on a regular subset of about this many voxels (None: all
             of them); for very large bricks on slow devices, where the full pass would cost more than
             the training.
+        stepwise: a time series trained step by step (its ``field_config`` one grid set per step); None: one
+            joint model of the steps.
+        packing: a stepwise series' packed file (None: float32).
     """
 
     volume: object
@@ -68,6 +74,8 @@ class BrickJob:
     threads: int | None = None
     source: SourceInfo = SourceInfo()
     psnr_voxels: int | None = None
+    stepwise: StepwiseConfig | None = None
+    packing: SeriesPacking | None = None
 
 
 @dataclass(frozen=True)
@@ -271,8 +279,11 @@ def _fit_region(job: BrickJob, region: np.ndarray, device: torch.device, worker:
         steps = [SeriesStepInfo(label, job.volume.step_name(t), (float(region[t].min()), float(region[t].max())))
                  for t, label in enumerate(job.volume.labels)]
     # A brick always resumes its own checkpoint: the job may be a retry after a crash.
+    train = train_prepared if job.stepwise is None else partial(train_stepwise, stepwise=job.stepwise,
+                                                                 show_progress=False)
     result = fit(prepared, region, job.field_config, job.train_config, Path(job.model_path), job.source,
-                 fingerprint, resume=True, psnr_voxels=job.psnr_voxels, summary_extra={"brick": box}, steps=steps)
+                 fingerprint, resume=True, psnr_voxels=job.psnr_voxels, summary_extra={"brick": box}, steps=steps,
+                 train=train, packing=job.packing)
     peak_device = int(torch.cuda.max_memory_allocated(device)) if device.type == "cuda" else 0
     return BrickResult(
         name=brick.name,

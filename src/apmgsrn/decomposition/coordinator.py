@@ -41,10 +41,12 @@ from apmgsrn.io.brick_folder import (
     read_manifest,
     write_manifest,
 )
-from apmgsrn.io.series_file import SERIES_KIND
+from apmgsrn.io.series_file import PACKED_SERIES_KIND, SERIES_KIND
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.models.series_field import SeriesFieldConfig
 from apmgsrn.progress import Progress
+from apmgsrn.training.series_packing import SeriesPacking
+from apmgsrn.training.series_steps import StepwiseConfig
 from apmgsrn.training.trainer import TrainConfig, as_json, current_names
 
 
@@ -150,10 +152,14 @@ def missing_names(summary: BrickTrainingSummary) -> list[str]:
 
 
 def training_settings(volume, plan: BrickPlan, field_config: FieldConfig, train_config: TrainConfig,
-                      transform: str, log_offset: float) -> dict:
+                      transform: str, log_offset: float, stepwise: StepwiseConfig | None = None,
+                      packing: SeriesPacking | None = None) -> dict:
     """Everything that decides the bricks' models; a rerun must match it to reuse finished bricks."""
     steps = getattr(volume, "steps", None)  # a series: every step's file and time index
+    series_training = {} if stepwise is None else {  # absent for the runs before stepwise bricks
+        "stepwise": asdict(stepwise), "packing": None if packing is None else asdict(packing)}
     return as_json({
+        **series_training,
         "volume": {"path": Path(str(volume.path)).name, "variable": volume.variable,
                    "time": getattr(volume, "time", None), "shape": list(volume.shape),
                    **({"steps": [s.name() for s in steps]} if steps is not None else {})},
@@ -303,8 +309,10 @@ class BrickRun:
 
 def open_brick_run(volume, decomposition: DecompositionConfig, field_config, train_config: TrainConfig, out: Path,
                    transform: str, log_offset: float, device: str, threads: int | None,
-                   psnr_voxels: int | None) -> BrickRun:
-    """Plan the bricks, prepare the folder and its manifest, and make a job for every missing brick.
+                   psnr_voxels: int | None, stepwise: StepwiseConfig | None = None,
+                   packing: SeriesPacking | None = None) -> BrickRun:
+    """Plan the bricks, prepare the folder and its manifest, and make a job for every missing brick
+    (``stepwise``, ``packing``: a time series trained step by step, see :class:`BrickJob`).
 
     Raises:
         ApmgsrnError: the folder holds another model, or the bricks do not fit the volume.
@@ -312,7 +320,7 @@ def open_brick_run(volume, decomposition: DecompositionConfig, field_config, tra
     plan = plan_bricks(volume.shape, decomposition, str(volume.path))
     source = SourceInfo.of_volume(volume)
     train_config = brick_policy(train_config)
-    settings = training_settings(volume, plan, field_config, train_config, transform, log_offset)
+    settings = training_settings(volume, plan, field_config, train_config, transform, log_offset, stepwise, packing)
     data = as_json(series_fingerprint(volume) if isinstance(volume, VolumeSeries) else volume_fingerprint(volume))
     manifest = _prepare_directory(out, settings, data) or new_manifest(
         plan.volume_shape, plan.counts, plan.config.ghost_cells, decomposition.blend, plan.bricks, settings, source
@@ -321,7 +329,7 @@ def open_brick_run(volume, decomposition: DecompositionConfig, field_config, tra
     manifest["blend"] = decomposition.blend
     manifest["complete"] = False
     if isinstance(field_config, SeriesFieldConfig):
-        manifest["brick_kind"] = SERIES_KIND
+        manifest["brick_kind"] = SERIES_KIND if packing is None else PACKED_SERIES_KIND
     write_manifest(out, manifest)
     todo = missing_bricks(out, plan, brick_kind(manifest))
     todo_names = {b.name for b in todo}
@@ -339,6 +347,8 @@ def open_brick_run(volume, decomposition: DecompositionConfig, field_config, tra
             threads=threads,
             source=source.crop(brick.start, brick.stop),  # the brick file describes its own voxels
             psnr_voxels=psnr_voxels,
+            stepwise=stepwise,
+            packing=packing,
         )
         for brick in todo
     ]

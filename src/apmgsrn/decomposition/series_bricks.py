@@ -33,7 +33,6 @@ from apmgsrn.decomposition.planner import DecompositionConfig
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.io import SeriesLayout, SeriesStepInfo, SourceInfo, register_loader
 from apmgsrn.io.brick_folder import brick_file_name
-from apmgsrn.io.container import read_header
 from apmgsrn.io.series_folder import (
     SERIES_BRICKS_KIND,
     group_folder_name,
@@ -43,7 +42,10 @@ from apmgsrn.io.series_folder import (
     series_manifest_path,
     write_series_manifest,
 )
+from apmgsrn.io.series_file import PACKED_SERIES_KIND, SERIES_KIND, model_file_description
 from apmgsrn.models.series_field import SeriesConfig, SeriesFieldConfig
+from apmgsrn.training.series_packing import SeriesPacking
+from apmgsrn.training.series_steps import StepwiseConfig
 from apmgsrn.training.trainer import TrainConfig, as_json
 
 
@@ -88,6 +90,8 @@ def train_series_bricks(
     device: str = "auto",
     progress: BrickProgress | None = None,
     poll_seconds: float = 1.0,
+    stepwise: StepwiseConfig | None = None,
+    packing: SeriesPacking | None = None,
 ) -> SeriesBrickSummary:
     """Train (or finish training) a time-series brick model in the folder ``out``.
 
@@ -104,6 +108,9 @@ def train_series_bricks(
         device: device name resolved on each worker.
         progress: the display (None: none).
         poll_seconds: how often the display refreshes.
+        stepwise: train every (brick, group) step by step from the group's own start step (``config`` then one
+            grid set per step: :func:`~apmgsrn.training.series_steps.stepwise_config`); None: one joint model.
+        packing: stepwise: pack every brick's file (None: float32).
 
     Raises:
         ApmgsrnError: the folder holds another model, or the bricks do not fit the steps.
@@ -113,7 +120,8 @@ def train_series_bricks(
     groups = step_groups(len(series), group_steps)
     settings = as_json({"steps": [series.step_name(t) for t in range(len(series))], "group_steps": group_steps,
                         "field": config.to_dict(), "bricks": list(decomposition.bricks),
-                        "ghost_cells": decomposition.ghost_cells})
+                        "ghost_cells": decomposition.ghost_cells,
+                        **({} if stepwise is None else {"stepwise": True})})
     source = SourceInfo(series.step_name(0), series.variable, series.describe())
     manifest = _prepare_folder(out, settings) or new_series_manifest(
         series.labels, [series.step_name(t) for t in range(len(series))], groups, settings, source)
@@ -124,7 +132,8 @@ def train_series_bricks(
         folder = out / group_folder_name(group.start, group.stop)
         folder.mkdir(exist_ok=True)
         runs.append(open_brick_run(series.subseries(group), decomposition, group_config(config, len(group)),
-                                   train_config, folder, transform, log_offset, device, queue.threads_per_job, None))
+                                   train_config, folder, transform, log_offset, device, queue.threads_per_job, None,
+                                   stepwise, packing))
     summaries = run_brick_jobs(runs, queue, progress or BrickProgress(enabled=False), poll_seconds, started)
     complete = all(s.complete for s in summaries)
     if complete:
@@ -157,7 +166,7 @@ def _record_step_ranges(manifest: dict, runs) -> None:
     """Each step's value range over every brick, from the steps the bricks' files record."""
     for (group, _), run in zip(manifest_groups(manifest), runs):
         for brick in run.plan.bricks:
-            steps = read_header(run.out / brick_file_name(brick.name)).description.get("steps", [])
+            steps = model_file_description(run.out / brick_file_name(brick.name)).get("steps", [])
             for local, step in enumerate(steps):
                 entry = manifest["steps"][group.start + local]
                 entry["value_min"] = min(entry.get("value_min", math.inf), float(step["value_min"]))
@@ -229,7 +238,7 @@ def load_series_bricks(path: Path, device: torch.device):
     groups, loaded = [], []
     for steps, folder in manifest_groups(manifest):
         bricks = load_bricks(directory / folder, device)
-        if bricks.kind != "series" or any(f.steps != len(steps) for f in bricks.fields):
+        if bricks.kind not in (SERIES_KIND, PACKED_SERIES_KIND) or any(f.steps != len(steps) for f in bricks.fields):
             raise ApmgsrnError(f"{directory / folder}: does not hold the steps {steps.start}..{steps.stop - 1} of "
                                "this series; re-train the model")
         groups.append((steps, bricks.plan, bricks.fields, bricks.manifest["blend"]))

@@ -36,7 +36,7 @@ from apmgsrn.io.description import (
     require_ints,
 )
 from apmgsrn.io.field_file import FIELD_KIND, MAX_VOLUME_AXIS
-from apmgsrn.io.series_file import SERIES_KIND
+from apmgsrn.io.series_file import PACKED_SERIES_KIND, SERIES_KIND, model_file_description
 
 BRICKS_KIND = "bricks"
 MANIFEST_NAME = "manifest.json"
@@ -128,7 +128,7 @@ def _check_manifest(manifest: dict) -> None:
     for flag in ("blend", "complete"):
         if not isinstance(manifest.get(flag), bool):
             raise DescriptionError(f"{flag} is not true or false")
-    if manifest.get("brick_kind", FIELD_KIND) not in (FIELD_KIND, SERIES_KIND):
+    if manifest.get("brick_kind", FIELD_KIND) not in (FIELD_KIND, SERIES_KIND, PACKED_SERIES_KIND):
         raise DescriptionError("brick_kind is not a model kind")
     for key in ("settings", "training"):
         if manifest.get(key) is not None:
@@ -190,13 +190,14 @@ def brick_file_ready(path: str | os.PathLike, kind: str = FIELD_KIND) -> bool:
 
 
 def brick_kind(manifest: dict) -> str:
-    """The kind of every brick file of a checked manifest: ``field``, or ``series`` for a time series."""
+    """The kind of every brick file of a checked manifest: ``field``, or ``series`` (``packed-series``) for a
+    time series."""
     return manifest.get("brick_kind", FIELD_KIND)
 
 
 def brick_summary_from_file(path: str | os.PathLike) -> dict:
     """Per-brick figures stored in a brick's model file (for bricks trained by an earlier run)."""
-    description = read_header(path).description
+    description = model_file_description(path)
     training = description.get("training", {})
     training = training if isinstance(training, dict) else {}
     return {

@@ -57,9 +57,10 @@ from apmgsrn.models.series_field import SeriesField, SeriesFieldConfig
 #: Parameters with a leading time (or basis) axis: the only ones the ``time`` predictor may code.
 TIME_AXIS_TENSORS = ("encoder.grids", "encoder.residuals")
 #: Entries of the training summary a packed series file keeps: a packed field's, plus ``steps`` (per-step
-#: figures, which ``info`` shows; the packer stores those of the packed field) and ``stepwise`` (the start
-#: step and the steps' fine-tune of a stepwise run).
-SERIES_SUMMARY_KEYS = (*SUMMARY_KEYS, "steps", "stepwise")
+#: figures, which ``info`` shows; the packer stores those of the packed field), ``stepwise`` (the start
+#: step and the steps' fine-tune of a stepwise run), and for the brick of a brick model its box (``brick``)
+#: and figures over all its steps (what a rerun reports for bricks it reuses).
+SERIES_SUMMARY_KEYS = (*SUMMARY_KEYS, "steps", "stepwise", "brick", "psnr", "max_abs_error")
 
 
 def series_predictors(name: str, shape: tuple[int, ...]) -> tuple[str, ...]:

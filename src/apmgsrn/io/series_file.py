@@ -49,7 +49,7 @@ from apmgsrn.io.field_file import (
 from apmgsrn.io.packed import read_payload_file
 from apmgsrn.models.encoders.adaptive_multigrid import MAX_RESOLUTION
 from apmgsrn.models.series_field import SeriesConfig, SeriesField, SeriesFieldConfig
-from apmgsrn.models.series_options import COEFFICIENT_KINDS, MAX_BASIS, MAX_STEPS, STORAGE_KINDS
+from apmgsrn.models.series_options import COEFFICIENT_KINDS, MAX_BASIS, MAX_STEPS, PLACEMENT_KINDS, STORAGE_KINDS
 
 #: The safetensors name of each dtype a series file stores.
 SAFETENSORS_DTYPES = {torch.float32: "F32", torch.float16: "F16"}
@@ -98,9 +98,12 @@ def parse_series_config(value) -> SeriesConfig:
         DescriptionError, ValueError: a missing, mistyped or out-of-range entry.
     """
     data = require_dict(value, "series")
-    if set(data) - {"steps", "basis", "coefficients", "residual", "storage", "mixing"}:
+    if set(data) - {"steps", "basis", "coefficients", "residual", "storage", "mixing", "placement"}:
         raise DescriptionError("series holds unknown entries")
     coefficients, storage = data.get("coefficients"), data.get("storage", "float32")
+    placement = data.get("placement", "shared")
+    if placement not in PLACEMENT_KINDS:
+        raise DescriptionError("series.placement is not a known kind")
     if coefficients not in COEFFICIENT_KINDS:
         raise DescriptionError("series.coefficients is not a known kind")
     if storage not in STORAGE_KINDS:
@@ -112,6 +115,7 @@ def parse_series_config(value) -> SeriesConfig:
         residual=require_int(data.get("residual", 0), "series.residual", 0, MAX_RESOLUTION),
         storage=storage,
         mixing=require_int(data.get("mixing", 1), "series.mixing", 1, MAX_RESOLUTION),
+        placement=placement,
     )
 
 
@@ -138,6 +142,19 @@ def parse_step_entries(value, count: int) -> tuple[SeriesStepInfo, ...]:
     return tuple(entries)
 
 
+def model_file_description(path: str | os.PathLike) -> dict:
+    """A model file's description, read without decoding its parameters: a float32 file's header, a packed
+    series file's description section.
+
+    Raises:
+        ApmgsrnError: not a readable model file.
+    """
+    header = read_header(path)
+    if header.kind == PACKED_SERIES_KIND:
+        return read_payload_file(Path(path), PACKED_SERIES_KIND, "a time-series model").description
+    return header.description
+
+
 def declared_steps(path: str | os.PathLike) -> int:
     """Number of steps a time-series model file declares: from the header of a float32 one (no tensor is read),
     from the description section of a packed one (no parameter is decoded).
@@ -146,10 +163,9 @@ def declared_steps(path: str | os.PathLike) -> int:
         ApmgsrnError: not a readable time-series model file.
     """
     header = read_header(path)
-    if header.kind == PACKED_SERIES_KIND:
-        description = read_payload_file(Path(path), PACKED_SERIES_KIND, "a time-series model").description
-    else:
-        description = header_of_kind(path, SERIES_KIND, "a time-series model", header).description
+    if header.kind != PACKED_SERIES_KIND:
+        header_of_kind(path, SERIES_KIND, "a time-series model", header)
+    description = model_file_description(path)
     try:
         return parse_series_config(description.get("series")).steps
     except (DescriptionError, ValueError, TypeError) as exc:

@@ -3,7 +3,8 @@
 The adaptive grids extend into time through a small basis. Every grid ``i`` holds ``K`` basis grids
 ``B_ik`` (``[K, M, C, D, H, W]`` in all); the features of step ``t`` are the per-grid combination
 ``F_i(t) = sum_k w_tik B_ik`` with weights ``w`` ``[T, M, C, K]``. The grid placement (``A_i``, ``t_i``) and
-the decoder are shared by every step. Two ways to set the weights:
+the decoder are shared by every step (with one grid set per step, the placement may be per step too: series
+whose structures travel, see :mod:`apmgsrn.training.series_steps`). Two ways to set the weights:
 
 - ``"keyframes"``: fixed hat functions over ``K`` evenly spaced keyframes: the grids are 4-D and step ``t``
   interpolates its two neighbouring keyframes linearly in time (the paper's future-work grids).
@@ -26,11 +27,23 @@ from torch import nn
 from apmgsrn.arguments import check_choice, check_int
 from apmgsrn.errors import InvalidArgument
 from apmgsrn.models.decoder import Decoder
-from apmgsrn.models.encoders.adaptive_multigrid import MAX_RESOLUTION, AdaptiveMultiGridConfig, AdaptiveMultiGridEncoder
+from apmgsrn.models.encoders.adaptive_multigrid import (
+    MAX_RESOLUTION,
+    AdaptiveMultiGridConfig,
+    AdaptiveMultiGridEncoder,
+    placed_boxes,
+)
 from apmgsrn.models.encoders.base import Encoder
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
-from apmgsrn.models.series_options import COEFFICIENT_KINDS, MAX_BASIS, MAX_STEPS, SERIES_DEFAULTS, STORAGE_KINDS
+from apmgsrn.models.series_options import (
+    COEFFICIENT_KINDS,
+    MAX_BASIS,
+    MAX_STEPS,
+    PLACEMENT_KINDS,
+    SERIES_DEFAULTS,
+    STORAGE_KINDS,
+)
 from apmgsrn.models.value_transform import ValueTransform
 from apmgsrn.ops.multigrid import multigrid_features
 
@@ -54,6 +67,8 @@ class SeriesConfig:
         storage: dtype the grids (and learned weights) are stored in (``"float32"`` or ``"float16"``).
         mixing: learned weights only: an ``r^3`` lattice of weights over each grid (trilinear between its nodes),
             so that each part of a grid mixes the basis its own way; 1: one weight per grid.
+        placement: ``"shared"`` (one ``A_i, t_i`` for every step) or ``"per_step"`` (``[T, M, 3, 3]`` and
+            ``[T, M, 3]``: every step places its grids itself; one grid set per step only).
     """
 
     steps: int
@@ -62,6 +77,7 @@ class SeriesConfig:
     residual: int = 0
     storage: str = "float32"
     mixing: int = 1
+    placement: str = "shared"
 
     def __post_init__(self) -> None:
         """Refuse sizes and kinds the model cannot be built with (:class:`~apmgsrn.errors.InvalidArgument`)."""
@@ -69,6 +85,10 @@ class SeriesConfig:
         check_int("basis", self.basis, 1, min(self.steps, MAX_BASIS))
         check_choice("coefficients", self.coefficients, COEFFICIENT_KINDS)
         check_choice("storage", self.storage, STORAGE_KINDS)
+        check_choice("placement", self.placement, PLACEMENT_KINDS)
+        if self.placement == "per_step" and not self.per_step_grids:
+            raise InvalidArgument("placement=per_step: needs one grid set per step (basis = steps, keyframes)",
+                                  arguments=("placement",))
         if self.basis == 1 and self.steps > 1 and self.coefficients == "keyframes":
             raise InvalidArgument("basis=1: keyframes need at least 2 basis grids for a series of several steps",
                                   arguments=("basis",))
@@ -84,8 +104,11 @@ class SeriesConfig:
         return self.coefficients == "keyframes" and self.basis == self.steps
 
     def to_dict(self) -> dict:
-        return {"steps": self.steps, "basis": self.basis, "coefficients": self.coefficients, "residual": self.residual,
+        data = {"steps": self.steps, "basis": self.basis, "coefficients": self.coefficients, "residual": self.residual,
                 "storage": self.storage, "mixing": self.mixing}
+        if self.placement != "shared":  # files of shared placement read as before
+            data["placement"] = self.placement
+        return data
 
 
 @dataclass(frozen=True)
@@ -113,6 +136,9 @@ class SeriesFieldConfig:
             shapes["encoder.coefficients"] = (self.series.steps, m, c, self.series.basis, *lattice)  # [T, M, C, K(, r^3)]
         if self.series.residual:
             shapes["encoder.residuals"] = (self.series.steps, m, c, *(self.series.residual,) * 3)  # [T, M, C, r, r, r]
+        if self.series.placement == "per_step":
+            for name in ("encoder.matrices", "encoder.translations"):
+                shapes[name] = (self.series.steps, *shapes[name])  # [T, M, 3, 3], [T, M, 3]
         return shapes
 
     def stored_dtypes(self) -> dict[str, torch.dtype]:
@@ -179,8 +205,9 @@ class SeriesMultiGridEncoder(AdaptiveMultiGridEncoder):
 
     Parameters: ``grids`` ``[K, M, C, D, H, W]`` (the basis), ``coefficients`` ``[T, M, C, K]`` when learned
     (a buffer of hat functions for keyframes), ``matrices`` ``[M, 3, 3]`` and ``translations`` ``[M, 3]``
-    shared by every step. Initialisation is the SPEC's (the basis grids like one grid set), the weights
-    start as the keyframe hat functions.
+    shared by every step (per-step placement: ``[T, M, 3, 3]`` and ``[T, M, 3]``). Initialisation is the
+    SPEC's (the basis grids like one grid set, every step's placement the same), the weights start as the
+    keyframe hat functions.
     """
 
     def __init__(self, config: AdaptiveMultiGridConfig, series: SeriesConfig, generator: torch.Generator | None = None):
@@ -193,6 +220,9 @@ class SeriesMultiGridEncoder(AdaptiveMultiGridEncoder):
         self.matrices = nn.Parameter(torch.empty(shapes["matrices"]))
         self.translations = nn.Parameter(torch.empty(shapes["translations"]))
         self.reset_parameters(generator)
+        if series.placement == "per_step":
+            self.matrices = nn.Parameter(self.matrices.detach().expand(series.steps, -1, -1, -1).clone())
+            self.translations = nn.Parameter(self.translations.detach().expand(series.steps, -1, -1).clone())
         if series.residual:
             # Zero: a step starts as its basis mix; the residual learns what the basis cannot share.
             self.residuals = nn.Parameter(torch.zeros(series.steps, *shapes["grids"][:2], *(series.residual,) * 3))
@@ -235,6 +265,17 @@ class SeriesMultiGridEncoder(AdaptiveMultiGridEncoder):
             grids = grids + self._upsampled(residuals[steps])
         return grids
 
+    def step_placement(self, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Placement ``(A [M, 3, 3], t [M, 3])`` of the grids at step ``step``."""
+        if self.series.placement == "per_step":
+            return self.matrices[step], self.translations[step]
+        return self.matrices, self.translations
+
+    @torch.no_grad()
+    def grid_boxes(self, step: int = 0) -> torch.Tensor:
+        """Corners ``[M, 8, 3]`` of the grids at step ``step`` (the same at every step unless placed per step)."""
+        return placed_boxes(*self.step_placement(step))
+
     def grids_at(self, position: float) -> torch.Tensor:
         """Feature grids ``[M, C, D, H, W]`` at a fractional step index: the two steps around it, mixed linearly
         (everything a step's grids are made of is linear in its weights and residuals)."""
@@ -256,15 +297,15 @@ class SeriesMultiGridEncoder(AdaptiveMultiGridEncoder):
         Returns:
             ``[G * n, M * C]`` features.
         """
-        matrices, translations = self.matrices, self.translations
-        if detach_placement:
-            matrices, translations = matrices.detach(), translations.detach()
         grids = self.step_grids(steps)  # [G, M, C, D, H, W]
         groups = points.view(len(steps), -1, 3)  # [G, n, 3]
-        return torch.cat([
-            multigrid_features(group, matrices, translations, grid, backend=self.config.backend)
-            for group, grid in zip(groups, grids)
-        ])  # [G * n, M * C]
+        features = []
+        for group, grid, step in zip(groups, grids, steps.tolist()):
+            matrices, translations = self.step_placement(step)
+            if detach_placement:
+                matrices, translations = matrices.detach(), translations.detach()
+            features.append(multigrid_features(group, matrices, translations, grid, backend=self.config.backend))
+        return torch.cat(features)  # [G * n, M * C]
 
     def thread_invariant(self, threads: int) -> bool:
         """Not shown for the per-step mixing kernels: a series run keeps its thread count."""
@@ -338,8 +379,9 @@ class SeriesField(nn.Module):
         """Decoder output ``m(y)`` ``[G * n, 1]`` for groups of points at steps ``[G]`` (see the encoder)."""
         return self.decoder(self.encoder(points, steps, detach_placement=detach_placement), hidden_dtype)
 
-    def _materialise(self, grids: torch.Tensor) -> NeuralField:
-        """A single-step field with these feature grids ``[M, C, D, H, W]`` and the shared maps and decoder."""
+    def _materialise(self, grids: torch.Tensor, step: int) -> NeuralField:
+        """A single-step field with these feature grids ``[M, C, D, H, W]``, the placement of step ``step``
+        and the shared decoder."""
         # Building the shell initialises weights it then overwrites; nn.Linear draws from the global random
         # generator, so fork it: decoding a step must not change what a caller's seed gives.
         with torch.random.fork_rng(devices=[]):
@@ -356,8 +398,9 @@ class SeriesField(nn.Module):
         device = self.decoder[0].weight.device
         with torch.no_grad():
             field.encoder.grids.copy_(grids)
-            field.encoder.matrices.copy_(self.encoder.matrices)
-            field.encoder.translations.copy_(self.encoder.translations)
+            matrices, translations = self.encoder.step_placement(step)
+            field.encoder.matrices.copy_(matrices)
+            field.encoder.translations.copy_(translations)
             field.decoder.load_state_dict(self.decoder.state_dict())
         return field.to(device).eval().requires_grad_(False)
 
@@ -370,12 +413,32 @@ class SeriesField(nn.Module):
         if not 0 <= int(step) < self.steps:
             raise IndexError(f"step {step} is outside the series of {self.steps} steps")
         with torch.no_grad():
-            return self._materialise(self.encoder.step_grids(torch.tensor([int(step)], device=self.decoder[0].weight.device))[0])
+            grids = self.encoder.step_grids(torch.tensor([int(step)], device=self.decoder[0].weight.device))[0]
+            return self._materialise(grids, int(step))
 
     def time_field(self, time: float) -> NeuralField:
-        """The field at time coordinate ``time`` in ``[-1, 1]`` (between steps: grids interpolated linearly)."""
+        """The field at time coordinate ``time`` in ``[-1, 1]`` (between steps: grids interpolated linearly).
+
+        Raises:
+            ValueError: a per-step placement between two steps (their grids sit in different places; the
+                values are interpolated instead, :meth:`forward`).
+        """
+        position = time_position(time, self.steps)
+        if self.config.series.placement == "per_step":
+            if position != int(position):
+                raise ValueError("steps placed apart have no grids between them; interpolate their values")
+            return self.step_field(int(position))
         with torch.no_grad():
-            return self._materialise(self.encoder.grids_at(time_position(time, self.steps)))
+            return self._materialise(self.encoder.grids_at(position), 0)
+
+    def _values_at(self, time: float, points: torch.Tensor) -> torch.Tensor:
+        """Values ``[N, 1]`` at ``[N, 3]`` points at time coordinate ``time``: shared placement, the field of
+        the interpolated grids; per-step placement, the two steps' values interpolated linearly."""
+        position = time_position(time, self.steps)
+        if self.config.series.placement == "shared" or position == int(position):
+            return self.time_field(time)(points)
+        low = int(position)
+        return torch.lerp(self.step_field(low)(points), self.step_field(low + 1)(points), position - low)
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """Values in data units ``[N, 1]`` at ``[N, 4]`` points ``(x, y, z, t)``, all in ``[-1, 1]``."""
@@ -385,7 +448,7 @@ class SeriesField(nn.Module):
         times, inverse = torch.unique(points[:, 3], return_inverse=True)
         for index, time in enumerate(times.tolist()):
             rows = inverse == index
-            out[rows] = self.time_field(time)(points[rows, :3].contiguous())
+            out[rows] = self._values_at(time, points[rows, :3].contiguous())
         return out
 
     def parameter_count(self) -> int:

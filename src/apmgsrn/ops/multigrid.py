@@ -129,11 +129,15 @@ def resolve_backend(name: str, device: torch.device | str) -> str:
     return name
 
 
-def _needs_reference(points: torch.Tensor, matrices: torch.Tensor, translations: torch.Tensor) -> bool:
-    """Cases the fused kernels do not cover: gradients for points or maps, or non-float32 inputs."""
+def _needs_reference(points: torch.Tensor, matrices: torch.Tensor, translations: torch.Tensor,
+                     placement_gradient: bool = False) -> bool:
+    """Cases a fused kernel does not cover: gradients for the points, or for the maps unless it gives them
+    (``placement_gradient``: the CPU kernel does), or non-float32 inputs."""
     inputs = (points, matrices, translations)
-    if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):
-        return True
+    if torch.is_grad_enabled():
+        wanted = (points,) if placement_gradient else inputs
+        if any(t.requires_grad for t in wanted):
+            return True
     return any(t.dtype != torch.float32 for t in inputs)
 
 
@@ -146,10 +150,11 @@ def multigrid_features(
 ) -> torch.Tensor:
     """Concatenated multi-grid features through the chosen backend.
 
-    Same shapes and semantics as :func:`multigrid_features_reference`. The fused backends give
-    gradients for ``grids`` only: when ``points``, ``matrices`` or ``translations`` require grad (the
-    density path), or the inputs are not float32, this runs the reference instead, so autograd stays
-    exact. The Triton backend also reads float16/bfloat16 grids (features come out float32).
+    Same shapes and semantics as :func:`multigrid_features_reference`. The fused CPU backend gives
+    gradients for ``grids``, ``matrices`` and ``translations`` (the last two when the reconstruction error
+    moves the placement, ``TrainConfig.placement_loss="reconstruction"``), the Triton backend for ``grids``
+    only: when ``points`` (or, on Triton, the maps) require grad, or the inputs are not float32, this runs
+    the reference instead, so autograd stays exact. The Triton backend also reads float16/bfloat16 grids (features come out float32).
 
     Args:
         points: ``[N, 3]``.
@@ -181,7 +186,7 @@ def multigrid_features(
         from apmgsrn.ops.multigrid_triton import multigrid_features_triton
 
         return multigrid_features_triton(points, matrices, translations, grids)
-    if _needs_reference(points, matrices, translations) or grids.dtype != torch.float32:
+    if _needs_reference(points, matrices, translations, placement_gradient=True) or grids.dtype != torch.float32:
         return multigrid_features_reference(points, matrices, translations, grids)
     return multigrid_cpu.multigrid_features_cpu(points, matrices, translations, grids)
 

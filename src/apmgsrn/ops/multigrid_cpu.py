@@ -285,6 +285,62 @@ void mg_backward(const float *points, i64 n, const float *aff, i64 m, const floa
     }
 }
 
+/* ---- Gradient w.r.t. the placement: d loss / d f (index-space coordinates) of every point in every grid ----
+   gf[(g * n + i) * 3 + k] = sum_c grad_out[i, g * C + c] * d feature_gc / d f_k at point i, axis k = x, y, z;
+   0 where the grid misses the point. The derivative of zero-padded trilinear sampling: along x, the
+   bilinear (y, z) mix of the differences between the corner values at floor(fx) + 1 and floor(fx) (a corner
+   outside the grid reads 0), as grid_sample's backward computes it. One thread per grid (no races). */
+void mg_backward_coords(const float *points, i64 n, const float *aff, i64 m, const float *grad_out,
+                        const float *grids, i64 c, i64 d, i64 h, i64 w, i64 sm, i64 sc, i64 sz, i64 sy, i64 sx,
+                        float *gf, int nthreads) {
+    const i64 mc = m * c;
+    const float fw = (float)w, fh = (float)h, fd = (float)d;
+    #pragma omp parallel for schedule(dynamic, 1) num_threads(nthreads)
+    for (i64 g = 0; g < m; ++g) {
+        const float *a = aff + 12 * g;
+        const float *grid = grids + g * sm;
+        float *out = gf + g * n * 3;
+        for (i64 i = 0; i < n; ++i) {
+            const float px = points[3 * i], py = points[3 * i + 1], pz = points[3 * i + 2];
+            const float fx = a[0] * px + a[1] * py + a[2] * pz + a[9];
+            const float fy = a[3] * px + a[4] * py + a[5] * pz + a[10];
+            const float fz = a[6] * px + a[7] * py + a[8] * pz + a[11];
+            float gx = 0.0f, gy = 0.0f, gz = 0.0f;
+            if (fx > -1.0f && fx < fw && fy > -1.0f && fy < fh && fz > -1.0f && fz < fd) {
+                const float flx = floorf(fx), fly = floorf(fy), flz = floorf(fz);
+                const float tx = fx - flx, ty = fy - fly, tz = fz - flz;
+                const int x0 = (int)flx, y0 = (int)fly, z0 = (int)flz;
+                const int vx0 = x0 >= 0, vx1 = x0 + 1 < w, vy0 = y0 >= 0, vy1 = y0 + 1 < h;
+                const int vz0 = z0 >= 0, vz1 = z0 + 1 < d;
+                const i64 ox0 = (i64)(vx0 ? x0 : 0) * sx, ox1 = (i64)(vx1 ? x0 + 1 : 0) * sx;
+                const i64 oy0 = (i64)(vy0 ? y0 : 0) * sy, oy1 = (i64)(vy1 ? y0 + 1 : 0) * sy;
+                const i64 oz0 = (i64)(vz0 ? z0 : 0) * sz, oz1 = (i64)(vz1 ? z0 + 1 : 0) * sz;
+                const float *go = grad_out + i * mc + g * c;
+                for (i64 ch = 0; ch < c; ++ch) {
+                    const float *b = grid + ch * sc;
+                    /* v[z][y][x], 0 outside */
+                    const float v000 = vz0 && vy0 && vx0 ? b[oz0 + oy0 + ox0] : 0.0f;
+                    const float v001 = vz0 && vy0 && vx1 ? b[oz0 + oy0 + ox1] : 0.0f;
+                    const float v010 = vz0 && vy1 && vx0 ? b[oz0 + oy1 + ox0] : 0.0f;
+                    const float v011 = vz0 && vy1 && vx1 ? b[oz0 + oy1 + ox1] : 0.0f;
+                    const float v100 = vz1 && vy0 && vx0 ? b[oz1 + oy0 + ox0] : 0.0f;
+                    const float v101 = vz1 && vy0 && vx1 ? b[oz1 + oy0 + ox1] : 0.0f;
+                    const float v110 = vz1 && vy1 && vx0 ? b[oz1 + oy1 + ox0] : 0.0f;
+                    const float v111 = vz1 && vy1 && vx1 ? b[oz1 + oy1 + ox1] : 0.0f;
+                    const float up = go[ch];
+                    gx += up * ((1.0f - ty) * (1.0f - tz) * (v001 - v000) + ty * (1.0f - tz) * (v011 - v010)
+                              + (1.0f - ty) * tz * (v101 - v100) + ty * tz * (v111 - v110));
+                    gy += up * ((1.0f - tx) * (1.0f - tz) * (v010 - v000) + tx * (1.0f - tz) * (v011 - v001)
+                              + (1.0f - tx) * tz * (v110 - v100) + tx * tz * (v111 - v101));
+                    gz += up * ((1.0f - tx) * (1.0f - ty) * (v100 - v000) + tx * (1.0f - ty) * (v101 - v001)
+                              + (1.0f - tx) * ty * (v110 - v010) + tx * ty * (v111 - v011));
+                }
+            }
+            out[3 * i] = gx; out[3 * i + 1] = gy; out[3 * i + 2] = gz;
+        }
+    }
+}
+
 /* ---- Feature density (SPEC section 3): rho[n] = sum_g det[g] exp(-sum_d G_g(p_n)_d^(2P)) ---- */
 
 /* exp(x) for x <= 0, vectorisable (glibc's expf is not, without fast-math): 2^k e^r with
@@ -447,9 +503,10 @@ def _declare(lib: ctypes.CDLL) -> None:
     sizes = [i64] * 9  # c, d, h, w, then strides sm, sc, sz, sy, sx
     lib.mg_forward.argtypes = [p, i64, p, i64, p, *sizes, p, i32]
     lib.mg_backward.argtypes = [p, i64, p, i64, p, *sizes, p, p, i32]
+    lib.mg_backward_coords.argtypes = [p, i64, p, i64, p, p, *sizes, p, i32]
     lib.mg_density.argtypes = [p, i64, p, p, i64, i32, p, i32]
     lib.mg_density_backward.argtypes = [p, i64, p, p, i64, i32, p, p, i64, p, i32]
-    for fn in (lib.mg_forward, lib.mg_backward, lib.mg_density, lib.mg_density_backward):
+    for fn in (lib.mg_forward, lib.mg_backward, lib.mg_backward_coords, lib.mg_density, lib.mg_density_backward):
         fn.restype = None
 
 
@@ -597,8 +654,43 @@ def _sampling_layout(grids: torch.Tensor, samples: int) -> torch.Tensor:
     return grids
 
 
+def backward_placement(
+    points: torch.Tensor,
+    aff: torch.Tensor,
+    grad_out: torch.Tensor,
+    grids: torch.Tensor,
+    matrices: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Gradient of the features w.r.t. the placement (the reconstruction error moving the grids).
+
+    Args:
+        points: ``[N, 3]`` contiguous float32.
+        aff: ``[M, 12]`` from :func:`index_space_affine`.
+        grad_out: ``[N, M * C]``.
+        grids: ``[M, C, D, H, W]`` float32, any strides.
+        matrices: ``[M, 3, 3]`` (their dtype and device for the result).
+
+    Returns:
+        ``(d/dA [M, 3, 3], d/dt [M, 3])``: the kernel's gradient in index space, scaled back to the local
+        ``[-1, 1]`` coordinates ``l = A p + t`` (``f = (l + 1) (size - 1) / 2``), then chained through ``l``.
+    """
+    lib = LIBRARY.load_or_raise()
+    m, c, d, h, w = grids.shape
+    n = points.shape[0]
+    go = grad_out.to(torch.float32).contiguous()
+    index_grad = torch.empty(m, n, 3, dtype=torch.float32)  # every element is written by the kernel
+    lib.mg_backward_coords(
+        points.data_ptr(), n, aff.data_ptr(), m, go.data_ptr(), grids.data_ptr(), c, d, h, w, *grids.stride(),
+        index_grad.data_ptr(), torch.get_num_threads(),
+    )
+    half = torch.tensor([(w - 1) / 2, (h - 1) / 2, (d - 1) / 2], dtype=torch.float32)  # x, y, z
+    local_grad = index_grad * half  # [M, N, 3]
+    grad_matrices = torch.einsum("mnk,nj->mkj", local_grad, points)  # [M, 3, 3]
+    return grad_matrices.to(matrices.dtype), local_grad.sum(1).to(matrices.dtype)  # [M, 3, 3], [M, 3]
+
+
 class _MultigridFunction(torch.autograd.Function):
-    """Autograd wrapper: gradients for the grids only (points and maps are constants here)."""
+    """Autograd wrapper: gradients for the grids and the placement (the points are constants here)."""
 
     @staticmethod
     def forward(ctx, points, matrices, translations, grids):  # type: ignore[override]
@@ -606,30 +698,36 @@ class _MultigridFunction(torch.autograd.Function):
         pts = points.detach().to(torch.float32).contiguous()
         aff = index_space_affine(matrices, translations, (d, h, w))
         g = grids.detach()
-        out = forward_features(pts, aff, _sampling_layout(g, pts.shape[0] * m * c))
-        ctx.save_for_backward(pts, aff)
-        # Only the layout is kept (not the grids): the gradient is scattered straight into it.
+        layout = _sampling_layout(g, pts.shape[0] * m * c)
+        out = forward_features(pts, aff, layout)
+        placed = ctx.needs_input_grad[1] or ctx.needs_input_grad[2]
+        # Only the layout is kept for the grids' gradient (scattered straight into it); the placement's
+        # gradient reads the grids' values.
+        ctx.save_for_backward(pts, aff, *((layout, matrices) if placed else ()))
         ctx.grid_layout = (tuple(g.shape), tuple(g.stride()) if _grid_major_dense(g) else None)
         return out
 
     @staticmethod
     def backward(ctx, grad_out):  # type: ignore[override]
-        pts, aff = ctx.saved_tensors
-        grad_grids = None
+        pts, aff, *placement = ctx.saved_tensors
+        grad_grids = grad_matrices = grad_translations = None
         if ctx.needs_input_grad[3]:
             grad_grids = backward_grids(pts, aff, grad_out, *ctx.grid_layout)
-        return None, None, None, grad_grids
+        if placement:
+            grad_matrices, grad_translations = backward_placement(pts, aff, grad_out, *placement)
+        return None, grad_matrices, grad_translations, grad_grids
 
 
 def multigrid_features_cpu(
     points: torch.Tensor, matrices: torch.Tensor, translations: torch.Tensor, grids: torch.Tensor
 ) -> torch.Tensor:
-    """Fused CPU multi-grid features with gradients for ``grids`` only (float32 CPU tensors).
+    """Fused CPU multi-grid features with gradients for ``grids``, ``matrices`` and ``translations`` (float32
+    CPU tensors).
 
     Args:
-        points: ``[N, 3]``.
-        matrices: ``[M, 3, 3]`` (no gradient flows to them).
-        translations: ``[M, 3]`` (no gradient flows to them).
+        points: ``[N, 3]`` (no gradient flows to them).
+        matrices: ``[M, 3, 3]``.
+        translations: ``[M, 3]``.
         grids: ``[M, C, D, H, W]``.
 
     Returns:

@@ -10,7 +10,11 @@ docs/time_series.md):
 2. **The other steps**, moving away from the start one neighbour at a time (:func:`step_order`), start from
    the neighbour's grids and fine-tune only their own feature grids at a lower learning rate, for a tenth of
    that budget, more for a step that differs much from its neighbour (:meth:`StepwiseConfig.step_config`);
-   placement and decoder stay the start model's, frozen.
+   the decoder stays the start model's, frozen, and so does the placement, unless the fine-tuned step ends
+   more than :data:`TRACK_DB` below the start model: then the step is fine-tuned again from its neighbour
+   with the reconstruction error moving its grids' placement too (``placement_loss="reconstruction"``), and
+   the better of the two is kept. Structures that travel across the domain are followed this way; every
+   step stores its own placement (192 floats at the small size).
 
 The result is a :class:`~apmgsrn.models.series_field.SeriesField` with one basis slice per step (keyframe
 weights, ``K = T``: the identity), so decoding, rendering and querying a step cost what a single-step model
@@ -56,6 +60,13 @@ STEP_ITERATION_SHARE, STEP_LR_SHARE = 0.1, 0.3
 STEP_CHANGE_SCALE, STEP_ITERATION_CAP = 8.0, 10.0
 #: Voxels compared to measure how much a step differs from its neighbour (a regular subset of larger steps).
 CHANGE_VOXELS = 1 << 20
+#: A step whose fine-tune ends more than this many dB below the start model (RMS error ratio
+#: ``10^(TRACK_DB / 20)``) is fine-tuned again with its placement moving (viscous-finger steps end within
+#: 0.5 dB of the start and never are; a volume shifted 4 voxels a step is 9 dB below by its third step).
+TRACK_DB = 3.0
+#: The moving placement's learning rate, as a multiple of the start model's ``placement_lr`` (scaled by the
+#: fine-tune's schedule).
+TRACK_PLACEMENT_LR_SHARE = 2.0
 #: Share of every batch at voxel positions that a stepwise series trains with unless told otherwise
 #: (what it was measured with; uniform points alone cost 2-4 dB on the viscous-finger steps).
 STEPWISE_VOXEL_FRACTION = 0.5
@@ -110,9 +121,18 @@ class StepwiseConfig:
                        stop_after_lr_cuts=None)
 
 
+def tracking_config(step: TrainConfig) -> TrainConfig:
+    """A step's fine-tune (:meth:`StepwiseConfig.step_config`) with the reconstruction error moving its grids'
+    placement too, through the whole fine-tune."""
+    return replace(step, placement_loss="reconstruction", freeze_fraction=1.0,
+                   placement_lr=step.placement_lr * TRACK_PLACEMENT_LR_SHARE)
+
+
 def stepwise_config(field: FieldConfig, steps: int, storage: str = "float32") -> SeriesFieldConfig:
-    """The series model a stepwise run fills: one basis slice per step, keyframe weights (the identity)."""
-    return SeriesFieldConfig(field, SeriesConfig(steps=steps, basis=steps, coefficients="keyframes", storage=storage))
+    """The series model a stepwise run fills: one basis slice and one placement per step, keyframe weights
+    (the identity)."""
+    return SeriesFieldConfig(field, SeriesConfig(steps=steps, basis=steps, coefficients="keyframes", storage=storage,
+                                                 placement="per_step"))
 
 
 def detail(values: torch.Tensor) -> float:
@@ -159,11 +179,13 @@ def step_order(start: int, steps: int) -> list[tuple[int, int]]:
 @dataclass
 class _Progress:
     """Where a stepwise run stands: the start step, the steps done in order, each one's fine-tune iterations
-    (0 for the start), the start model's RMS error and the training state so far."""
+    (0 for the start; both fine-tunes of a tracked step) and whether its placement moved, the start model's
+    RMS error and the training state so far."""
 
     start: int
     done: list[int]
     iterations: list[int]
+    tracked: list[bool]
     error: float
     state: TrainingState
 
@@ -172,7 +194,7 @@ def _save_steps(path: Path, field: SeriesField, progress: _Progress, fingerprint
     """The series field so far and the steps done, atomically to ``path`` (it may replace the start model's
     training checkpoint of the same run)."""
     description = {"fingerprint": as_json(fingerprint), "start": progress.start, "done": progress.done,
-                   "step_iterations": progress.iterations, "error": progress.error,
+                   "step_iterations": progress.iterations, "tracked": progress.tracked, "error": progress.error,
                    "state": asdict(progress.state)}
     data = file_bytes({k: v.detach().cpu().contiguous() for k, v in field.state_dict().items()},
                       STEPS_CHECKPOINT_KIND, description)
@@ -205,6 +227,9 @@ def _load_steps(path: Path, field: SeriesField, fingerprint: dict, iterations: i
             raise DescriptionError("step iterations do not match the steps done")
         for index, count in enumerate(counts):
             require_int(count, f"step_iterations[{index}]", 0)
+        tracked = description.get("tracked")
+        if not isinstance(tracked, list) or len(tracked) != len(done) or not all(isinstance(t, bool) for t in tracked):
+            raise DescriptionError("tracked steps do not match the steps done")
         error = require_number(description.get("error"), "error")
         if not error >= 0:
             raise DescriptionError("error is negative")
@@ -217,26 +242,70 @@ def _load_steps(path: Path, field: SeriesField, fingerprint: dict, iterations: i
     if not all(bool(torch.isfinite(t).all()) for t in tensors.values()):
         raise ApmgsrnError(f"{path}: training checkpoint holds NaN or Inf; delete it to start over")
     field.load_state_dict(tensors)
-    return _Progress(start, list(done), list(counts), error, state)
+    return _Progress(start, list(done), list(counts), list(tracked), error, state)
 
 
 # ------------------------------------------------------------------------------------------ training
 @torch.no_grad()
 def _adopt(series: SeriesField, start_field: NeuralField) -> None:
-    """The start model's placement, decoder and grids into the series field (its grids become every step's
-    until that step is trained)."""
-    series.encoder.matrices.copy_(start_field.encoder.matrices)
-    series.encoder.translations.copy_(start_field.encoder.translations)
+    """The start model's placement, decoder and grids into the series field (its grids and placement become
+    every step's until that step is trained)."""
+    encoder, start = series.encoder, start_field.encoder
+    for name in ("matrices", "translations", "grids"):
+        getattr(encoder, name).copy_(getattr(start, name).unsqueeze(0).expand_as(getattr(encoder, name)))
     series.decoder.load_state_dict(start_field.decoder.state_dict())
-    series.encoder.grids.copy_(start_field.encoder.grids.unsqueeze(0).expand_as(series.encoder.grids))
 
 
 def _worker(series: SeriesField) -> NeuralField:
-    """A single-step field sharing the series' placement and decoder (frozen): the steps' fine-tunes train it."""
-    field = series.step_field(0)  # a materialised copy; its grids are set per step
-    field.train()
-    field.encoder.grids.requires_grad_(True)
-    return field
+    """A single-step field with the series' decoder (frozen): the steps' fine-tunes train it."""
+    return series.step_field(0).train()  # a materialised copy; its grids and placement are set per step
+
+
+_STEP_PARAMETERS = ("grids", "matrices", "translations")
+
+
+@torch.no_grad()
+def _load_step(worker: NeuralField, series: SeriesField, step: int) -> None:
+    """Step ``step``'s grids and placement into the worker."""
+    for name in _STEP_PARAMETERS:
+        getattr(worker.encoder, name).copy_(getattr(series.encoder, name)[step])
+
+
+@torch.no_grad()
+def _store_step(worker: NeuralField, series: SeriesField, step: int) -> None:
+    """The worker's grids and placement as step ``step``'s."""
+    for name in _STEP_PARAMETERS:
+        getattr(series.encoder, name)[step].copy_(getattr(worker.encoder, name))
+
+
+def _fine_tune(worker: NeuralField, values: torch.Tensor, config: TrainConfig, track: bool) -> float:
+    """Fine-tune the worker's grids (and with ``track`` its placement) on one step; its final RMS error."""
+    worker.encoder.grids.requires_grad_(True)
+    for parameter in worker.encoder.placement_parameters():
+        parameter.requires_grad_(track)
+    state = Trainer(worker, values, tracking_config(config) if track else config, None, {}, []).run()
+    return math.sqrt(_final_loss(state))
+
+
+def _train_step(worker: NeuralField, series: SeriesField, values: torch.Tensor, t: int, neighbour: int,
+                config: TrainConfig, error: float) -> tuple[bool, int]:
+    """Train step ``t`` from ``neighbour`` into the series field (see the module docstring).
+
+    Returns:
+        Whether the kept fine-tune moved the placement, and how many fine-tunes ran (1 or 2).
+    """
+    _load_step(worker, series, neighbour)
+    frozen = _fine_tune(worker, values, config, track=False)
+    if frozen <= error * 10 ** (TRACK_DB / 20):
+        _store_step(worker, series, t)
+        return False, 1
+    kept = {k: v.clone() for k, v in worker.encoder.state_dict().items()}
+    _load_step(worker, series, neighbour)
+    tracked = _fine_tune(worker, values, config, track=True)
+    if tracked >= frozen:
+        worker.encoder.load_state_dict(kept)
+    _store_step(worker, series, t)
+    return tracked < frozen, 2
 
 
 def train_stepwise(
@@ -282,7 +351,7 @@ def train_stepwise(
     resumed = checkpoint is not None and checkpoint.exists() and read_header(checkpoint).kind == STEPS_CHECKPOINT_KIND
     if resumed:
         series = build_field(prepared, field_config, volume_shape, train_config.seed)
-        most = train_config.iterations + (steps - 1) * math.ceil(
+        most = train_config.iterations + (steps - 1) * 2 * math.ceil(  # two fine-tunes of a step at most
             stepwise.base_iterations(train_config) * STEP_ITERATION_CAP)
         progress = _load_steps(checkpoint, series, fingerprint, most)
         resumed_from = progress.state.iteration
@@ -298,7 +367,7 @@ def train_stepwise(
         series = build_field(prepared, field_config, volume_shape, train_config.seed)
         _adopt(series, first.field)
         error = math.sqrt(_final_loss(first.state))
-        progress = _Progress(start, [start], [0], error, first.state)
+        progress = _Progress(start, [start], [0], [False], error, first.state)
         resumed_from = first.resumed_from
         if checkpoint is not None:
             _save_steps(checkpoint, series, progress, fingerprint)
@@ -310,18 +379,16 @@ def train_stepwise(
         for t, neighbour in todo:
             began = time.perf_counter()
             config = stepwise.step_config(train_config, change(values, t, neighbour), progress.error)
-            with torch.no_grad():
-                worker.encoder.grids.copy_(series.encoder.grids[neighbour])
-            Trainer(worker, values[t], config, None, {}, []).run()
-            with torch.no_grad():
-                series.encoder.grids[t].copy_(worker.encoder.grids)
+            tracked, runs = _train_step(worker, series, values[t], t, neighbour, config, progress.error)
+            iterations = config.iterations * runs
             progress.done.append(t)
-            progress.iterations.append(config.iterations)
-            state.iteration += config.iterations
+            progress.iterations.append(iterations)
+            progress.tracked.append(tracked)
+            state.iteration += iterations
             state.elapsed += time.perf_counter() - began
             if checkpoint is not None:
                 _save_steps(checkpoint, series, progress, fingerprint)
-            display.set_fields(step=t, iterations=config.iterations)
+            display.set_fields(step=t, iterations=iterations, **({"placement": "moved"} if tracked else {}))
             display.update(1)
     except KeyboardInterrupt:
         display.close(completed=False)
@@ -329,10 +396,11 @@ def train_stepwise(
             raise
         raise TrainingInterrupted(state.iteration, checkpoint) from None
     display.close(completed=True)
-    series.encoder.grids.requires_grad_(True)
+    series.requires_grad_(True)
     by_step = dict(zip(progress.done, progress.iterations))
     summary = {"start": progress.start, "step_iterations": [by_step[t] for t in range(steps)],
-               "step_lr": stepwise.step_config(train_config).lr}
+               "step_lr": stepwise.step_config(train_config).lr,
+               "tracked_steps": sorted(t for t, moved in zip(progress.done, progress.tracked) if moved)}
     return TrainedField(series.eval(), state, resumed_from, summary={"stepwise": summary})
 
 

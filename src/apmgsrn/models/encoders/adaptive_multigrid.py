@@ -145,9 +145,16 @@ class AdaptiveMultiGridEncoder(Encoder):
     @torch.no_grad()
     def grid_boxes(self) -> torch.Tensor:
         """Corners of every grid in global coordinates ``[M, 8, 3]`` (for pictures and ``info``)."""
-        corners = torch.tensor(
-            [[x, y, z] for z in (-1.0, 1.0) for y in (-1.0, 1.0) for x in (-1.0, 1.0)]
-        )  # [8, 3] local
-        inverse = torch.linalg.inv(self.matrices.double())  # [M, 3, 3]
-        shifted = corners.double()[None] - self.translations.double()[:, None, :]  # [M, 8, 3]
-        return torch.matmul(shifted, inverse.transpose(1, 2)).float()  # [M, 8, 3]
+        return placed_boxes(self.matrices, self.translations)
+
+
+@torch.no_grad()
+def placed_boxes(matrices: torch.Tensor, translations: torch.Tensor) -> torch.Tensor:
+    """Corners ``[M, 8, 3]`` in global coordinates of grids placed by ``A [M, 3, 3]`` and ``t [M, 3]`` (the local
+    ``[-1, 1]^3`` mapped back through ``A^-1 (l - t)``); corner ``k`` has x from bit 0, y from bit 1, z from bit 2."""
+    corners = torch.tensor(
+        [[x, y, z] for z in (-1.0, 1.0) for y in (-1.0, 1.0) for x in (-1.0, 1.0)]
+    )  # [8, 3] local
+    inverse = torch.linalg.inv(matrices.double())  # [M, 3, 3]
+    shifted = corners.double()[None] - translations.double()[:, None, :]  # [M, 8, 3]
+    return torch.matmul(shifted, inverse.transpose(1, 2)).float()  # [M, 8, 3]
