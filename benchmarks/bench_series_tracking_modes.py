@@ -130,7 +130,8 @@ def time_fine_tunes(values: torch.Tensor, iterations: int, rounds: int = 3) -> N
                 trainer.state.iteration += 1
             times[name].append(1000 * (time.perf_counter() - began) / iterations)
     for name, samples in times.items():
-        print(f"{name:32s} {sorted(samples)[len(samples) // 2]:7.1f} ms/iteration  ({', '.join(f'{t:.1f}' for t in samples)})")
+        rounds_text = ", ".join(f"{t:.1f}" for t in samples)
+        print(f"{name:32s} {sorted(samples)[len(samples) // 2]:7.1f} ms/iteration  ({rounds_text})")
 
 
 def train_prepared_shell(values: torch.Tensor, backend: str):

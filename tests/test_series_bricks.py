@@ -164,8 +164,11 @@ def test_train_with_bricks_is_stepwise_by_default(test_data, tmp_path, capsys):
             "--group-steps", "2", "--workers", "2", "--iterations", "60", "--batch-size", "1024", "--resolution", "8",
             "--width", "16", "--step-iterations", "10", "--device", "cpu", "--json"]
     assert main(argv) == 0
-    result = json.loads(capsys.readouterr().out)
+    captured = capsys.readouterr()
+    result = json.loads(captured.out)
     assert result["complete"] and result["groups"] == 2
+    assert "2x1x1 = 2 in each of 2 step groups (ghost cells 1); 4 to train, 0 already done" in captured.err
+    assert "finished    steps_000002_000004: 2 of 2 bricks" in captured.err
     brick = apmgsrn.load(out / "steps_000000_000002" / brick_file_name("brick_000_000_000"))
     assert brick.description.kind == "packed-series" and "stepwise" in brick.description.training
     assert main(["eval", str(out), str(test_data / "viscous_fingers_run01" / "*.vti"), "--json"]) == 0

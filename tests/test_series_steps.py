@@ -246,7 +246,10 @@ def test_a_step_that_drifts_is_fine_tuned_again_with_its_placement_moving(travel
     moved = tracked.summary["stepwise"]["tracked_steps"]
     assert moved and not frozen.summary["stepwise"]["tracked_steps"]
     counts = tracked.summary["stepwise"]["step_iterations"]
-    assert all(counts[t] == 2 * 100 for t in moved)  # both fine-tunes counted
+    # The first step that moved ran both fine-tunes (both counted); a step after one that moved starts with
+    # the placement moving, and needs the other only if that drifts too.
+    assert counts[moved[0]] == 2 * 100 and all(counts[t] in (100, 200) for t in moved)
+    assert any(counts[t] == 100 for t in moved[1:])  # here: moving first was enough
     encoder = tracked.field.encoder
     for t in moved:
         assert not torch.equal(encoder.translations[t], encoder.translations[0])

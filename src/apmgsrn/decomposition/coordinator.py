@@ -100,14 +100,17 @@ class BrickProgress:
         self.done = 0
         self.failed = 0
 
-    def start(self, plan: BrickPlan, to_train: int, where: str) -> None:
+    def start(self, plan: BrickPlan, to_train: int, where: str, groups: int = 1) -> None:
+        """The opening line: the brick grid (of each of ``groups`` step groups of a series), how many (brick,
+        group) jobs are to train and how many are done already."""
         self.total = to_train
         self._progress = Progress(to_train, unit="brick", description="bricks", stream=self.stream,
                                   enabled=self.enabled)
         i, j, k = plan.counts
-        reused = len(plan) - to_train
+        reused = len(plan) * groups - to_train
+        per_group = f" in each of {groups} step groups" if groups > 1 else ""
         self._progress.write(
-            f"bricks      {i}x{j}x{k} = {len(plan)} (ghost cells {plan.config.ghost_cells}); "
+            f"bricks      {i}x{j}x{k} = {len(plan)}{per_group} (ghost cells {plan.config.ghost_cells}); "
             f"{to_train} to train, {reused} already done; {where}"
         )
 
@@ -133,12 +136,15 @@ class BrickProgress:
     def tick(self, running: int) -> None:
         self._progress.set_fields(done=str(self.done), running=str(running), failed=str(self.failed))
 
-    def close(self, summary: BrickTrainingSummary) -> None:
+    def close(self, summary: BrickTrainingSummary, label: str | None = None) -> None:
+        """The closing line of one brick folder (``label``: which one, when several trained at once)."""
         self._progress.close()
         if not self.enabled:
             return
+        where = f"{label}: " if label else ""
+        finished = len(summary.plan) - len(summary.failed) - len(missing_names(summary))
         print(
-            f"finished    {len(summary.plan) - len(summary.failed) - len(missing_names(summary))} of {len(summary.plan)} "
+            f"finished    {where}{finished} of {len(summary.plan)} "
             f"bricks ({len(summary.trained)} trained now, {len(summary.reused)} earlier), {len(summary.failed)} failed, "
             f"total {summary.seconds:.1f} s",
             file=self.stream, flush=True,
@@ -363,7 +369,7 @@ def run_brick_jobs(runs: list[BrickRun], queue: JobQueue, progress: BrickProgres
         One summary per run, in order.
     """
     first = runs[0]
-    progress.start(first.plan, sum(len(r.jobs) for r in runs), queue.description)
+    progress.start(first.plan, sum(len(r.jobs) for r in runs), queue.description, groups=len(runs))
     token = uuid.uuid4().hex[:8]
     futures = {}
     for number, run in enumerate(runs):
@@ -400,7 +406,7 @@ def run_brick_jobs(runs: list[BrickRun], queue: JobQueue, progress: BrickProgres
         summaries = [_finish(run.out, run.plan, run.manifest, trained[n], run.reused, failed[n], started, queue)
                      for n, run in enumerate(runs)]
         for summary in summaries:
-            progress.close(summary)
+            progress.close(summary, summary.out.name if len(summaries) > 1 else None)
     return summaries
 
 

@@ -14,7 +14,9 @@ docs/time_series.md):
    more than :data:`TRACK_DB` below the start model: then the step is fine-tuned again from its neighbour
    with the reconstruction error moving its grids' placement too (``placement_loss="reconstruction"``), and
    the better of the two is kept. Structures that travel across the domain are followed this way; every
-   step stores its own placement (192 floats at the small size).
+   step stores its own placement (192 floats at the small size). A step whose neighbour's placement moved
+   is fine-tuned with a moving placement first (the motion usually goes on), and with the placement kept
+   only if that ends more than :data:`TRACK_DB` below.
 
 The result is a :class:`~apmgsrn.models.series_field.SeriesField` with one basis slice per step (keyframe
 weights, ``K = T``: the identity), so decoding, rendering and querying a step cost what a single-step model
@@ -288,24 +290,26 @@ def _fine_tune(worker: NeuralField, values: torch.Tensor, config: TrainConfig, t
 
 
 def _train_step(worker: NeuralField, series: SeriesField, values: torch.Tensor, t: int, neighbour: int,
-                config: TrainConfig, error: float) -> tuple[bool, int]:
-    """Train step ``t`` from ``neighbour`` into the series field (see the module docstring).
+                config: TrainConfig, error: float, track_first: bool) -> tuple[bool, int]:
+    """Train step ``t`` from ``neighbour`` into the series field (see the module docstring): first the way that
+    ended the neighbour's training (placement kept, or moving with ``track_first``); if that ends more than
+    :data:`TRACK_DB` below the start model, the other way too, and the better of the two is kept.
 
     Returns:
         Whether the kept fine-tune moved the placement, and how many fine-tunes ran (1 or 2).
     """
     _load_step(worker, series, neighbour)
-    frozen = _fine_tune(worker, values, config, track=False)
-    if frozen <= error * 10 ** (TRACK_DB / 20):
+    first = _fine_tune(worker, values, config, track=track_first)
+    if first <= error * 10 ** (TRACK_DB / 20):
         _store_step(worker, series, t)
-        return False, 1
+        return track_first, 1
     kept = {k: v.clone() for k, v in worker.encoder.state_dict().items()}
     _load_step(worker, series, neighbour)
-    tracked = _fine_tune(worker, values, config, track=True)
-    if tracked >= frozen:
+    second = _fine_tune(worker, values, config, track=not track_first)
+    if second >= first:
         worker.encoder.load_state_dict(kept)
     _store_step(worker, series, t)
-    return tracked < frozen, 2
+    return track_first if second >= first else not track_first, 2
 
 
 def train_stepwise(
@@ -379,7 +383,9 @@ def train_stepwise(
         for t, neighbour in todo:
             began = time.perf_counter()
             config = stepwise.step_config(train_config, change(values, t, neighbour), progress.error)
-            tracked, runs = _train_step(worker, series, values[t], t, neighbour, config, progress.error)
+            moved = dict(zip(progress.done, progress.tracked))
+            tracked, runs = _train_step(worker, series, values[t], t, neighbour, config, progress.error,
+                                        track_first=moved[neighbour])
             iterations = config.iterations * runs
             progress.done.append(t)
             progress.iterations.append(iterations)
