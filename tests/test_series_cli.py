@@ -333,3 +333,15 @@ def test_train_and_info_name_the_steps_whose_placement_followed_their_structures
     assert main(["info", str(tmp_path / "n.apmgsrn")]) == 0
     assert f"grids placed per step; moved with the structures at {len(moved)} step(s) ({listed})" in \
         capsys.readouterr().out
+
+
+def test_info_says_when_a_long_series_shortened_its_steps(tmp_path, capsys, pattern, monkeypatch):
+    from apmgsrn.training import series_steps
+
+    monkeypatch.setattr(series_steps, "STEPS_BUDGET_CAP", 0.1)  # 15 base iterations for the 3 steps after the start
+    out = tmp_path / "m.apmgsrn"
+    run_json(capsys, ["train", pattern, "--out", str(out), "--start-step", "0", "--json", *FAST])
+    scale = apmgsrn.load(out).description.training["stepwise"]["budget_scale"]
+    assert 0 < scale <= 1 / 3
+    assert main(["info", str(out)]) == 0
+    assert f"every step's fine-tune shortened to {scale:.2f} of the base share" in capsys.readouterr().out

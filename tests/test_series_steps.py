@@ -114,6 +114,29 @@ def test_the_step_config_fine_tunes_grids_only_longer_the_more_a_step_changes():
     assert counts == [200, 200, 400, 2000]
 
 
+def test_a_long_series_shortens_every_step_to_stay_within_the_budget():
+    """The steps after the start get at most STEPS_BUDGET_CAP times the start model's iterations at the base
+    share: 29 steps at 200 are under it, 99 are shortened in proportion; steps that change much keep their
+    extra share; iterations a caller set are kept."""
+    start = TrainConfig(iterations=2000)
+    stepwise = StepwiseConfig()
+    assert stepwise.budget_scale(start, 29) == 1.0  # 29 x 200 = 5,800 <= 8,000
+    scale = stepwise.budget_scale(start, 99)
+    assert scale == pytest.approx(8000 / (99 * 200))
+    assert 99 * stepwise.step_config(start, 0.0, 0.001, scale).iterations <= 8000 + 99
+    assert stepwise.step_config(start, 0.5, 0.001, scale).iterations == round(2000 * scale)  # 10 x the base
+    assert StepwiseConfig(step_iterations=200).budget_scale(start, 99) == 1.0
+
+
+def test_stepwise_training_applies_the_budget(prepared, monkeypatch):
+    monkeypatch.setattr(series_steps, "STEPS_BUDGET_CAP", 0.15)  # 18 of the 3 x 12 base iterations
+    run = train_stepwise(prepared, stepwise_config(TINY, 4), TRAIN, (32, 32, 32), stepwise=StepwiseConfig(start=1),
+                         show_progress=False)
+    summary = run.summary["stepwise"]
+    assert summary["budget_scale"] == pytest.approx(0.5)
+    assert summary["step_iterations"] == [6, 0, 6, 6]
+
+
 def test_a_step_far_from_its_neighbour_gets_more_iterations(prepared, truth):
     """Steps 0 and 3 as a series of two: they differ more than neighbours do, so the step trained second gets
     a longer fine-tune, recorded in the summary."""

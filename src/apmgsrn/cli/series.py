@@ -380,6 +380,10 @@ def print_series_info(info: dict) -> None:
     if isinstance(stepwise.get("start"), int) and counts:
         print(f"time        {info['steps']} steps, each with its own grids: trained stepwise from step "
               f"{stepwise['start']}, {min(counts)} to {max(counts)} iterations per other step")
+        scale = stepwise.get("budget_scale")
+        if isinstance(scale, (int, float)) and 0 < scale < 1:
+            print(f"            a long series: every step's fine-tune shortened to {scale:.2f} of the base share, "
+                  "to stay within the budget")
         moved = [t for t in stepwise.get("tracked_steps") or [] if isinstance(t, int)]
         if moved:
             print(f"            grids placed per step; moved with the structures at {len(moved)} step(s) "
