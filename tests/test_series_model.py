@@ -132,6 +132,16 @@ def test_a_per_step_placement_reloads_exactly(tmp_path):
     assert loaded.config.series.placement == "per_step" and loaded.encoder.matrices.shape == (3, 4, 3, 3)
     for name, parameter in field.state_dict().items():
         assert torch.equal(loaded.state_dict()[name], parameter), name
+    # One step's placement singular, or placements stored for fewer steps than declared: one-line refusals.
+    singular = rewrite(path, tmp_path / "singular.apmgsrn",
+                       tensors=lambda tensors: tensors["encoder.matrices"][2, 1].zero_())
+    with pytest.raises(ApmgsrnError, match="singular"):
+        apmgsrn.load(singular)
+    short = rewrite(path, tmp_path / "short.apmgsrn",
+                    tensors=lambda tensors: tensors.update({"encoder.matrices": tensors["encoder.matrices"][:2].clone()}))
+    with pytest.raises(ApmgsrnError) as caught:
+        apmgsrn.load(short)
+    assert "\n" not in str(caught.value)
 
 
 def test_materialising_leaves_the_global_random_state_alone():
