@@ -81,3 +81,24 @@ def test_user_errors_name_the_file(tmp_path):
         open_source(path)
     filled = open_source(path, options=SourceOptions(volume={"fill_nonfinite": -1.0}))
     assert filled.value_range[0] == -1.0
+
+
+def test_a_series_placed_per_step_shows_each_steps_own_grids(tmp_path):
+    """A stepwise series whose steps placed their grids apart: the source at a step carries that step's grid
+    boxes (what the viewer's overlay and render draw), not step 0's."""
+    from apmgsrn.io import SeriesStepInfo, SourceInfo, save_series
+    from apmgsrn.models.registry import preset_config
+    from apmgsrn.models.series_field import SeriesConfig, SeriesField, SeriesFieldConfig
+
+    config = SeriesFieldConfig(preset_config("apmgsrn", "small", grids=3, resolution=(4, 4, 4), width=8),
+                               SeriesConfig(3, 3, "keyframes", placement="per_step"))
+    field = SeriesField(config, volume_shape=(8, 8, 8), generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        field.encoder.translations[2].add_(0.3)  # step 2's grids sit elsewhere
+    path = tmp_path / "placed.apmgsrn"
+    save_series(path, field, SourceInfo(), {}, [SeriesStepInfo(float(t), f"s{t}", (0.0, 1.0)) for t in range(3)])
+    source = open_source(path)
+    torch.testing.assert_close(source.grid_boxes, field.encoder.grid_boxes(0))
+    later = source.at_step(2)
+    torch.testing.assert_close(later.grid_boxes, field.encoder.grid_boxes(2))
+    assert not torch.allclose(later.grid_boxes, source.grid_boxes)
