@@ -154,7 +154,8 @@ def multigrid_features(
     gradients for ``grids``, ``matrices`` and ``translations`` (the last two when the reconstruction error
     moves the placement, ``TrainConfig.placement_loss="reconstruction"``), the Triton backend for ``grids``
     only: when ``points`` (or, on Triton, the maps) require grad, or the inputs are not float32, this runs
-    the reference instead, so autograd stays exact. The Triton backend also reads float16/bfloat16 grids (features come out float32).
+    the reference instead, so autograd stays exact. The Triton backend also reads float16/bfloat16 grids
+    (features come out float32).
 
     Args:
         points: ``[N, 3]``.
