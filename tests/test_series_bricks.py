@@ -174,3 +174,5 @@ def test_train_with_bricks_is_stepwise_by_default(test_data, tmp_path, capsys):
     assert main(["eval", str(out), str(test_data / "viscous_fingers_run01" / "*.vti"), "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)["per_step"]
     assert len(rows) == 4 and all(row["psnr"] > 20 for row in rows)
+    assert main(["info", str(out)]) == 0
+    assert "4 steps, each with its own grids and placement: trained stepwise" in capsys.readouterr().out

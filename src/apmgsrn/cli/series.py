@@ -388,6 +388,8 @@ def print_series_info(info: dict) -> None:
         if moved:
             print(f"            grids placed per step; moved with the structures at {len(moved)} step(s) "
                   f"({_listed(moved)})")
+    elif info.get("placement") == "per_step":  # stepwise bricks: each brick and group of steps has its own start
+        print(f"time        {info['steps']} steps, each with its own grids and placement: trained stepwise")
     else:
         print(f"time        {info['steps']} steps; {info['basis']} basis grids per grid, {info['coefficients']} "
               "weights" + (f", per-step residual {info['residual']}^3" if info["residual"] else ""))

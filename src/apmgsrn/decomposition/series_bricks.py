@@ -245,7 +245,11 @@ def load_series_bricks(path: Path, device: torch.device):
         loaded.append(bricks)
     field = SeriesBrickField(groups).to(device).eval()
     first = loaded[0].fields[0].config.series
-    config = SeriesConfig(len(manifest["steps"]), first.basis, first.coefficients, first.residual)
+    steps_in_all = len(manifest["steps"])
+    if first.placement == "per_step":  # trained stepwise: every step its own grids and placement
+        config = SeriesConfig(steps_in_all, steps_in_all, "keyframes", placement="per_step")
+    else:
+        config = SeriesConfig(steps_in_all, first.basis, first.coefficients, first.residual)
     steps = tuple(SeriesStepInfo(s["label"], s.get("name") or "", (s.get("value_min", field.value_min),
                                                                       s.get("value_max", field.value_max)))
                   for s in manifest["steps"])
