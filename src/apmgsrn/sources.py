@@ -196,8 +196,7 @@ def _load_model(path: Path, name: str, device: torch.device, step: int | None = 
         labels = tuple(step.label for step in description.series.steps)
         bricks = description.bricks
         if bricks is None:
-            parts, grid_boxes, brick_boxes = (f"{description.config.encoder.grids} feature grids",
-                                              _grid_boxes_of(field.step_field(0)), None)
+            parts, grid_boxes, brick_boxes = f"{description.config.encoder.grids} feature grids", _grid_boxes_of(field), None
         else:
             counts = bricks.counts
             parts, grid_boxes, brick_boxes = f"{counts[0]}x{counts[1]}x{counts[2]} bricks", None, routing_boxes(counts)

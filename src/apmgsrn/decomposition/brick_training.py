@@ -12,7 +12,6 @@ import pickle
 import resource
 import socket
 from dataclasses import dataclass, replace
-from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -28,9 +27,9 @@ from apmgsrn.errors import ApmgsrnError
 from apmgsrn.data.series import VolumeSeries
 from apmgsrn.io import SeriesStepInfo, SourceInfo
 from apmgsrn.models.registry import FieldConfig
-from apmgsrn.training.fit import fit, prepare_values, train_prepared
+from apmgsrn.training.fit import fit, prepare_values
 from apmgsrn.training.series_packing import SeriesPacking
-from apmgsrn.training.series_steps import StepwiseConfig, train_stepwise
+from apmgsrn.training.series_steps import StepwiseConfig, series_trainer
 from apmgsrn.training.trainer import TrainConfig
 
 #: Paper (SPEC section 6): a brick is done after the plateau scheduler's third learning-rate cut.
@@ -279,11 +278,9 @@ def _fit_region(job: BrickJob, region: np.ndarray, device: torch.device, worker:
         steps = [SeriesStepInfo(label, job.volume.step_name(t), (float(region[t].min()), float(region[t].max())))
                  for t, label in enumerate(job.volume.labels)]
     # A brick always resumes its own checkpoint: the job may be a retry after a crash.
-    train = train_prepared if job.stepwise is None else partial(train_stepwise, stepwise=job.stepwise,
-                                                                 show_progress=False)
     result = fit(prepared, region, job.field_config, job.train_config, Path(job.model_path), job.source,
                  fingerprint, resume=True, psnr_voxels=job.psnr_voxels, summary_extra={"brick": box}, steps=steps,
-                 train=train, packing=job.packing)
+                 train=series_trainer(job.stepwise, show_progress=False), packing=job.packing)
     peak_device = int(torch.cuda.max_memory_allocated(device)) if device.type == "cuda" else 0
     return BrickResult(
         name=brick.name,

@@ -13,7 +13,6 @@ Two ways to train (docs/time_series.md measures both):
 from __future__ import annotations
 
 from dataclasses import asdict
-from functools import partial
 from pathlib import Path
 
 import torch
@@ -26,7 +25,7 @@ from apmgsrn.models.series_field import SeriesFieldConfig
 from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.fit import FitResult, check_output, fit, prepare_values
 from apmgsrn.training.series_packing import SeriesPacking
-from apmgsrn.training.series_steps import StepwiseConfig, train_stepwise
+from apmgsrn.training.series_steps import StepwiseConfig, series_trainer
 from apmgsrn.training.trainer import TrainConfig
 
 
@@ -77,10 +76,6 @@ def fit_series(
     # A resume must continue on the same steps: each file's real path and a hash of a sample of its values.
     fingerprint = {"data": series_fingerprint(series), "field": field_config.to_dict(),
                    "transform": asdict(prepared.transform)}
-    if stepwise is None:
-        return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
-                   callbacks=[TrainingProgress(enabled=progress)], steps=steps, packing=packing)
-    train = partial(train_stepwise, stepwise=stepwise, show_progress=progress)
+    display = TrainingProgress("train" if stepwise is None else "start step", enabled=progress)
     return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
-               callbacks=[TrainingProgress("start step", enabled=progress)], steps=steps, packing=packing,
-               train=train)
+               callbacks=[display], steps=steps, packing=packing, train=series_trainer(stepwise, progress))

@@ -31,7 +31,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -142,6 +144,14 @@ class StepwiseConfig:
         if self.step_iterations is not None or steps < 1:
             return 1.0
         return min(1.0, STEPS_BUDGET_CAP * config.iterations / (steps * self.base_iterations(config)))
+
+
+def series_trainer(stepwise: StepwiseConfig | None, show_progress: bool = True) -> Callable[..., TrainedField]:
+    """What trains a series (the ``train`` argument of :func:`~apmgsrn.training.fit.fit`): step by step with
+    ``stepwise`` (:func:`train_stepwise`), else one joint model (:func:`~apmgsrn.training.fit.train_prepared`)."""
+    if stepwise is None:
+        return train_prepared
+    return partial(train_stepwise, stepwise=stepwise, show_progress=show_progress)
 
 
 def tracking_config(step: TrainConfig) -> TrainConfig:
