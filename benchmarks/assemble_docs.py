@@ -25,7 +25,9 @@ PARTS = {
     "results.md": (
         "# Results\n\nQuality figures: PSNR of every shared volume under the authors' CPU protocol, the "
         "comparison with other networks and compressors, renders, and bricks. Joined by "
-        "`benchmarks/assemble_docs.py` from the files below (edit those, or rerun their scripts).\n",
+        "`benchmarks/assemble_docs.py` from the files below (edit those, or rerun their scripts). These are "
+        "the paper's APMGSRN and its baselines; the default model since 2026-11-24, the hybrid, is measured "
+        "against them in [models.md](models.md).\n",
         ["results_core.md", "results_protocol_cpu.md", "results_baselines.md", "results_render.md",
          "results_bricks.md"],
     ),

@@ -129,7 +129,8 @@ def trained_model(folder: Path) -> Path:
     if not path.exists():
         name, shape = VOLUME
         command = [sys.executable, "-m", "apmgsrn", "train", str(SHARED / name), "--shape", ",".join(map(str, shape)),
-                   "--dtype", "uint8", "--preset", "small", "--iterations", "300", "--device", "cpu", "--out", str(path)]
+                   "--dtype", "uint8", "--model", "apmgsrn", "--preset", "small", "--iterations", "300",
+                   "--device", "cpu", "--out", str(path)]
         subprocess.run(command, check=True, capture_output=True, env=dict(os.environ, PYTHONPATH=str(REPO / "src")))
     return path
 

@@ -47,8 +47,8 @@ def trained_model(folder: Path, preset: str, iterations: int) -> Path:
     if not path.exists():
         name, shape = VOLUME
         command = [sys.executable, "-m", "apmgsrn", "train", str(SHARED / name), "--shape",
-                   ",".join(map(str, shape)), "--dtype", "uint8", "--preset", preset, "--iterations",
-                   str(iterations), "--device", "cpu", "--out", str(path)]
+                   ",".join(map(str, shape)), "--dtype", "uint8", "--model", "apmgsrn", "--preset", preset,
+                   "--iterations", str(iterations), "--device", "cpu", "--out", str(path)]
         print("$", " ".join(command), flush=True)
         subprocess.run(command, check=True, capture_output=True, env=dict(os.environ, PYTHONPATH=str(REPO / "src")))
     return path

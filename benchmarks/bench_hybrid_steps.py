@@ -14,15 +14,15 @@ The table it prints goes into docs/models.md by hand, with the date and the mach
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import time
-from dataclasses import replace
 
 import torch
 
 from apmgsrn.data import open_volume
 from apmgsrn.models.field import NeuralField
-from apmgsrn.models.registry import preset_config
+from apmgsrn.models.registry import preset_config, training_defaults
 from apmgsrn.training.fit import prepare_values
 from apmgsrn.training.trainer import Trainer, TrainConfig
 
@@ -54,12 +54,15 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=10, help="timed steps per phase and round")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--skip-reference", action="store_true", help="leave out the slow PyTorch reference")
+    parser.add_argument("--hybrid-variant", action="append", default=[], metavar="JSON",
+                        help='another hybrid to time, its preset overridden (e.g. \'{"levels": 16}\'); repeatable')
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     volume = open_volume(args.volume, variable=args.variable)
     prepared = prepare_values(volume.to_numpy(), "none", 0.0, str(args.volume), torch.device("cpu"))
-    config = TrainConfig(iterations=2000, batch_size=32768, seed=0)
     cases = [c for c in CASES if not (args.skip_reference and c[2].get("backend") == "torch")]
+    for text in args.hybrid_variant:
+        cases.append((f"hybrid {text}", "hybrid", json.loads(text)))
     print(f"{volume.path.name}, {args.threads} threads, 32,768 points per iteration")
     print("| model | size | grids moving ms | frozen ms | protocol ms/iteration |")
     print("|---|---|---|---|---|")
@@ -69,7 +72,9 @@ def main() -> None:
             for label, model, overrides in cases:
                 field = NeuralField(preset_config(model, size, **overrides), volume_shape=volume.shape,
                                     generator=torch.Generator().manual_seed(0))
-                trainer = Trainer(field, prepared.values, replace(config))
+                # Each kind's own training defaults (the hybrid draws half of every batch on voxels).
+                config = TrainConfig(iterations=2000, batch_size=32768, seed=0, **training_defaults(model))
+                trainer = Trainer(field, prepared.values, config)
                 trainer.state.iteration = 100  # grids move from here (density step every iteration)
                 phase_times(trainer, 2)  # warm-up (kernel build, allocator)
                 moving = phase_times(trainer, args.steps)

@@ -81,7 +81,8 @@ def _device_name(device: torch.device) -> str:
 
 
 def _train(data: Path, out: Path, size: str, iterations: int, device: str) -> None:
-    command = [sys.executable, "-m", "apmgsrn", "train", str(data), "--out", str(out), "--preset", size,
+    command = [sys.executable, "-m", "apmgsrn", "train", str(data), "--out", str(out), "--model", "apmgsrn",
+               "--preset", size,
                "--iterations", str(iterations), "--device", device]
     print("$", " ".join(command), flush=True)
     subprocess.run(command, check=True)

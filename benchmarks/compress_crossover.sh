@@ -24,7 +24,7 @@ make() {  # make FILE COMMAND...
   local file=$1; shift
   [ -f "$file" ] || "$@" --out "$file" || echo "skipped $(basename "$file"): the command above failed" >&2
 }
-make "$out/small.apmgsrn" "${apm[@]}" train "$data" "${train[@]}" --preset small
+make "$out/small.apmgsrn" "${apm[@]}" train "$data" "${train[@]}" --model apmgsrn --preset small
 make "$out/packed.apmgsrn" "${apm[@]}" pack "$out/small.apmgsrn" "$data" "${var[@]}"
 for ratio in 1000 3000; do
   make "$out/packed_r$ratio.apmgsrn" "${apm[@]}" pack "$out/small.apmgsrn" "$data" "${var[@]}" --ratio $ratio

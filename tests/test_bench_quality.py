@@ -2,6 +2,7 @@
 
 import csv
 import dataclasses
+import json
 import re
 
 import numpy as np
@@ -35,36 +36,52 @@ def test_quality_benchmark_writes_csv_table_and_chart_and_resumes(crop, tmp_path
             "--out", str(out), "--device", "cpu"]
     assert main(args + ["--seeds", "2"]) == 0
     printed = capsys.readouterr().out
-    assert len(re.findall(r"^\[\d+/6\]", printed, flags=re.M)) == 6  # 3 models x 1 size x 2 seeds
+    assert len(re.findall(r"^\[\d+/8\]", printed, flags=re.M)) == 8  # 4 models x 1 size x 2 seeds
 
     with open(out / "quality.csv", newline="") as handle:
         records = list(csv.DictReader(handle))
     assert [f.name for f in dataclasses.fields(QualityRow)] == list(records[0])
     assert sorted((r["model"], r["seed"]) for r in records) == [
-        (m, s) for m in ("apmgsrn", "fvsrn", "ngp") for s in ("0", "1")
+        (m, s) for m in ("apmgsrn", "fvsrn", "hybrid", "ngp") for s in ("0", "1")
     ]
     for record in records:
-        assert int(record["parameters"]) * 4 == int(record["parameter_bytes"]) < int(record["file_bytes"])
+        # The default model stores its feature tables in float16, the others every parameter in float32.
+        floats = int(record["parameters"]) * 4
+        if record["model"] == "hybrid":
+            assert floats / 2 < int(record["parameter_bytes"]) < floats
+        else:
+            assert floats == int(record["parameter_bytes"])
+        assert int(record["parameter_bytes"]) < int(record["file_bytes"])
         # The crop is stored as float32: both ratios count 4 bytes a voxel.
         assert record["data_dtype"] == "float32" and int(record["data_bytes"]) == 20**3 * 4
         assert float(record["compression_ratio"]) == pytest.approx(20**3 * 4 / int(record["file_bytes"]))
         assert float(record["compression_ratio_float32"]) == float(record["compression_ratio"])
         assert (out / "models").joinpath(record["model_file"].split("/")[-1]).is_file()
+        # The largest voxel error, as eval measures it on the model file.
+        evaluation = json.loads(_eval_json(capsys, out / "models" / record["model_file"].split("/")[-1], crop))
+        assert float(record["max_abs_error"]) == pytest.approx(evaluation["max_abs_error"], rel=1e-5)
 
     table = (out / "quality.md").read_text()
-    header = "| volume | APMGSRN S | fVSRN S | NGP S |"
+    assert "Largest absolute error over every voxel" in table
+    header = "| volume | APMGSRN S | fVSRN S | NGP S | hybrid S |"
     assert header in table
     row = next(line for line in table.splitlines() if line.startswith("| hcci_crop.npy"))
-    assert row.count("**") == 2 and row.count("±") == 3  # one best cell; mean ± spread of 2 seeds
+    assert row.count("**") == 2 and row.count("±") == 4  # one best cell; mean ± spread of 2 seeds
     assert "| NGP | small | 70,800 |" in table
     with Image.open(out / "quality.png") as chart:
         assert chart.format == "PNG" and chart.width > 300
 
-    # A third seed runs only the three new combinations.
+    # A third seed runs only the four new combinations.
     assert main(args + ["--seeds", "3"]) == 0
     printed = capsys.readouterr().out
-    assert len(re.findall(r"^\[\d+/9\]", printed, flags=re.M)) == 3
-    assert len(read_rows(out / "quality.csv", QualityRow)) == 9
+    assert len(re.findall(r"^\[\d+/12\]", printed, flags=re.M)) == 4
+    assert len(read_rows(out / "quality.csv", QualityRow)) == 12
+
+
+def _eval_json(capsys, model, data) -> str:
+    capsys.readouterr()
+    assert main(["eval", str(model), str(data), "--json"]) == 0
+    return capsys.readouterr().out
 
 
 def _row(dataset, model, size, seed, psnr):

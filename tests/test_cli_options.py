@@ -61,6 +61,7 @@ def test_choice_lists_are_the_librarys():
     from apmgsrn.bench.compressors import COMPRESSORS
     from apmgsrn.models.encoders.adaptive_multigrid import GRID_INITS
     from apmgsrn.models.encoders.hash_grid import HASH_BACKENDS
+    from apmgsrn.models.encoders.hybrid_grid import GRID_INITS as HYBRID_GRID_INITS
     from apmgsrn.models.registry import ENCODERS, PRESETS
     from apmgsrn.models.value_transform import TRANSFORMS
     from apmgsrn.ops.multigrid import BACKENDS
@@ -71,6 +72,7 @@ def test_choice_lists_are_the_librarys():
     assert tuple(ENCODERS) == choices.MODEL_KINDS
     assert all(tuple(PRESETS[kind]) == choices.SIZE_PRESETS for kind in choices.MODEL_KINDS)
     assert GRID_INITS == choices.GRID_INITS and BACKENDS == choices.MULTIGRID_BACKENDS
+    assert HYBRID_GRID_INITS == choices.HYBRID_GRID_INITS
     assert choices.BACKENDS["ngp"] == HASH_BACKENDS
     for kind, (config_class, _) in ENCODERS.items():
         assert config_class().backend == choices.BACKENDS[kind][0]  # the help says "default: the first"
@@ -82,7 +84,8 @@ def test_choice_lists_are_the_librarys():
     # Every option with a choice list offers exactly one of those lists.
     expected = {
         "--model": choices.MODEL_KINDS, "--models": choices.MODEL_KINDS, "--preset": choices.SIZE_PRESETS,
-        "--sizes": choices.SIZE_PRESETS, "--grid-init": choices.GRID_INITS,
+        "--sizes": choices.SIZE_PRESETS,
+        "--grid-init": tuple(dict.fromkeys(choices.GRID_INITS + choices.HYBRID_GRID_INITS)),
         "--backend": tuple(dict.fromkeys(b for names in choices.BACKENDS.values() for b in names)),
         "--transform": choices.VALUE_TRANSFORMS, "--lr-schedule": choices.LR_SCHEDULES,
         "--density-normalization": choices.DENSITY_NORMALIZATIONS,

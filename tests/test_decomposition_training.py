@@ -261,6 +261,26 @@ def test_bricks_train_under_cosine_by_default_and_plateau_bricks_stop_after_the_
     assert brick_train_config(plateau, brick) == replace(plateau, stop_after_lr_cuts=3, seed=3)
 
 
+def test_a_brick_folder_begun_with_the_papers_model_is_finished_with_it(test_data, client, tmp_path, capsys):
+    """A folder started when ``apmgsrn`` was the default: the same command, naming no model, finishes it."""
+    from apmgsrn.cli.main import main
+
+    out = tmp_path / "older"
+    args = ["train", str(test_data / NEGHIP), "--bricks", "2,1,1", "--scheduler", client.scheduler.address,
+            "--out", str(out), "--grids", "2", "--resolution", "4", "--width", "16", "--iterations", "20",
+            "--batch-size", "1024", "--json"]
+    assert main([*args, "--model", "apmgsrn"]) == 0
+    next(out.glob("brick_001_*.apmgsrn")).unlink()  # as if killed before the last brick
+    capsys.readouterr()
+    assert main(args) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["complete"] and result["reused"] == 1 and result["trained"] == 1
+    assert {brick.config.model for brick in apmgsrn.load(out).field.bricks} == {"apmgsrn"}
+    # Naming another model is refused, the folder kept.
+    assert main([*args, "--model", "hybrid"]) == 2
+    assert "other settings" in capsys.readouterr().err
+
+
 def test_constant_bricks_need_no_training_and_the_cli_handles_brick_models(test_data, client, tmp_path, capsys):
     """CTH armour: the two outer bricks along x are empty, so they finish at once and are exact.
 

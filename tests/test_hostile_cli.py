@@ -190,7 +190,8 @@ TRAIN_PROBES = [
     (["--freeze-fraction", "nan"], "--freeze-fraction"), (["--freeze-fraction", "2"], "--freeze-fraction"),
     (["--density-start", "-1"], "--density-start"), (["--seed", "-1"], "--seed"),
     (["--backend", "tcnn"], "--backend"), (["--log-offset", "nan"], "--log-offset"),
-    (["--fill-nonfinite", "inf"], "--fill-nonfinite"), (["--grids", "0"], None), (["--resolution", "0"], "--resolution"),
+    (["--fill-nonfinite", "inf"], "--fill-nonfinite"), (["--model", "apmgsrn", "--grids", "0"], None),
+    (["--resolution", "0"], "--resolution"),
     (["--hidden-layers", "0"], None), (["--width", "100000"], None), (["--model", "ngp", "--levels", "2"], "--grids"),
     (["--model", "fvsrn", "--frequencies", "100000000"], "--grids"), (["--bricks", "0"], "--bricks"),
     (["--bricks", "2", "--ghost-cells", "-1"], "--ghost-cells"), (["--bricks", "2", "--workers", "0"], "--workers"),
@@ -320,7 +321,9 @@ def interrupted(work, tmp_path_factory) -> tuple[Path, Path]:
     folder = tmp_path_factory.mktemp("interrupted")
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(fit_module, "TrainingProgress", _CtrlCAt)
-        assert main(["train", str(work / "v.npy"), "--out", str(folder / "m.apmgsrn"), *RESUMABLE]) == 130
+        # The paper's model, as before the default changed: the resumes below name no model and must find it.
+        assert main(["train", str(work / "v.npy"), "--out", str(folder / "m.apmgsrn"), *RESUMABLE,
+                     "--model", "apmgsrn"]) == 130
     checkpoint = folder / "m.apmgsrn.ckpt"
     with safe_open(str(checkpoint), "pt") as f:
         state = json.loads(f.metadata()["description"])["state"]
@@ -401,6 +404,7 @@ def test_a_checkpoint_with_the_older_names_resumes_to_the_same_model(interrupted
     older.mkdir()
     _tampered(checkpoint, older, _older_names)
     assert main(["train", str(volume), "--out", str(older / "m.apmgsrn"), *RESUMABLE, "--resume"]) == 0
+    assert apmgsrn.load(tmp_path / "m.apmgsrn").description.config.model == "apmgsrn"  # as the run began
     resumed, reference = load_file(str(older / "m.apmgsrn")), load_file(str(tmp_path / "m.apmgsrn"))
     assert resumed.keys() == reference.keys()
     assert all(torch.equal(resumed[name], reference[name]) for name in reference)

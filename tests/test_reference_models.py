@@ -38,9 +38,9 @@ def largest_differences(reference: Path, retrained: Path) -> dict[str, float]:
 
 def test_a_single_model_retrains_to_the_reference_tensors(tmp_path, capsys):
     out = tmp_path / "field.apmgsrn"
-    assert main(["train", str(VOLUME), "--out", str(out), "--grids", "4", "--resolution", "8", "--width", "16",
-                 "--iterations", "60", "--batch-size", "2048", "--decoder-precision", "float32", "--seed", "0",
-                 "--device", "cpu", "--json"]) == 0
+    assert main(["train", str(VOLUME), "--out", str(out), "--model", "apmgsrn", "--grids", "4", "--resolution", "8",
+                 "--width", "16", "--iterations", "60", "--batch-size", "2048", "--decoder-precision", "float32",
+                 "--seed", "0", "--device", "cpu", "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     differences = largest_differences(DATA / "reference_field.apmgsrn", out)
     assert max(differences.values()) <= TOLERANCE, differences

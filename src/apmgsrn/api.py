@@ -23,6 +23,7 @@ from torch import nn
 
 import apmgsrn.decomposition.brick_model  # noqa: F401 - registers the brick-model loader
 import apmgsrn.decomposition.series_bricks  # noqa: F401 - registers the time-series brick-model loader
+from apmgsrn.choices import default_model
 from apmgsrn.data import ArrayVolume, Volume, open_volume
 from apmgsrn.data.grid import AxisCoordinates, Region, VolumeMetadata, plain_attributes
 from apmgsrn.data.series import is_series_input, open_series, parse_time
@@ -241,7 +242,7 @@ def load(path: str | os.PathLike, device: torch.device | str = "cpu", precision:
 def fit(
     data,
     preset: str = "small",
-    model: str = "apmgsrn",
+    model: str | None = None,
     iterations: int | None = None,
     batch_size: int | None = None,
     device: torch.device | str = "auto",
@@ -261,7 +262,8 @@ def fit(
             series (a list of files, a glob such as ``"run/*.vti"``, a ``.pvd``, or one file with ``time``
             ``"all"`` or ``"A:B[:S]"``), trained stepwise and packed as ``apmgsrn train`` does.
         preset: size preset, ``small``, ``medium`` or ``large``.
-        model: model kind: ``apmgsrn`` (the paper's), ``fvsrn``, ``ngp`` or ``hybrid`` (docs/models.md).
+        model: model kind: ``hybrid`` (docs/models.md), ``apmgsrn`` (the paper's), ``fvsrn`` or ``ngp``; None:
+            ``hybrid`` for a volume, ``apmgsrn`` for a time series (:func:`apmgsrn.choices.default_model`).
         iterations: training iterations (default: 3000 on a CPU, 50000 on a GPU).
         batch_size: points per iteration (default: 32768 on a CPU, 100000 on a GPU).
         device: ``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:I"`` or a torch device.
@@ -285,7 +287,9 @@ def fit(
     device = _device(device)
     if isinstance(time, str):
         time = parse_time(time)  # "all" or "A:B[:S]": a series along a time dimension
-    if (isinstance(data, (str, os.PathLike)) or _is_path_list(data)) and is_series_input(data, time):
+    series = (isinstance(data, (str, os.PathLike)) or _is_path_list(data)) and is_series_input(data, time)
+    model = model or default_model(series=series)
+    if series:
         return _fit_series(data, preset, model, iterations, batch_size, device, transform, log_offset, variable,
                            time, fill_nonfinite, progress, options)
     volume = _as_volume(data, variable=variable, time=time, fill_nonfinite=fill_nonfinite)

@@ -5,12 +5,22 @@ module imports nothing (no torch, no numpy): ``apmgsrn --help`` lists the choice
 library behind them.
 """
 
-#: Model kinds (SPEC sections 2 and 5): keys of :data:`apmgsrn.models.registry.ENCODERS`.
-#: ``apmgsrn`` (the paper's) is the default everywhere; ``hybrid`` is the research model of docs/models.md.
+#: Model kinds (SPEC sections 2 and 5): keys of :data:`apmgsrn.models.registry.ENCODERS`. ``apmgsrn`` is the
+#: paper's (its presets and results unchanged), ``hybrid`` the default (docs/models.md).
 MODEL_KINDS = ("apmgsrn", "fvsrn", "ngp", "hybrid")
 
-#: The paper's model and its two baselines: what ``bench quality`` and ``bench compress`` run unless given
-#: ``--models`` (the tables of docs/results.md).
+#: What ``train`` and ``apmgsrn.fit`` build when no model is named (:func:`default_model`).
+DEFAULT_MODEL = "hybrid"
+
+
+def default_model(series: bool = False, byte_target: bool = False) -> str:
+    """The model kind to build when none is named: :data:`DEFAULT_MODEL` for a volume (or its bricks); the
+    paper's ``apmgsrn`` for a time series and for a byte target (``--ratio``/``--size``), whose models
+    extend and resize APMGSRN's grids (docs/time_series.md, docs/packing.md)."""
+    return "apmgsrn" if series or byte_target else DEFAULT_MODEL
+
+#: The paper's model and its two baselines: what ``bench compress`` runs unless given ``--models`` (the
+#: tables of docs/results.md); ``bench quality`` runs these and the default model.
 PAPER_MODELS = ("apmgsrn", "fvsrn", "ngp")
 
 #: Size presets of every model kind (:data:`apmgsrn.models.registry.PRESETS`).
@@ -20,11 +30,15 @@ SIZE_PRESETS = ("small", "medium", "large")
 #: (:mod:`apmgsrn.models.encoders.adaptive_multigrid`) holds the same tuple; a test keeps them equal.
 GRID_INITS = ("default", "large", "small")
 
+#: How the hybrid model places its adaptive grids at the start (:mod:`apmgsrn.models.encoders.hybrid_grid`
+#: holds the same tuple; a test keeps them equal).
+HYBRID_GRID_INITS = ("volume", "default")
+
 #: Multi-grid sampling kernels (:mod:`apmgsrn.ops.multigrid`); ``"auto"`` picks the fastest usable one.
 MULTIGRID_BACKENDS = ("torch", "cpu", "triton")
 
 #: Multi-level grid sampling kernels (:mod:`apmgsrn.ops.level_grids`) of the hybrid model.
-LEVEL_GRID_BACKENDS = ("torch", "cpu")
+LEVEL_GRID_BACKENDS = ("torch", "cpu", "triton")
 
 #: Kernel backends each model kind accepts. The hash grid's list is also the encoder's
 #: (:mod:`apmgsrn.models.encoders.hash_grid`); a test keeps them equal.

@@ -19,9 +19,9 @@ from apmgsrn.bench.charts import quality_chart
 from apmgsrn.bench.datasets import DataSpec, open_spec
 from apmgsrn.bench.results import QualityRow, append_row, read_rows, write_rows
 from apmgsrn.bench.tables import quality_tables
-from apmgsrn.choices import LR_SCHEDULES, MODEL_KINDS, PAPER_MODELS, SIZE_PRESETS, VALUE_TRANSFORMS
+from apmgsrn.choices import LR_SCHEDULES, MODEL_KINDS, SIZE_PRESETS, VALUE_TRANSFORMS
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.models.registry import preset_config, training_defaults
+from apmgsrn.models.registry import preset_config, stored_bytes, training_defaults
 from apmgsrn.training.fit import fit_volume
 from apmgsrn.training.trainer import TrainConfig
 
@@ -42,7 +42,7 @@ class QualityPlan:
     """
 
     datasets: tuple[DataSpec, ...]
-    models: tuple[str, ...] = PAPER_MODELS
+    models: tuple[str, ...] = MODEL_KINDS
     sizes: tuple[str, ...] = ("small", "medium")
     seeds: int = 1
     iterations: int = 2000
@@ -135,7 +135,7 @@ def run_quality(
             batch_size=plan.batch_size,
             lr_schedule=schedule,
             parameters=parameters,
-            parameter_bytes=parameters * 4,
+            parameter_bytes=stored_bytes(result.field.config),
             file_bytes=result.model_bytes,
             data_dtype=str(volume.dtype),
             data_bytes=volume.stored_bytes,
@@ -147,6 +147,7 @@ def run_quality(
             device=str(device),
             model_file=str(model_file),
             voxel_fraction=train_config.voxel_fraction,
+            max_abs_error=result.evaluation.max_abs_error,
         )
         append_row(paths["csv"], row)
         rows.append(row)

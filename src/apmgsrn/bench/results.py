@@ -15,7 +15,7 @@ from apmgsrn.atomic import atomic_write
 from apmgsrn.errors import ApmgsrnError
 
 #: Model names as the paper prints them.
-MODEL_TITLES = {"apmgsrn": "APMGSRN", "fvsrn": "fVSRN", "ngp": "NGP"}
+MODEL_TITLES = {"apmgsrn": "APMGSRN", "fvsrn": "fVSRN", "ngp": "NGP", "hybrid": "hybrid"}
 SIZE_ORDER = ("small", "medium", "large")
 
 
@@ -29,7 +29,7 @@ class QualityRow:
         model, size, seed: what was trained.
         iterations, batch_size, lr_schedule: how.
         parameters: real parameter count.
-        parameter_bytes: ``parameters * 4`` (float32).
+        parameter_bytes: the parameters' bytes in the dtypes the model file stores them in.
         file_bytes: size of the saved model file (weights + metadata).
         data_dtype: the volume's stored data type.
         data_bytes: the volume as stored, in its own dtype (a uint8 volume is 1 byte a voxel).
@@ -42,6 +42,7 @@ class QualityRow:
         model_file: path of the model file.
         voxel_fraction: share of every batch drawn on voxels (:class:`~apmgsrn.training.trainer.TrainConfig`;
             0 in files written before the option).
+        max_abs_error: largest voxel error in data units (NaN in files written before the column).
     """
 
     dataset: str
@@ -65,6 +66,7 @@ class QualityRow:
     device: str
     model_file: str
     voxel_fraction: float = 0.0
+    max_abs_error: float = math.nan
 
     def key(self) -> tuple:
         """What identifies a run: a row with the same key is not run again."""

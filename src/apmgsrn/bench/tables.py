@@ -26,7 +26,8 @@ def quality_tables(rows: list[QualityRow]) -> str:
         rows: results of ``bench quality`` (any subset of combinations).
 
     Returns:
-        Markdown text: PSNR table, size table, compression table, training-time table and the protocol.
+        Markdown text: PSNR table, largest-error table, size table, compression table, training-time table and
+        the protocol.
     """
     groups = group_quality(rows)
     datasets = list(dict.fromkeys(row.dataset for row in rows))
@@ -34,7 +35,6 @@ def quality_tables(rows: list[QualityRow]) -> str:
     sizes = ordered((row.size for row in rows), SIZE_ORDER)
     shapes = {row.dataset: row.shape for row in rows}
     psnr = {key: Summary.of([r.psnr for r in group]) for key, group in groups.items()}
-    seconds = {key: Summary.of([r.train_seconds for r in group]) for key, group in groups.items()}
     letters = " / ".join(size[0].upper() for size in sizes)
 
     lines = ["PSNR (dB) over every voxel; best per volume and size in **bold**.", ""]
@@ -59,8 +59,16 @@ def quality_tables(rows: list[QualityRow]) -> str:
             cells.append(" / ".join(parts))
         lines.append(f"| {dataset} {shapes[dataset]} | " + " | ".join(cells) + " |")
 
-    lines += ["", "Real model sizes (parameters; float32 bytes; model file bytes with metadata).", ""]
-    lines.append("| model | size | parameters | float32 | file |")
+    def error_cell(group: list[QualityRow]) -> str:
+        mean = Summary.of([r.max_abs_error for r in group]).mean
+        return f"{mean:.4g}" if math.isfinite(mean) else "–"
+
+    lines += ["", "Largest absolute error over every voxel (data units; mean over seeds, – where not recorded).", ""]
+    lines += _per_volume(groups, datasets, models, sizes, error_cell, {d: d for d in datasets})
+
+    lines += ["", "Real model sizes (parameters; their stored bytes, float16 tables of the hybrid included; model "
+              "file bytes with metadata).", ""]
+    lines.append("| model | size | parameters | stored | file |")
     lines.append("|---|---|---|---|---|")
     for model in models:
         for size in sizes:
@@ -74,35 +82,34 @@ def quality_tables(rows: list[QualityRow]) -> str:
 
     lines += ["", f"Compression ratio, {letters}: the volume's stored bytes (its own dtype) / model file bytes; "
               "in parentheses against float32 where the two differ.", ""]
-    lines.append("| volume | " + " | ".join(f"{MODEL_TITLES.get(m, m)} {letters}" for m in models) + " |")
-    lines.append("|---|" + "---|" * len(models))
     dtypes = {row.dataset: row.data_dtype for row in rows}
-    for dataset in datasets:
-        cells = []
-        for model in models:
-            parts = []
-            for size in sizes:
-                group = groups.get((dataset, model, size))
-                parts.append("–" if group is None else _ratio_text(group[0].compression_ratio,
-                                                                   group[0].compression_ratio_float32))
-            cells.append(" / ".join(parts))
-        lines.append(f"| {dataset} ({dtypes[dataset]}) | " + " | ".join(cells) + " |")
+    lines += _per_volume(groups, datasets, models, sizes,
+                         lambda group: _ratio_text(group[0].compression_ratio, group[0].compression_ratio_float32),
+                         {d: f"{d} ({dtypes[d]})" for d in datasets})
 
     lines += ["", f"Training time (s), {letters}.", ""]
-    lines.append("| volume | " + " | ".join(f"{MODEL_TITLES.get(m, m)} {letters}" for m in models) + " |")
-    lines.append("|---|" + "---|" * len(models))
-    for dataset in datasets:
-        cells = []
-        for model in models:
-            parts = []
-            for size in sizes:
-                summary = seconds.get((dataset, model, size))
-                parts.append("–" if summary is None else f"{summary.mean:.0f}")
-            cells.append(" / ".join(parts))
-        lines.append(f"| {dataset} | " + " | ".join(cells) + " |")
+    lines += _per_volume(groups, datasets, models, sizes,
+                         lambda group: f"{Summary.of([r.train_seconds for r in group]).mean:.0f}",
+                         {d: d for d in datasets})
 
     lines += ["", _protocol(rows), ""]
     return "\n".join(lines)
+
+
+def _per_volume(groups: dict, datasets: list[str], models: list[str], sizes: list[str], cell, labels: dict) -> list[str]:
+    """A table of one row per volume, ``S / M / L`` per model: ``cell(rows of the combination)``, ``–`` for a
+    combination not run."""
+    letters = " / ".join(size[0].upper() for size in sizes)
+    lines = ["| volume | " + " | ".join(f"{MODEL_TITLES.get(m, m)} {letters}" for m in models) + " |",
+             "|---|" + "---|" * len(models)]
+    for dataset in datasets:
+        cells = []
+        for model in models:
+            parts = [("–" if (dataset, model, size) not in groups else cell(groups[(dataset, model, size)]))
+                     for size in sizes]
+            cells.append(" / ".join(parts))
+        lines.append(f"| {labels[dataset]} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def compress_table(rows: list[CompressRow]) -> str:

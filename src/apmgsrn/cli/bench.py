@@ -31,7 +31,8 @@ def register(subparsers) -> None:
         "CSV are skipped, so the same command extends or resumes a benchmark.",
     )
     quality.add_argument("data", nargs="+", metavar="DATA", help="volume files, as PATH or PATH:VARIABLE")
-    quality.add_argument("--models", nargs="+", choices=MODEL_KINDS, default=list(PAPER_MODELS))
+    quality.add_argument("--models", nargs="+", choices=MODEL_KINDS, default=list(MODEL_KINDS),
+                         help="default: all four (the default model against the paper's and its baselines)")
     quality.add_argument("--sizes", nargs="+", choices=SIZE_PRESETS, default=["small", "medium"])
     quality.add_argument("--seeds", type=int, default=1, help="seeds 0..K-1 per combination (mean and spread)")
     _add_budget(quality, LR_SCHEDULES, VALUE_TRANSFORMS)

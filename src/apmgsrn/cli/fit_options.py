@@ -7,8 +7,10 @@ import argparse
 from apmgsrn.choices import (
     BACKENDS,
     DECODER_PRECISIONS,
+    DEFAULT_MODEL,
     DENSITY_NORMALIZATIONS,
     GRID_INITS,
+    HYBRID_GRID_INITS,
     LR_SCHEDULES,
     MODEL_KINDS,
     SIZE_PRESETS,
@@ -21,15 +23,18 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``model`` and ``training`` option groups."""
     backends = tuple(dict.fromkeys(name for names in BACKENDS.values() for name in names))
     model = parser.add_argument_group("model")
-    model.add_argument("--model", choices=MODEL_KINDS, default="apmgsrn",
-                       help="default apmgsrn (the paper's); hybrid is a research model (docs/models.md)")
+    model.add_argument("--model", choices=MODEL_KINDS,
+                       help=f"default {DEFAULT_MODEL} (docs/models.md); apmgsrn for a time series or --ratio/--size; "
+                            "apmgsrn is the paper's model")
     model.add_argument("--preset", choices=SIZE_PRESETS, default="small")
     model.add_argument("--grids", type=int, help="number of grids M")
     model.add_argument("--features", type=int, help="features per grid C (per level for ngp and hybrid)")
     model.add_argument("--resolution", help="grid resolution R or D,H,W")
     model.add_argument("--hidden-layers", type=int, help="decoder hidden layers (default 2)")
     model.add_argument("--width", type=int, help="decoder width (default 64)")
-    model.add_argument("--grid-init", choices=GRID_INITS, help="grid initialisation")
+    model.add_argument("--grid-init", choices=tuple(dict.fromkeys(GRID_INITS + HYBRID_GRID_INITS)),
+                       help=f"grid initialisation: apmgsrn {', '.join(GRID_INITS)}; "
+                            f"hybrid {', '.join(HYBRID_GRID_INITS)}")
     model.add_argument("--backend", choices=backends,
                        help="kernel backend: " + "; ".join(f"{kind}: {', '.join(names)}"
                                                            for kind, names in BACKENDS.items())
@@ -83,6 +88,7 @@ def build_configs(args: argparse.Namespace, device, steps: int | None = None):
     Raises:
         ApmgsrnError: an option out of range (the configs refuse it), or an invalid model size.
     """
+    from apmgsrn.choices import default_model
     from apmgsrn.models.registry import preset_config, training_defaults
     from apmgsrn.training.series_steps import STEPWISE_VOXEL_FRACTION
     from apmgsrn.training.trainer import SERIES_ANCHORED_GRIDS, TrainConfig, default_budget, series_budget
@@ -94,6 +100,10 @@ def build_configs(args: argparse.Namespace, device, steps: int | None = None):
     voxel_fraction = args.voxel_fraction
     if stepwise and voxel_fraction is None:
         voxel_fraction = STEPWISE_VOXEL_FRACTION
+    if args.model is None:  # resolved once: the rest of the command reads args.model
+        args.model = default_model(series=steps is not None,
+                                   byte_target=getattr(args, "size", None) is not None
+                                   or getattr(args, "ratio", None) is not None)
     overrides = {
         "grids": args.grids,
         "features": args.features,
@@ -107,6 +117,8 @@ def build_configs(args: argparse.Namespace, device, steps: int | None = None):
         "base_resolution": args.base_resolution,
         "finest_resolution": args.finest_resolution,
         "frequencies": args.frequencies,
+        # --storage: a time series' grids (SeriesConfig), or one hybrid's feature tables
+        "storage": getattr(args, "storage", None) if args.model == "hybrid" and steps is None else None,
     }
     try:
         field_config = preset_config(args.model, args.preset, **overrides)

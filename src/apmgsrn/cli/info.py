@@ -67,13 +67,15 @@ def describe_field(field, description) -> dict:
         field: the :class:`~apmgsrn.models.field.NeuralField`.
         description: its file's :class:`~apmgsrn.io.ModelDescription`.
     """
+    from apmgsrn.models.registry import stored_bytes
+
     config = description.config  # the spatial network (of every step, for a time-series model)
     info = {
         "model": config.model,
         "encoder": {k: v for k, v in config.to_dict()["encoder"].items()},
         "decoder": dataclasses.asdict(config.decoder),
         "parameters": field.parameter_count(),
-        "parameter_bytes": field.parameter_count() * 4,
+        "parameter_bytes": stored_bytes(field.config),
         "file_bytes": description.file_bytes,
         "volume_shape_xyz": list(reversed(description.volume_shape)),
         "value_range": list(description.value_range),
@@ -166,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"file            {args.model} ({format_bytes(info['file_bytes'])})")
     print(f"model           {info['model']}: " + ", ".join(f"{k}={v}" for k, v in enc.items()))
     print(f"decoder         {info['decoder']['hidden_layers']} x {info['decoder']['width']}, ReLU, no bias")
-    print(f"parameters      {info['parameters']:,} ({format_bytes(info['parameter_bytes'])} as float32)")
+    print(f"parameters      {info['parameters']:,} ({format_bytes(info['parameter_bytes'])} as stored)")
     x, y, z = info["volume_shape_xyz"]
     print(f"volume          {x}x{y}x{z} (x*y*z) from {info['source'].get('description') or '?'}")
     print(f"value range     [{info['value_range'][0]:.6g}, {info['value_range'][1]:.6g}], transform {info['transform']['kind']}")
@@ -222,6 +224,8 @@ def _print_source_metadata(description) -> None:
 def describe_bricks(model) -> dict:
     """A JSON-able description of a brick model (an :class:`apmgsrn.Model` of kind ``bricks``): grid, ghost
     cells, blend and per-brick figures."""
+    from apmgsrn.models.registry import stored_bytes
+
     description = model.description
     layout = description.bricks
     first = model.field.bricks[0]
@@ -232,7 +236,7 @@ def describe_bricks(model) -> dict:
         "blend": layout.blend,
         "brick_model": describe_field(first, description) | {"training": {}, "grids": None},
         "parameters": description.parameters,
-        "parameter_bytes": description.parameters * 4,
+        "parameter_bytes": sum(stored_bytes(brick.config) for brick in model.field.bricks),
         "file_bytes": description.file_bytes,
         "volume_shape_xyz": list(reversed(description.volume_shape)),
         "value_range": list(description.value_range),
@@ -273,7 +277,7 @@ def _run_bricks(args: argparse.Namespace, model) -> int:
     print(f"bricks          {i} x {j} x {k} (x, y, z), ghost cells {info['ghost_cells']}, "
           f"blend {'on' if info['blend'] else 'off'}")
     print(f"brick model     {each['model']}: " + ", ".join(f"{key}={v}" for key, v in each["encoder"].items()))
-    print(f"parameters      {info['parameters']:,} in all ({format_bytes(info['parameter_bytes'])} as float32), "
+    print(f"parameters      {info['parameters']:,} in all ({format_bytes(info['parameter_bytes'])} as stored), "
           f"{each['parameters']:,} per brick")
     x, y, z = info["volume_shape_xyz"]
     print(f"volume          {x}x{y}x{z} (x*y*z) from {info['source'].get('description') or '?'}")

@@ -54,7 +54,8 @@ def add_series_arguments(parser: argparse.ArgumentParser) -> None:
                        help="joint: steps each iteration's points are spread over (default 4)")
     group.add_argument("--storage", choices=SERIES_STORAGE,
                        help="store the feature grids unpacked in this dtype (default: joint "
-                            f"{SERIES_DEFAULTS['storage']}; stepwise packed, see --bits)")
+                            f"{SERIES_DEFAULTS['storage']}; stepwise packed, see --bits); of one volume, the "
+                            "hybrid's feature tables (default float16)")
 
 
 def is_series(args: argparse.Namespace) -> bool:
@@ -73,10 +74,13 @@ def single_input(args: argparse.Namespace) -> str:
     """
     if len(args.data) != 1:
         raise ApmgsrnError(f"{len(args.data)} inputs given where one volume is read; name one file")
-    for option in (*JOINT_OPTIONS, "storage", "series_training", "start_step", "step_iterations"):
+    hybrid = getattr(args, "model", None) in (None, "hybrid")  # --storage: the hybrid's tables (None: default)
+    for option in (*JOINT_OPTIONS, *(() if hybrid else ("storage",)), "series_training", "start_step",
+                   "step_iterations"):
         if getattr(args, option, None) is not None:
             flag = "--" + option.replace("_", "-")
-            raise ApmgsrnError(f"{flag} applies to a time series (several files, a glob, a .pvd or --time all); "
+            also = " or a hybrid model" if option == "storage" else ""
+            raise ApmgsrnError(f"{flag} applies to a time series (several files, a glob, a .pvd or --time all){also}; "
                                f"drop {flag} for one volume")
     return args.data[0]
 

@@ -68,10 +68,33 @@ def paths(args: argparse.Namespace) -> CommandPaths:
     return CommandPaths(reads=input_files(args.data), writes=writes)
 
 
+def resumed_model(out: Path, bricks: bool) -> str | None:
+    """The model kind of the unfinished run at ``out`` (a checkpoint ``out.ckpt``, or with ``bricks`` a brick
+    folder's manifest), or None (none there, or one that does not say: the run then names what is wrong)."""
+    from apmgsrn.choices import MODEL_KINDS
+    from apmgsrn.io.brick_folder import manifest_path, read_manifest
+    from apmgsrn.io.container import read_header
+    from apmgsrn.training.checkpoint import checkpoint_path_for
+
+    try:
+        if bricks:
+            settings = read_manifest(out).get("settings") if manifest_path(out).is_file() else None
+        else:
+            checkpoint = checkpoint_path_for(out)
+            settings = read_header(checkpoint).description.get("fingerprint") if checkpoint.is_file() else None
+    except ApmgsrnError:
+        return None
+    field = settings.get("field") if isinstance(settings, dict) else None
+    model = field.get("model") if isinstance(field, dict) else None
+    return model if model in MODEL_KINDS else None
+
+
 def run(args: argparse.Namespace) -> int:
     from apmgsrn.cli.series import is_series, open_series_data, run_series_train, single_input
     from apmgsrn.device import resolve_device
 
+    if args.model is None and (args.resume or args.bricks):
+        args.model = resumed_model(Path(args.out), args.bricks)  # a run begun before the default changed ends so
     if args.bricks and packing_requested(args):
         raise ApmgsrnError("packing options (--bits, --max-error, ...) apply to single models and time series, "
                            "not --bricks")
@@ -140,7 +163,7 @@ def run(args: argparse.Namespace) -> int:
         "grids_frozen_at": result.frozen_at,
     }
     if packed is not None:
-        summary.update(float32_model_bytes=result.model_bytes, packing=packed.report)
+        summary.update(unpacked_model_bytes=result.model_bytes, packing=packed.report)
     if args.json:
         print(json.dumps(summary))
     else:

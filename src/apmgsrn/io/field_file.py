@@ -34,6 +34,9 @@ from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.models.value_transform import TRANSFORMS, ValueTransform
 
+#: The safetensors name of each dtype a model file stores (:data:`apmgsrn.models.encoders.base.STORAGE_DTYPES`).
+SAFETENSORS_DTYPES = {torch.float32: "F32", torch.float16: "F16"}
+
 #: Largest volume a model may describe, per axis (larger shapes are refused as corrupt).
 MAX_VOLUME_AXIS = 1 << 24
 
@@ -63,7 +66,13 @@ def save_field(path: str | os.PathLike, field: NeuralField, source: SourceInfo, 
     Returns:
         Bytes written.
     """
-    return save_tensors(path, dict(field.state_dict()), FIELD_KIND, field_description(field, source, training))
+    return save_tensors(path, stored_tensors(field), FIELD_KIND, field_description(field, source, training))
+
+
+def stored_tensors(field) -> dict[str, torch.Tensor]:
+    """A field's (or series field's) parameters in the dtypes its config stores them in."""
+    stored = field.config.stored_dtypes()
+    return {name: tensor.to(stored[name]) for name, tensor in field.state_dict().items()}
 
 
 def field_description(field, source: SourceInfo, training: dict) -> dict:
@@ -113,14 +122,13 @@ def parse_field_description(description: dict) -> FieldDescription:
     )
 
 
-def check_declared_tensors(header: Header, config, dtype_names: dict | None = None) -> None:
+def check_declared_tensors(header: Header, config) -> None:
     """The file must store exactly the parameters the config implies, no more, no fewer, in their dtypes.
 
     Args:
         header: the file's validated header.
-        config: anything with ``parameter_shapes()`` (a field's or a series field's config); a config with
-            ``stored_dtypes()`` says each tensor's dtype, else every tensor is float32.
-        dtype_names: safetensors name of each torch dtype (with ``stored_dtypes()``).
+        config: anything with ``parameter_shapes()`` and ``stored_dtypes()`` (a field's or a series field's
+            config).
     """
     expected = config.parameter_shapes()
     declared = {name: entry.shape for name, entry in header.tensors.items()}
@@ -131,13 +139,10 @@ def check_declared_tensors(header: Header, config, dtype_names: dict | None = No
         detail = (f"missing {missing[:3]}" if missing else f"unexpected {extra[:3]}" if extra
                   else f"{wrong[0]} is {list(declared[wrong[0]])}, the config says {list(expected[wrong[0]])}")
         raise DescriptionError(f"stored tensors do not match the model config: {detail}")
-    if dtype_names is not None:
-        stored = {name: dtype_names[dtype] for name, dtype in config.stored_dtypes().items()}
-        wrong = sorted(name for name, entry in header.tensors.items() if entry.dtype != stored[name])
-        if wrong:
-            raise DescriptionError(f"{wrong[0]} is stored as {header.tensors[wrong[0]].dtype}, not {stored[wrong[0]]}")
-    elif any(entry.dtype != "F32" for entry in header.tensors.values()):
-        raise DescriptionError("stored tensors are not float32")
+    stored = {name: SAFETENSORS_DTYPES[dtype] for name, dtype in config.stored_dtypes().items()}
+    wrong = sorted(name for name, entry in header.tensors.items() if entry.dtype != stored[name])
+    if wrong:
+        raise DescriptionError(f"{wrong[0]} is stored as {header.tensors[wrong[0]].dtype}, not {stored[wrong[0]]}")
 
 
 def load_field(path: str | os.PathLike, device: torch.device | str = "cpu",

@@ -45,14 +45,12 @@ from apmgsrn.io.field_file import (
     loaded_description,
     parse_field_description,
     restore_field,
+    stored_tensors,
 )
 from apmgsrn.io.packed import read_payload_file
 from apmgsrn.models.encoders.adaptive_multigrid import MAX_RESOLUTION
 from apmgsrn.models.series_field import SeriesConfig, SeriesField, SeriesFieldConfig
 from apmgsrn.models.series_options import COEFFICIENT_KINDS, MAX_BASIS, MAX_STEPS, PLACEMENT_KINDS, STORAGE_KINDS
-
-#: The safetensors name of each dtype a series file stores.
-SAFETENSORS_DTYPES = {torch.float32: "F32", torch.float16: "F16"}
 
 
 def save_series(path: str | os.PathLike, field: SeriesField, source: SourceInfo, training: dict,
@@ -70,9 +68,7 @@ def save_series(path: str | os.PathLike, field: SeriesField, source: SourceInfo,
         Bytes written.
     """
     description = series_description(field, source, training, steps)
-    stored = field.config.stored_dtypes()
-    tensors = {name: tensor.to(stored[name]) for name, tensor in field.state_dict().items()}
-    return save_tensors(path, tensors, SERIES_KIND, description)
+    return save_tensors(path, stored_tensors(field), SERIES_KIND, description)
 
 
 def series_description(field: SeriesField, source: SourceInfo, training: dict, steps: list[SeriesStepInfo]) -> dict:
@@ -193,7 +189,7 @@ def load_series(path: str | os.PathLike, device: torch.device | str = "cpu",
         parsed = parse_field_description(header.description)
         config = SeriesFieldConfig(parsed.config, parse_series_config(header.description.get("series")))
         steps = parse_step_entries(header.description.get("steps"), config.series.steps)
-        check_declared_tensors(header, config, SAFETENSORS_DTYPES)
+        check_declared_tensors(header, config)
     except (DescriptionError, ValueError, TypeError) as exc:
         raise inconsistent(path, exc) from None
     tensors = {name: tensor.float() for name, tensor in load_tensors(path).items()}

@@ -79,6 +79,15 @@ class NeuralField(nn.Module):
     def parameter_count(self) -> int:
         return sum(p.numel() for p in self.parameters())
 
+    @torch.no_grad()
+    def round_to_storage(self) -> None:
+        """Round every parameter stored in less than float32 (``config.stored_dtypes()``) to that precision,
+        in place, so that what is measured after training is exactly what the model file gives back."""
+        stored = self.config.stored_dtypes()
+        for name, parameter in self.named_parameters():
+            if stored[name] != torch.float32:
+                parameter.copy_(parameter.to(stored[name]).to(parameter.dtype))
+
     def check_parameters(self) -> str | None:
         """Why these parameters cannot be a trained model (NaN/Inf, a singular grid map), or None."""
         problem = self.encoder.check_parameters()

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
+
+import torch
 
 from apmgsrn.arguments import check_choice
 from apmgsrn.choices import BACKENDS
@@ -39,16 +42,17 @@ PRESETS: dict[str, dict[str, dict]] = {
         "medium": dict(levels=18, features=2, log2_table_size=15, base_resolution=16, finest_resolution=512),
         "large": dict(levels=17, features=2, log2_table_size=20, base_resolution=16, finest_resolution=256),
     },
-    # Not the default (docs/models.md): measured on 6 of the 9 shared volumes at small, 1 seed. Each preset
-    # holds at most as many parameters as the smallest baseline of its size on any volume
-    # (tests/test_hybrid_grid.py).
+    # Feature tables stored in float16 (rounded when training ends: no PSNR change measured), so each preset
+    # holds about twice the features of a float32 one; its stored bytes stay at or under the smallest
+    # baseline's of its size on every shape (tests/test_hybrid_grid.py). Measured in docs/models.md.
+    # 12 domain levels: 15 cost 1.3-1.5x APMGSRN's time per iteration for at most 0.3 dB (docs/models.md).
     "hybrid": {
-        "small": dict(levels=15, features=2, log2_table_size=10, coarsest=8, grids=8, grid_features=1,
-                      grid_resolution=16),
-        "medium": dict(levels=15, features=2, log2_table_size=14, coarsest=16, grids=8, grid_features=2,
-                       grid_resolution=32),
-        "large": dict(levels=15, features=2, log2_table_size=18, coarsest=16, grids=8, grid_features=4,
-                      grid_resolution=64),
+        "small": dict(levels=12, features=2, log2_table_size=11, coarsest=8, grids=8, grid_features=1,
+                      grid_resolution=21, storage="float16"),
+        "medium": dict(levels=12, features=2, log2_table_size=15, coarsest=16, grids=8, grid_features=2,
+                       grid_resolution=42, storage="float16"),
+        "large": dict(levels=12, features=2, log2_table_size=19, coarsest=16, grids=8, grid_features=4,
+                      grid_resolution=84, storage="float16"),
     },
 }
 
@@ -127,6 +131,35 @@ class FieldConfig:
         decoder = {f"decoder.{k}": v for k, v in self.decoder.parameter_shapes(self.encoder.out_features).items()}
         return encoder | decoder
 
+    def stored_dtypes(self) -> dict[str, torch.dtype]:
+        """The dtype every parameter is stored in: what the encoder's config says (an encoder config with a
+        ``stored_dtypes()``), float32 for the rest."""
+        encoder = getattr(self.encoder, "stored_dtypes", dict)()
+        return {name: encoder.get(name.removeprefix("encoder."), torch.float32) for name in self.parameter_shapes()}
+
+
+def _hybrid_names(overrides: dict) -> dict:
+    """The hybrid's adaptive grids under the names the other kinds' grids have: ``resolution`` (a cube: R or
+    (R, R, R)) is its ``grid_resolution``, ``init`` its ``grid_init``."""
+    overrides = dict(overrides)
+    if "resolution" in overrides:
+        resolution = overrides.pop("resolution")
+        sizes = set(resolution) if isinstance(resolution, (tuple, list)) else {resolution}
+        if len(sizes) != 1:
+            raise InvalidArgument(f"resolution={resolution!r}: the hybrid's adaptive grids are cubes; give one size",
+                                  arguments=("resolution",))
+        overrides["grid_resolution"] = int(sizes.pop())
+    if "init" in overrides:
+        overrides["grid_init"] = overrides.pop("init")
+    return overrides
+
+
+def stored_bytes(config) -> int:
+    """Bytes of the stored parameters of a field's or series field's config (every tensor in its stored
+    dtype; the file adds its description)."""
+    dtypes = config.stored_dtypes()
+    return sum(math.prod(shape) * dtypes[name].itemsize for name, shape in config.parameter_shapes().items())
+
 
 def _config_fields(config_class: type, data, name: str) -> dict:
     """Keyword arguments for ``config_class`` from stored JSON: known fields of plain types only."""
@@ -163,6 +196,8 @@ def preset_config(model: str, preset: str, **overrides) -> FieldConfig:
     if preset not in PRESETS[model]:
         raise ValueError(f"unknown preset {preset!r}; choose from {sorted(PRESETS[model])}")
     overrides = {k: v for k, v in overrides.items() if v is not None}
+    if model == "hybrid":
+        overrides = _hybrid_names(overrides)
     decoder = DecoderConfig(
         hidden_layers=overrides.pop("hidden_layers", DecoderConfig.hidden_layers),
         width=overrides.pop("width", DecoderConfig.width),

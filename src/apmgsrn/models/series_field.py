@@ -33,7 +33,7 @@ from apmgsrn.models.encoders.adaptive_multigrid import (
     AdaptiveMultiGridEncoder,
     placed_boxes,
 )
-from apmgsrn.models.encoders.base import Encoder
+from apmgsrn.models.encoders.base import STORAGE_DTYPES, Encoder
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.models.series_options import (
@@ -47,7 +47,6 @@ from apmgsrn.models.series_options import (
 from apmgsrn.models.value_transform import ValueTransform
 from apmgsrn.ops.multigrid import multigrid_features
 
-STORAGE_DTYPES = {"float32": torch.float32, "float16": torch.float16}
 #: The parameters stored in ``SeriesConfig.storage`` (the rest is float32).
 GRID_PARAMETERS = ("encoder.grids", "encoder.residuals", "encoder.coefficients")
 
@@ -454,14 +453,6 @@ class SeriesField(nn.Module):
     def parameter_count(self) -> int:
         return sum(p.numel() for p in self.parameters())
 
-    # The same checks as a single field's: they read only the encoder and the decoder.
+    # The same checks as a single field's: they read only the encoder and the decoder; the same rounding.
     check_parameters = NeuralField.check_parameters
-
-    @torch.no_grad()
-    def round_to_storage(self) -> None:
-        """Round the grids to the precision they are stored in (a no-op for float32), in place, so that what
-        is measured after training is what the model file gives back."""
-        stored = self.config.stored_dtypes()
-        for name, parameter in self.named_parameters():
-            if stored[name] != torch.float32:
-                parameter.copy_(parameter.to(stored[name]).to(parameter.dtype))
+    round_to_storage = NeuralField.round_to_storage

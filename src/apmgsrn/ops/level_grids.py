@@ -24,10 +24,8 @@ import torch
 
 from apmgsrn import choices
 from apmgsrn.ops import level_grids_cpu
-from apmgsrn.ops.level_layout import LevelLayout
+from apmgsrn.ops.level_layout import HASH_PRIMES, LevelLayout
 
-# Spatial-hash primes of Instant-NGP (Teschner et al. 2003); the first is 1 for cache coherence.
-HASH_PRIMES = (1, 2654435761, 805459861)
 
 
 def vertex_rows(
@@ -36,10 +34,23 @@ def vertex_rows(
     """Table rows of integer vertices ``[..., 3]`` (x, y, z) inside the lattice -> ``[...]`` int64."""
     x, y, z = vertex.unbind(-1)
     if hashed:
-        h = (x * HASH_PRIMES[0]) ^ (y * HASH_PRIMES[1]) ^ (z * HASH_PRIMES[2])
+        terms = (x * HASH_PRIMES[0], y * HASH_PRIMES[1], z * HASH_PRIMES[2])
+        if torch.jit.is_tracing():
+            return _xor_low_bits(terms, size)
         # int64 products are exact; their low 32 bits are the 32-bit products, and size <= 2^32.
-        return h & (size - 1)
+        return (terms[0] ^ terms[1] ^ terms[2]) & (size - 1)
     return x + resolution[0] * (y + resolution[1] * z)
+
+
+def _xor_low_bits(terms: tuple[torch.Tensor, ...], size: int) -> torch.Tensor:
+    """``(a ^ b ^ c) & (size - 1)`` of non-negative int64 tensors, ``size`` a power of two, by integer
+    division and remainder only: the ONNX exporter (:mod:`apmgsrn.export`) has no integer xor. Bit ``k`` of
+    the xor is the parity of the terms' bits ``k``."""
+    low = [t % size for t in terms]
+    rows = torch.zeros_like(low[0])
+    for k in range(size.bit_length() - 1):
+        rows = rows + (sum(torch.div(t, 1 << k, rounding_mode="floor") % 2 for t in low) % 2) * (1 << k)
+    return rows
 
 
 def level_corners(
@@ -127,16 +138,18 @@ def level_grid_features(
 ) -> torch.Tensor:
     """Concatenated level features through the chosen backend.
 
-    The fused CPU kernel (:mod:`apmgsrn.ops.level_grids_cpu`) gives gradients for ``table`` only; when the
-    points or maps require grad, the tensors are not float32 CPU tensors, or the kernel cannot be built,
-    this runs the reference, so autograd stays exact.
+    The fused kernels, C/OpenMP on CPU (:mod:`apmgsrn.ops.level_grids_cpu`) and Triton on CUDA
+    (:mod:`apmgsrn.ops.level_grids_triton`), give gradients for ``table`` only; when the points or maps
+    require grad, the tensors are not float32, or no kernel can run there, this runs the reference, so
+    autograd stays exact.
 
     Args:
         points: ``[N, 3]``.
         maps: ``[L, 3, 4]`` index-space maps.
         table: ``[T]`` flat parameters.
         layout: the levels.
-        backend: ``"auto"`` (the CPU kernel where it applies, else the reference), ``"torch"`` or ``"cpu"``.
+        backend: ``"auto"`` (the fused kernel of the tensors' device where it applies, else the reference),
+            ``"torch"``, ``"cpu"`` or ``"triton"``.
 
     Returns:
         ``[N, sum_l F_l]`` features, level-major.
@@ -149,16 +162,24 @@ def level_grid_features(
         raise ValueError(f"unknown level-grid backend {backend!r}; use one of {LEVEL_GRID_BACKENDS}")
     if backend == "torch":
         return level_grid_features_reference(points, maps, table, layout)
+    device = points.device.type
     fusable = (
-        points.device.type == "cpu"
-        and all(t.dtype == torch.float32 for t in (points, maps, table))
+        all(t.dtype == torch.float32 for t in (points, maps, table))
         and not (torch.is_grad_enabled() and (points.requires_grad or maps.requires_grad))
     )
-    if fusable:
+    if backend in ("auto", "cpu") and device == "cpu" and fusable:
         if level_grids_cpu.is_available():
             return level_grids_cpu.level_grid_features_cpu(points, maps, table, layout)
         if backend == "cpu":
             raise RuntimeError(f"level-grid backend 'cpu' cannot run here: {level_grids_cpu.load_error()}")
-    elif backend == "cpu":
-        raise RuntimeError("level-grid backend 'cpu' needs float32 CPU tensors and no gradient for points or maps")
+    if backend in ("auto", "triton") and device == "cuda" and fusable:
+        from apmgsrn.ops import level_grids_triton  # imports Triton: only for CUDA tensors
+
+        if level_grids_triton.is_available():
+            return level_grids_triton.level_grid_features_triton(points, maps, table, layout)
+        if backend == "triton":
+            raise RuntimeError(f"level-grid backend 'triton' cannot run here: {level_grids_triton.load_error()}")
+    if backend != "auto":
+        raise RuntimeError(f"level-grid backend {backend!r} needs float32 {'CUDA' if backend == 'triton' else 'CPU'} "
+                           "tensors and no gradient for points or maps")
     return level_grid_features_reference(points, maps, table, layout)

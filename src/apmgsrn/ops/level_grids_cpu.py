@@ -131,11 +131,12 @@ static inline Level level_at(i64 l, const float *maps, const int *meta, const i6
     return lv;
 }
 
-/* out[n, col_l + f] = feature f of level l at point n, for every level.
+/* out[n, col_l + f] = feature f of level l at point n, for every level; element (n, c) of out lives at
+   n * sn + c * sc (the caller allocates it column-major, sn = 1: each feature's values are written in order).
    meta: [L, 6] int (R_x, R_y, R_z, hashed, F, first column); rows: [L] table rows;
    offsets: [L] first float of each level in the table. */
 void lg_forward(const float *points, i64 n, i64 levels, const float *maps, const int *meta, const i64 *rows,
-                const i64 *offsets, const float *table, float *out, i64 columns, int nthreads) {
+                const i64 *offsets, const float *table, float *out, i64 sn, i64 sc, int nthreads) {
     const i64 ntiles = (n + TILE - 1) / TILE;
     #pragma omp parallel num_threads(nthreads)
     {
@@ -146,24 +147,25 @@ void lg_forward(const float *points, i64 n, i64 levels, const float *maps, const
             const i64 i0 = t * TILE;
             const int nt = (int)(n - i0 < TILE ? n - i0 : TILE);
             load_tile(&s, points, i0, nt);
-            float *o = out + i0 * columns;
+            float *o = out + i0 * sn;
             for (i64 l = 0; l < levels; ++l) {
                 const Level lv = level_at(l, maps, meta, rows);
                 corners(&s, lv, nt);
                 for (int f = 0; f < lv.features; ++f) {
                     gather(table + offsets[l] + f, &s, nt);
-                    float *oc = o + meta[6 * l + 5] + f;
-                    for (int k = 0; k < nt; ++k) oc[(i64)k * columns] = s.res[k];
+                    float *oc = o + (meta[6 * l + 5] + f) * sc;
+                    for (int k = 0; k < nt; ++k) oc[(i64)k * sn] = s.res[k];
                 }
             }
         }
     }
 }
 
-/* grad_table (zeroed by the caller) += trilinear scatter of grad_out [N, columns].
-   buffers: (nthreads - 1) zeroed copies of the gradient (size floats each), or NULL with one thread. */
+/* grad_table (zeroed by the caller) += trilinear scatter of grad_out [N, columns], element (n, c) at
+   n * sn + c * sc. buffers: (nthreads - 1) zeroed copies of the gradient (size floats each), or NULL with
+   one thread. */
 void lg_backward(const float *points, i64 n, i64 levels, const float *maps, const int *meta, const i64 *rows,
-                 const i64 *offsets, const float *grad_out, i64 columns, float *grad_table, float *buffers,
+                 const i64 *offsets, const float *grad_out, i64 sn, i64 sc, float *grad_table, float *buffers,
                  i64 size, int nthreads) {
     #pragma omp parallel num_threads(nthreads)
     {
@@ -174,15 +176,15 @@ void lg_backward(const float *points, i64 n, i64 levels, const float *maps, cons
         for (i64 i0 = lo; i0 < hi; i0 += TILE) {
             const int nt = (int)(hi - i0 < TILE ? hi - i0 : TILE);
             load_tile(&s, points, i0, nt);
-            const float *g = grad_out + i0 * columns;
+            const float *g = grad_out + i0 * sn;
             for (i64 l = 0; l < levels; ++l) {
                 const Level lv = level_at(l, maps, meta, rows);
                 corners(&s, lv, nt);
                 for (int f = 0; f < lv.features; ++f) {
                     float *b = dst + offsets[l] + f;
-                    const float *gc = g + meta[6 * l + 5] + f;
+                    const float *gc = g + (meta[6 * l + 5] + f) * sc;
                     for (int k = 0; k < nt; ++k) {
-                        const float v = gc[(i64)k * columns];
+                        const float v = gc[(i64)k * sn];
                         for (int j = 0; j < 8; ++j) b[s.off[j][k]] += s.wt[j][k] * v;
                     }
                 }
@@ -200,8 +202,8 @@ void lg_backward(const float *points, i64 n, i64 levels, const float *maps, cons
 
 def _declare(lib: ctypes.CDLL) -> None:
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
-    lib.lg_forward.argtypes = [p, i64, i64, p, p, p, p, p, p, i64, i32]
-    lib.lg_backward.argtypes = [p, i64, i64, p, p, p, p, p, i64, p, p, i64, i32]
+    lib.lg_forward.argtypes = [p, i64, i64, p, p, p, p, p, p, i64, i64, i32]
+    lib.lg_backward.argtypes = [p, i64, i64, p, p, p, p, p, i64, i64, p, p, i64, i32]
     lib.lg_forward.restype = lib.lg_backward.restype = None
 
 
@@ -253,11 +255,13 @@ class _LevelGridFunction(torch.autograd.Function):
         flat_maps = torch.cat([m[:, :, :3].reshape(-1, 9), m[:, :, 3]], dim=1).contiguous()  # [L, 12]: A', t
         tab = table.detach().contiguous()
         n = pts.shape[0]
-        out = torch.empty(n, layout.out_features, dtype=torch.float32)  # every element is written
+        # Column-major [N, C] (a transposed [C, N]): each feature's values are stored in order, and the
+        # decoder's first matrix product reads a transposed operand at no cost. Every element is written.
+        out = torch.empty(layout.out_features, n, dtype=torch.float32).t()
         lib.lg_forward(
             pts.data_ptr(), n, layout.levels, flat_maps.data_ptr(), kernel_layout.meta.data_ptr(),
             kernel_layout.rows.data_ptr(), kernel_layout.offsets.data_ptr(), tab.data_ptr(), out.data_ptr(),
-            layout.out_features, torch.get_num_threads(),
+            *out.stride(), torch.get_num_threads(),
         )
         ctx.save_for_backward(pts, flat_maps)
         ctx.kernel_layout = kernel_layout
@@ -271,14 +275,14 @@ class _LevelGridFunction(torch.autograd.Function):
         pts, flat_maps = ctx.saved_tensors
         kernel_layout = ctx.kernel_layout
         layout = kernel_layout.layout
-        go = grad_out.to(torch.float32).contiguous()
+        go = grad_out.to(torch.float32)  # read through its strides: no copy
         size = layout.table_size
         grad = torch.zeros(size, dtype=torch.float32)
         threads = torch.get_num_threads()
         buffers = torch.zeros(threads - 1, size, dtype=torch.float32) if threads > 1 else None
         lib.lg_backward(
             pts.data_ptr(), pts.shape[0], layout.levels, flat_maps.data_ptr(), kernel_layout.meta.data_ptr(),
-            kernel_layout.rows.data_ptr(), kernel_layout.offsets.data_ptr(), go.data_ptr(), layout.out_features,
+            kernel_layout.rows.data_ptr(), kernel_layout.offsets.data_ptr(), go.data_ptr(), *go.stride(),
             grad.data_ptr(), None if buffers is None else buffers.data_ptr(), size, threads,
         )
         return None, None, grad, None

@@ -7,6 +7,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+#: Spatial-hash primes of Instant-NGP (Teschner et al. 2003) that hashed levels use; the first is 1 for cache
+#: coherence.
+HASH_PRIMES = (1, 2654435761, 805459861)
+
 @dataclass(frozen=True)
 class LevelLayout:
     """Shapes of the levels and where each lives in the flat table.

@@ -21,30 +21,8 @@ from __future__ import annotations
 
 import torch
 
-try:  # Triton is optional (extra "triton"); without it this backend reports itself unavailable.
-    import triton
-    import triton.language as tl
-
-    _import_error: str | None = None
-except ImportError as err:  # pragma: no cover - depends on the environment
-    triton = None
-    tl = None
-    _import_error = f"triton is not installed ({err})"
-
-
-def is_available() -> bool:
-    """True when Triton is importable and a CUDA device is present."""
-    return triton is not None and torch.cuda.is_available()
-
-
-def load_error() -> str | None:
-    """Why :func:`is_available` is False (``None`` when it is True)."""
-    if triton is None:
-        return _import_error
-    if not torch.cuda.is_available():
-        return "no CUDA device"
-    return None
-
+# is_available and load_error are this backend's (the dispatcher asks this module).
+from apmgsrn.ops.triton_support import IMPORT_ERROR, is_available, load_error, tl, triton  # noqa: F401
 
 if triton is not None:
 
@@ -152,7 +130,7 @@ def _block(c: int) -> tuple[int, int, int]:
 
 def _check(points: torch.Tensor, matrices: torch.Tensor, translations: torch.Tensor, grids: torch.Tensor) -> None:
     if triton is None:
-        raise RuntimeError(_import_error)
+        raise RuntimeError(IMPORT_ERROR)
     if grids.numel() >= 2**31:
         raise ValueError("grids of 2^31 elements or more are not supported by the Triton backend")
 

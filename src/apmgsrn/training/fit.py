@@ -275,10 +275,10 @@ def fit(
     checkpoint = checkpoint_path_for(out)
     trained = train(prepared, field_config, train_config, tuple(truth.shape[-3:]), checkpoint, fingerprint, callbacks)
     packed = None
+    if packing is None:
+        trained.field.round_to_storage()  # measure what the file will give back
     if series:
-        if packing is None:
-            trained.field.round_to_storage()  # measure what the file will give back
-        else:
+        if packing is not None:
             before = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
             packed = packing.pack(trained.field)
             trained.field.load_state_dict(packed.state)  # measure what the file will give back

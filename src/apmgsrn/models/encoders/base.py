@@ -6,6 +6,10 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+#: dtype a stored parameter may take in a model file (``"float32"`` or ``"float16"``; the rest of the library
+#: trains and evaluates in float32 and rounds to this when training ends).
+STORAGE_DTYPES = {"float32": torch.float32, "float16": torch.float16}
+
 
 class Encoder(nn.Module):
     """Base of the encoders: ``forward(points [N, 3], detach_placement) -> [N, out_features]``.

@@ -32,8 +32,9 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from apmgsrn.arguments import check_choice
 from apmgsrn.models.encoders.adaptive_multigrid import AdaptiveMultiGridEncoder
-from apmgsrn.models.encoders.base import Encoder
+from apmgsrn.models.encoders.base import STORAGE_DTYPES, Encoder
 from apmgsrn.ops.level_grids import LEVEL_GRID_BACKENDS, index_space_maps, level_grid_features
 from apmgsrn.ops.level_layout import LevelLayout
 
@@ -61,6 +62,9 @@ class HybridGridConfig:
             SPEC initialisation).
         level_lr_scale: learning-rate multiplier of the domain levels.
         grid_lr_scale: learning-rate multiplier of the adaptive grids' features.
+        storage: dtype the feature tables (domain levels and adaptive grids) are stored in, ``"float32"`` or
+            ``"float16"`` (the presets: twice the features for the bytes; training runs in float32 and
+            rounds when it ends). Placement maps and the decoder stay float32.
         lattice: ``(D, H, W)`` of the volume the domain levels follow (:data:`NO_LATTICE` until
             :class:`~apmgsrn.models.field.NeuralField` fits the config to a volume).
         backend: sampling backend of :func:`apmgsrn.ops.level_grids.level_grid_features`.
@@ -76,6 +80,7 @@ class HybridGridConfig:
     grid_init: str = "volume"
     level_lr_scale: float = 3.0
     grid_lr_scale: float = 1.0
+    storage: str = "float32"
     lattice: tuple[int, int, int] = NO_LATTICE
     backend: str = "auto"
 
@@ -104,8 +109,9 @@ class HybridGridConfig:
             raise ValueError(f"grid init must be one of {GRID_INITS}, not {self.grid_init!r}")
         if not (0 < self.level_lr_scale <= 1000 and 0 < self.grid_lr_scale <= 1000):
             raise ValueError(f"learning-rate scales must be in (0, 1000]: {self}")
-        if self.backend not in LEVEL_GRID_BACKENDS:
-            raise ValueError(f"hybrid-grid backend must be one of {LEVEL_GRID_BACKENDS}, not {self.backend!r}")
+        if self.storage not in STORAGE_DTYPES:
+            raise ValueError(f"hybrid-grid storage must be one of {tuple(STORAGE_DTYPES)}, not {self.storage!r}")
+        check_choice("backend", self.backend, LEVEL_GRID_BACKENDS)
 
     @property
     def out_features(self) -> int:
@@ -118,6 +124,11 @@ class HybridGridConfig:
         level_floats = sum(s * f for s, f in zip(layout.sizes[: self.levels], layout.features))
         m, r, c = self.grids, self.grid_resolution, self.grid_features
         return {"level_table": (level_floats,), "grids": (m, r, r, r, c), "matrices": (m, 3, 3), "translations": (m, 3)}
+
+    def stored_dtypes(self) -> dict[str, torch.dtype]:
+        """The dtype each parameter is stored in: the feature tables in ``storage``, the maps in float32."""
+        tables = STORAGE_DTYPES[self.storage]
+        return {"level_table": tables, "grids": tables, "matrices": torch.float32, "translations": torch.float32}
 
     def level_resolutions(self) -> list[tuple[int, int, int]]:
         """Vertices ``(R_x, R_y, R_z)`` of every domain level, coarse to fine.
