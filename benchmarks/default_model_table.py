@@ -54,8 +54,8 @@ def main() -> None:
         other_error = _mean_finite([r.max_abs_error for r in best])
         print(f"| {dataset} {ours[0].shape} | {mean:.2f} ± {spread:.2f} ({len(ours)}) | "
               f"{MODEL_TITLES.get(best_model, best_model)} {other:.2f} ({len(best)}) | {difference:+.2f} | "
-              f"{_number(error)} / {_number(other_error)} | {ours[0].parameter_bytes:,} / {best[0].parameter_bytes:,} | "
-              f"{ours[0].file_bytes:,} / {best[0].file_bytes:,} |")
+              f"{_number(error)} / {_number(other_error)} | {ours[0].parameter_bytes:,} / "
+              f"{best[0].parameter_bytes:,} | {ours[0].file_bytes:,} / {best[0].file_bytes:,} |")
     print(f"\n{held} of {len(datasets)} volumes at least {args.margin} dB ahead.")
 
 

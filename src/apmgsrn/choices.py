@@ -19,6 +19,7 @@ def default_model(series: bool = False, byte_target: bool = False) -> str:
     extend and resize APMGSRN's grids (docs/time_series.md, docs/packing.md)."""
     return "apmgsrn" if series or byte_target else DEFAULT_MODEL
 
+
 #: The paper's model and its two baselines: what ``bench compress`` runs unless given ``--models`` (the
 #: tables of docs/results.md); ``bench quality`` runs these and the default model.
 PAPER_MODELS = ("apmgsrn", "fvsrn", "ngp")

@@ -80,8 +80,8 @@ def single_input(args: argparse.Namespace) -> str:
         if getattr(args, option, None) is not None:
             flag = "--" + option.replace("_", "-")
             also = " or a hybrid model" if option == "storage" else ""
-            raise ApmgsrnError(f"{flag} applies to a time series (several files, a glob, a .pvd or --time all){also}; "
-                               f"drop {flag} for one volume")
+            raise ApmgsrnError(f"{flag} applies to a time series (several files, a glob, a .pvd or --time all)"
+                               f"{also}; drop {flag} for one volume")
     return args.data[0]
 
 

@@ -45,7 +45,7 @@ PRESETS: dict[str, dict[str, dict]] = {
     # Feature tables stored in float16 (rounded when training ends: no PSNR change measured), so each preset
     # holds about twice the features of a float32 one; its stored bytes stay at or under the smallest
     # baseline's of its size on every shape (tests/test_hybrid_grid.py). Measured in docs/models.md.
-    # 12 domain levels: 15 cost 1.3-1.5x APMGSRN's time per iteration for at most 0.3 dB (docs/models.md).
+    # 12 domain levels: 15 took 1.4-1.5x APMGSRN's time per iteration for 0 to 0.9 dB more (docs/models.md).
     "hybrid": {
         "small": dict(levels=12, features=2, log2_table_size=11, coarsest=8, grids=8, grid_features=1,
                       grid_resolution=21, storage="float16"),
