@@ -18,6 +18,8 @@ Importing this module imports Triton but compiles nothing and does not touch CUD
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 from apmgsrn.ops.level_layout import HASH_PRIMES, LevelLayout
@@ -118,9 +120,11 @@ if triton is not None:
             tl.atomic_add(ptrs, go * weight[:, None], mask=valid[:, None] & cmask[None, :], sem="relaxed")
 
 
+@functools.lru_cache(maxsize=64)
 def layout_info(layout: LevelLayout, device: torch.device) -> torch.Tensor:
     """``[L, 8]`` int64 per level: resolution x, y, z, table rows, hashed, first float, features, first
-    output column (what the kernels read)."""
+    output column (what the kernels read). Cached: layouts are frozen and few, so a training step does not
+    copy it to the device again in every forward and backward pass."""
     rows = [(*res, size, int(hashed), start, f, column) for res, size, hashed, start, f, column in zip(
         layout.resolutions, layout.sizes, layout.hashed, layout.offsets, layout.features, layout.columns)]
     return torch.tensor(rows, dtype=torch.int64, device=device).reshape(-1, 8)
