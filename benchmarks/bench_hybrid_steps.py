@@ -7,6 +7,9 @@ frozen ones). Models are timed in alternating rounds so that load from other pro
 
     python benchmarks/bench_hybrid_steps.py --volume ../shared/data/neghip_64x64x64_uint8.raw \
         --threads 1 --sizes small --steps 50 --rounds 2 --skip-reference
+    python benchmarks/bench_hybrid_steps.py --volume ../shared/data/hcci_oh_187.nc --variable oh --device cuda
+
+On a GPU the Triton kernels run, and each step is timed between two synchronisations.
 
 The table it prints goes into docs/models.md by hand, with the date and the machine's load.
 """
@@ -28,18 +31,22 @@ from apmgsrn.training.trainer import Trainer, TrainConfig
 
 # (label, model, encoder overrides)
 CASES = [
-    ("apmgsrn (fused CPU kernel)", "apmgsrn", {}),
-    ("hybrid (fused CPU kernel)", "hybrid", {}),
+    ("apmgsrn (fused kernel)", "apmgsrn", {}),
+    ("hybrid (fused kernel)", "hybrid", {}),
     ("hybrid (PyTorch reference)", "hybrid", {"backend": "torch"}),
 ]
 
 
 def phase_times(trainer: Trainer, steps: int) -> float:
-    """Median seconds of ``steps`` trainer steps from the trainer's current state."""
+    """Median seconds of ``steps`` trainer steps from the trainer's current state (a GPU is synchronised
+    around each step, so a step's time is its own)."""
+    sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
     times = []
     for _ in range(steps):
+        sync()
         start = time.perf_counter()
         trainer.step()
+        sync()
         trainer.state.iteration += 1
         times.append(time.perf_counter() - start)
     return statistics.median(times)
@@ -50,6 +57,7 @@ def main() -> None:
     parser.add_argument("--volume", required=True)
     parser.add_argument("--variable")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--device", default="cpu", help="cpu (fused C kernels) or cuda (Triton kernels)")
     parser.add_argument("--sizes", nargs="+", default=["small", "medium"])
     parser.add_argument("--steps", type=int, default=10, help="timed steps per phase and round")
     parser.add_argument("--rounds", type=int, default=3)
@@ -59,11 +67,13 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     volume = open_volume(args.volume, variable=args.variable)
-    prepared = prepare_values(volume.to_numpy(), "none", 0.0, str(args.volume), torch.device("cpu"))
+    device = torch.device(args.device)
+    prepared = prepare_values(volume.to_numpy(), "none", 0.0, str(args.volume), device)
     cases = [c for c in CASES if not (args.skip_reference and c[2].get("backend") == "torch")]
     for text in args.hybrid_variant:
         cases.append((f"hybrid {text}", "hybrid", json.loads(text)))
-    print(f"{volume.path.name}, {args.threads} threads, 32,768 points per iteration")
+    where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"CPU, {args.threads} threads"
+    print(f"{volume.path.name}, {where}, 32,768 points per iteration")
     print("| model | size | grids moving ms | frozen ms | protocol ms/iteration |")
     print("|---|---|---|---|---|")
     for size in args.sizes:
@@ -71,7 +81,7 @@ def main() -> None:
         for _ in range(args.rounds):
             for label, model, overrides in cases:
                 field = NeuralField(preset_config(model, size, **overrides), volume_shape=volume.shape,
-                                    generator=torch.Generator().manual_seed(0))
+                                    generator=torch.Generator().manual_seed(0)).to(device)
                 # Each kind's own training defaults (the hybrid draws half of every batch on voxels).
                 config = TrainConfig(iterations=2000, batch_size=32768, seed=0, **training_defaults(model))
                 trainer = Trainer(field, prepared.values, config)

@@ -63,10 +63,11 @@ def test_eval_matches_a_direct_computation(neghip_model, test_data, capsys):
     assert result["psnr"] == pytest.approx(expected, abs=1e-6)
     # linspace and the evaluator's lattice round the coordinates differently: 1e-5 absorbs that.
     assert result["max_abs_error"] == pytest.approx(np.abs(pred - data).max(), rel=1e-5)
-    # The training summary measured the same figures right after training, on the same lattice.
+    # The training summary measured the same figures right after training, on the same lattice (bit for bit
+    # on a CPU; a GPU's summation order may move the last digits of the mean).
     summary = model.description.training
-    assert summary["psnr"] == pytest.approx(result["psnr"], abs=1e-9)
-    assert summary["max_abs_error"] == result["max_abs_error"]
+    assert summary["psnr"] == pytest.approx(result["psnr"], abs=1e-6)
+    assert summary["max_abs_error"] == pytest.approx(result["max_abs_error"], rel=1e-6)
     assert main(["eval", str(neghip_model), str(test_data / NEGHIP)]) == 0
     text = capsys.readouterr().out
     largest = result["max_abs_error"]

@@ -58,7 +58,7 @@ def test_a_brick_model_retrains_to_the_reference_tensors(tmp_path):
     with queue:
         summary = train_bricks(open_volume(VOLUME), DecompositionConfig((2, 1, 1), ghost_cells=1),
                                preset_config("apmgsrn", "small", grids=4, resolution=(8, 8, 8), width=16), train,
-                               tmp_path / "bricks", queue)
+                               tmp_path / "bricks", queue, device="cpu")
     assert summary.complete and len(summary.trained) == 2
     reference = json.loads((DATA / "reference_bricks" / "manifest.json").read_text())
     retrained = json.loads((tmp_path / "bricks" / "manifest.json").read_text())

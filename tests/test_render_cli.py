@@ -45,7 +45,10 @@ def test_compare_writes_side_by_side_error_image_and_prints_metrics(test_data, t
     code, text, _ = _run(capsys, "render", data, "--out", str(out), "--compare", data, *SMALL, "--json")
     assert code == 0
     report = json.loads(text)
-    assert report["psnr"] is None and report["ssim"] == pytest.approx(1.0)  # identical: PSNR infinite
+    # Identical images: PSNR infinite (None). On a GPU the compositing's atomic sums may round the two
+    # renders apart in the last bits, which still reads as far over 120 dB.
+    assert report["psnr"] is None or report["psnr"] > 120
+    assert report["ssim"] == pytest.approx(1.0)
     assert _pixels(out).shape == (32, 2 * 40 + 4, 3)
     error = tmp_path / "pair_error.png"
     assert report["error_image"] == str(error) and _pixels(error).shape == (32, 40, 3)

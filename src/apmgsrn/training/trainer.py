@@ -283,11 +283,14 @@ class Trainer:
         self._placement_params = placement_params
         placement_ids = {id(p) for p in placement_params}
         network_params = [p for p in field.parameters() if id(p) not in placement_ids]
+        # One fused kernel per parameter group on a GPU, where a step is bound by kernel launches; the CPU keeps
+        # the multi-tensor Adam, whose numbers the reference models pin.
+        fused = self.device.type == "cuda"
         self.network_optimizer = torch.optim.Adam(
-            _learning_rate_groups(encoder, network_params), lr=config.lr, betas=config.betas
+            _learning_rate_groups(encoder, network_params), lr=config.lr, betas=config.betas, fused=fused
         )
         self.placement_optimizer = (
-            torch.optim.Adam(placement_params, lr=config.placement_lr, betas=config.betas)
+            torch.optim.Adam(placement_params, lr=config.placement_lr, betas=config.betas, fused=fused)
             if placement_params
             else None
         )

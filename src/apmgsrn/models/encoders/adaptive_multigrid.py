@@ -153,7 +153,7 @@ def placed_boxes(matrices: torch.Tensor, translations: torch.Tensor) -> torch.Te
     """Corners ``[M, 8, 3]`` in global coordinates of grids placed by ``A [M, 3, 3]`` and ``t [M, 3]`` (the local
     ``[-1, 1]^3`` mapped back through ``A^-1 (l - t)``); corner ``k`` has x from bit 0, y from bit 1, z from bit 2."""
     corners = torch.tensor(
-        [[x, y, z] for z in (-1.0, 1.0) for y in (-1.0, 1.0) for x in (-1.0, 1.0)]
+        [[x, y, z] for z in (-1.0, 1.0) for y in (-1.0, 1.0) for x in (-1.0, 1.0)], device=matrices.device
     )  # [8, 3] local
     inverse = torch.linalg.inv(matrices.double())  # [M, 3, 3]
     shifted = corners.double()[None] - translations.double()[:, None, :]  # [M, 8, 3]
