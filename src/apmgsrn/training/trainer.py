@@ -34,7 +34,7 @@ from apmgsrn.training.checkpoint import (
     state_from_json,
 )
 from apmgsrn.training.losses import feature_density_loss
-from apmgsrn.training.points import draw_batch
+from apmgsrn.training.points import draw_batch, spatially_ordered
 
 #: Weight of the newest loss in a series step's running loss.
 STEP_LOSS_WEIGHT = 0.3
@@ -295,6 +295,9 @@ class Trainer:
             else None
         )
         self.hidden_dtype = inference_dtype(config.decoder_precision, self.device)  # same rule as inference
+        # Batches sorted by position where the encoder's tables outgrow the CPU's caches (a GPU gains nothing
+        # for the launches a sort costs).
+        self.order_batches = self.device.type == "cpu" and encoder.prefers_ordered_batches()
         # CPU threads chosen by timing the steps, where that cannot change the numbers (exact resume).
         self.thread_governor = ThreadGovernor(enabled=self.device.type == "cpu" and self._thread_invariant())
         self.callbacks = (_GovernThreads(), *self.callbacks)
@@ -363,6 +366,8 @@ class Trainer:
         tracking = cfg.placement_loss == "reconstruction" and st.frozen_at is None
         if self.volume.dim() == 3:
             points, target = draw_batch(self.volume, cfg.batch_size, cfg.voxel_fraction, self.generator)  # [B, 3], [B]
+            if self.order_batches:
+                points, target = spatially_ordered(points, target)
             prediction = self.field.normalized(points, detach_placement=not tracking, hidden_dtype=self.hidden_dtype)
         else:
             # A series: the batch is cut into groups of equal size, each at one step.

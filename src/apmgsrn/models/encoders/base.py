@@ -35,6 +35,11 @@ class Encoder(nn.Module):
     def initialize_from_volume(self, values: torch.Tensor) -> None:
         """Start from the training volume ``[D, H, W]`` in ``[0, 1]`` (called once before training; nothing here)."""
 
+    def prefers_ordered_batches(self) -> bool:
+        """Whether a CPU step runs faster on a batch sorted by position (feature tables larger than the
+        caches: consecutive points then share cache lines). The loss, a mean, is the same in any order."""
+        return False
+
     def thread_invariant(self, threads: int) -> bool:
         """Whether forward and backward give the same numbers on any CPU thread count up to ``threads``
         (the trainer then lets :class:`apmgsrn.threads.ThreadGovernor` change it mid-run). False unless an
