@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Networks against SZ3 and ZFP from about 100:1 to 10,000:1 on one volume (issue 15's crossover), as
 # docs/results_compress_packed_*.md were made: a small model (2,000 iterations) packed at 0.1 dB, at 1,000:1
-# and 3,000:1, with a bounded variant, and models that `train --ratio` sizes for 300:1 to 10,000:1; SZ3 and
+# and 3,000:1, with a bounded variant, and models that `train --ratio` sizes for 300:1 to 10,000:1 (all the
+# paper's APMGSRN); the default model (hybrid small) packed the same four ways; SZ3 and
 # ZFP at relative error bounds from 0.5 (to reach the highest ratios) down to 0.001.
 #
 #   bash benchmarks/compress_crossover.sh ../shared/data/miranda_density_256.nc density 0.12 OUT
@@ -35,8 +36,17 @@ for ratio in 300 1000 3000; do
   make "$out/train_r$ratio.apmgsrn" "${apm[@]}" train "$data" "${train[@]}" --ratio $ratio
 done
 make "$out/train_r10000.apmgsrn" "${apm[@]}" train "$data" "${train[@]}" --ratio 10000
+# The default model (hybrid small), packed the same ways.
+make "$out/hybrid.apmgsrn" "${apm[@]}" train "$data" "${train[@]}" --model hybrid --preset small
+make "$out/hybrid_packed.apmgsrn" "${apm[@]}" pack "$out/hybrid.apmgsrn" "$data" "${var[@]}"
+for ratio in 1000 3000; do
+  make "$out/hybrid_packed_r$ratio.apmgsrn" "${apm[@]}" pack "$out/hybrid.apmgsrn" "$data" "${var[@]}" --ratio $ratio
+done
+make "$out/hybrid_bounded_r1000.apmgsrn" "${apm[@]}" pack "$out/hybrid.apmgsrn" "$data" "${var[@]}" --ratio 1000 \
+  --max-error "$max_error"
 models=()
-for name in small packed packed_r1000 packed_r3000 bounded_r1000 train_r300 train_r1000 train_r3000 train_r10000; do
+for name in small packed packed_r1000 packed_r3000 bounded_r1000 train_r300 train_r1000 train_r3000 train_r10000 \
+            hybrid hybrid_packed hybrid_packed_r1000 hybrid_packed_r3000 hybrid_bounded_r1000; do
   [ -f "$out/$name.apmgsrn" ] && models+=("$out/$name.apmgsrn")
 done
 "${apm[@]}" bench compress "$spec" --model-files "${models[@]}" \

@@ -47,8 +47,9 @@ def main() -> None:
     text = "\n".join([
         "# Networks against SZ3 and ZFP, from 10:1 to 10,000:1 (issue 15)", "",
         "Made by `bash benchmarks/compress_crossover.sh DATA VARIABLE MAX_ERROR OUT` per volume (a small model, "
-        "2,000 iterations x 32,768 points, CPU, seed 0, packed at the default 0.1 dB budget, at 1,000:1 and "
-        "3,000:1, and bounded at about 4 % of the value range at 1,000:1; models that `train --ratio` sizes "
+        "APMGSRN and the default hybrid, "
+        "2,000 iterations x 32,768 points, CPU, seed 0, each packed at the default 0.1 dB budget, at 1,000:1 and "
+        "3,000:1, and bounded at about 4 % of the value range at 1,000:1; APMGSRN models that `train --ratio` sizes "
         "for 300:1, 1,000:1, 3,000:1 and 10,000:1 (grids, decoder and resolution chosen for the target, one "
         "grid anchored; docs/packing.md), where one fits; SZ3 and ZFP at relative bounds 0.5 ... 0.001), then "
         "`python benchmarks/compress_crossover_report.py "

@@ -10,8 +10,9 @@ from apmgsrn.bench.results import MODEL_TITLES, SIZE_ORDER, CompressRow, Quality
 from apmgsrn.choices import MODEL_KINDS
 
 # One colour per method, the same in every chart.
-COLOURS = {"apmgsrn": "#d62728", "fvsrn": "#1f77b4", "ngp": "#2ca02c", "sz3": "#9467bd", "zfp": "#ff7f0e",
-           "apmgsrn packed": "#8c564b", "apmgsrn packed bounded": "#e377c2"}
+COLOURS = {"apmgsrn": "#d62728", "fvsrn": "#1f77b4", "ngp": "#2ca02c", "hybrid": "#17becf", "sz3": "#9467bd",
+           "zfp": "#ff7f0e", "apmgsrn packed": "#8c564b", "apmgsrn packed bounded": "#e377c2",
+           "hybrid packed": "#0b6e79", "hybrid packed bounded": "#bcbd22"}
 MARKERS = {"small": "o", "medium": "s", "large": "D"}
 
 
@@ -35,8 +36,10 @@ def quality_chart(rows: list[QualityRow], path: Path) -> None:
     datasets = list(dict.fromkeys(r.dataset for r in rows))
     models = ordered((r.model for r in rows), MODEL_KINDS)
     sizes = ordered((r.size for r in rows), SIZE_ORDER)
-    figure = _figure(max(6.0, 1.4 * len(datasets) * len(sizes)), 3.6)
-    axes = figure.subplots(1, len(sizes), squeeze=False)[0]
+    # Sizes side by side while the volumes are few, one above the other when a row would grow too wide.
+    stacked = len(datasets) * len(sizes) > 8
+    figure = _figure(max(6.0, 1.3 * len(datasets) * (1 if stacked else len(sizes))), 3.6 * (len(sizes) if stacked else 1))
+    axes = figure.subplots(len(sizes) if stacked else 1, 1 if stacked else len(sizes), squeeze=False).ravel()
     width = 0.8 / len(models)
     for axis, size in zip(axes, sizes):
         for j, model in enumerate(models):
