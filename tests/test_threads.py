@@ -119,6 +119,35 @@ def test_training_gives_the_same_model_when_the_thread_count_changes_mid_run(tes
         assert torch.equal(a, b), name
 
 
+def test_a_step_whose_numbers_follow_the_thread_count_keeps_the_governor_off(test_data, monkeypatch):
+    """The rule of thumb (small batch, float32, an invariant encoder) is checked by running the step on each
+    thread count: a model whose output moves with the thread count (as matrix products do on some CPUs)
+    must not have its threads switched mid-run."""
+    from apmgsrn.training import trainer as trainer_module
+
+    raw = np.fromfile(test_data / "neghip_64x64x64_uint8.raw", dtype=np.uint8).reshape(64, 64, 64)
+    volume = torch.from_numpy(raw.astype(np.float32) / 255.0)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        monkeypatch.setattr(trainer_module, "_THREAD_PROBES", {})
+        steady = _trainer(volume, ThreadGovernor())
+        assert steady._thread_invariant()  # the real kernels: the same numbers on 1 and 2 threads here
+        original = NeuralField.normalized
+
+        def thread_dependent(self, points, *args, **kwargs):
+            return original(self, points, *args, **kwargs) * (1 + 1e-6 * torch.get_num_threads())
+
+        monkeypatch.setattr(NeuralField, "normalized", thread_dependent)
+        monkeypatch.setattr(trainer_module, "_THREAD_PROBES", {})
+        drifting = _trainer(volume, ThreadGovernor())
+        assert not drifting._thread_invariant()
+        field = NeuralField(preset_config("apmgsrn", "small"), generator=torch.Generator().manual_seed(0))
+        assert not Trainer(field, volume, TrainConfig(iterations=4, batch_size=4096)).thread_governor.enabled
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_trainer_keeps_its_threads_where_they_would_change_the_numbers():
     volume = torch.zeros(8, 8, 8)
     config = preset_config("apmgsrn", "small")

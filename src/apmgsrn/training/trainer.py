@@ -3,6 +3,7 @@ a learning rate that follows the iteration budget, atomic checkpoints and exact 
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import signal
@@ -25,7 +26,7 @@ from apmgsrn.io.description import DescriptionError
 from apmgsrn.models.encoders.base import Encoder
 from apmgsrn.models.field import NeuralField
 from apmgsrn.ops.trilinear import sample_volume
-from apmgsrn.threads import ThreadGovernor
+from apmgsrn.threads import ThreadGovernor, thread_candidates
 from apmgsrn.training.checkpoint import (
     CHECKPOINT_KIND,
     TrainingState,
@@ -45,6 +46,9 @@ PLACEMENT_LOSSES = ("density", "reconstruction")
 #: batch is summed in per-thread parts, so its loss, and the density target built from it, would change
 #: with the number of threads.
 SERIAL_REDUCTION_ELEMENTS = 32768
+#: Whether a model's step gives the same numbers on every thread count the governor may choose, by
+#: (field kind, parameter shapes, volume dims, batch size, thread counts): see Trainer._thread_invariant.
+_THREAD_PROBES: dict[tuple, bool] = {}
 
 
 @dataclass(frozen=True)
@@ -323,7 +327,39 @@ class Trainer:
             and self.hidden_dtype is None
             and self.config.placement_loss == "density"  # placement gradients: not shown to be
             and self.field.encoder.thread_invariant(torch.get_num_threads())
+            and self._same_numbers_on_every_thread_count()
         )
+
+    def _same_numbers_on_every_thread_count(self) -> bool:
+        """Checked, not assumed: one reconstruction step's prediction and gradients on a copy of the field,
+        on each thread count the governor may choose, compared bit for bit. Matrix-product libraries split
+        their work by thread count on some CPUs (seen on a 16-core machine with another PyTorch build, where
+        the rule above held here). Measured once per model shape, batch and thread count in a process."""
+        counts = thread_candidates(torch.get_num_threads())
+        if len(counts) == 1:
+            return True
+        key = (type(self.field).__name__, tuple((n, tuple(p.shape)) for n, p in self.field.named_parameters()),
+               self.volume.dim(), self.config.batch_size, counts)
+        if key not in _THREAD_PROBES:
+            field = copy.deepcopy(self.field)
+            points = torch.rand(self.config.batch_size, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1
+            steps = (torch.zeros(1, dtype=torch.long),) if self.volume.dim() == 4 else ()
+            results = []
+            threads = torch.get_num_threads()
+            try:
+                for count in counts:
+                    torch.set_num_threads(count)
+                    field.zero_grad(set_to_none=True)
+                    prediction = field.normalized(points, *steps, detach_placement=True)
+                    prediction.square().mean().backward()
+                    results.append([prediction.detach()] + [p.grad for p in field.parameters() if p.grad is not None])
+            finally:
+                torch.set_num_threads(threads)
+            _THREAD_PROBES[key] = all(
+                len(other) == len(results[0]) and all(torch.equal(a, b) for a, b in zip(other, results[0]))
+                for other in results[1:]
+            )
+        return _THREAD_PROBES[key]
 
     # ----------------------------------------------------------------------------- schedule
     def learning_rate(self, iteration: int) -> float:
