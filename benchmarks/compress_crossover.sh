@@ -25,25 +25,24 @@ make() {  # make FILE COMMAND...
   local file=$1; shift
   [ -f "$file" ] || "$@" --out "$file" || echo "skipped $(basename "$file"): the command above failed" >&2
 }
+pack_four() {  # pack_four MODEL PREFIX: at the 0.1 dB budget, at 1,000:1 and 3,000:1, and bounded at 1,000:1
+  local model=$1 prefix=$2
+  make "$out/${prefix}packed.apmgsrn" "${apm[@]}" pack "$model" "$data" "${var[@]}"
+  for ratio in 1000 3000; do
+    make "$out/${prefix}packed_r$ratio.apmgsrn" "${apm[@]}" pack "$model" "$data" "${var[@]}" --ratio $ratio
+  done
+  make "$out/${prefix}bounded_r1000.apmgsrn" "${apm[@]}" pack "$model" "$data" "${var[@]}" --ratio 1000 \
+    --max-error "$max_error"
+}
 make "$out/small.apmgsrn" "${apm[@]}" train "$data" "${train[@]}" --model apmgsrn --preset small
-make "$out/packed.apmgsrn" "${apm[@]}" pack "$out/small.apmgsrn" "$data" "${var[@]}"
-for ratio in 1000 3000; do
-  make "$out/packed_r$ratio.apmgsrn" "${apm[@]}" pack "$out/small.apmgsrn" "$data" "${var[@]}" --ratio $ratio
-done
-make "$out/bounded_r1000.apmgsrn" "${apm[@]}" pack "$out/small.apmgsrn" "$data" "${var[@]}" --ratio 1000 \
-  --max-error "$max_error"
+pack_four "$out/small.apmgsrn" ""
 for ratio in 300 1000 3000; do
   make "$out/train_r$ratio.apmgsrn" "${apm[@]}" train "$data" "${train[@]}" --ratio $ratio
 done
 make "$out/train_r10000.apmgsrn" "${apm[@]}" train "$data" "${train[@]}" --ratio 10000
 # The default model (hybrid small), packed the same ways.
 make "$out/hybrid.apmgsrn" "${apm[@]}" train "$data" "${train[@]}" --model hybrid --preset small
-make "$out/hybrid_packed.apmgsrn" "${apm[@]}" pack "$out/hybrid.apmgsrn" "$data" "${var[@]}"
-for ratio in 1000 3000; do
-  make "$out/hybrid_packed_r$ratio.apmgsrn" "${apm[@]}" pack "$out/hybrid.apmgsrn" "$data" "${var[@]}" --ratio $ratio
-done
-make "$out/hybrid_bounded_r1000.apmgsrn" "${apm[@]}" pack "$out/hybrid.apmgsrn" "$data" "${var[@]}" --ratio 1000 \
-  --max-error "$max_error"
+pack_four "$out/hybrid.apmgsrn" hybrid_
 models=()
 for name in small packed packed_r1000 packed_r3000 bounded_r1000 train_r300 train_r1000 train_r3000 train_r10000 \
             hybrid hybrid_packed hybrid_packed_r1000 hybrid_packed_r3000 hybrid_bounded_r1000; do
