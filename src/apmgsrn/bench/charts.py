@@ -37,9 +37,9 @@ def quality_chart(rows: list[QualityRow], path: Path) -> None:
     models = ordered((r.model for r in rows), MODEL_KINDS)
     sizes = ordered((r.size for r in rows), SIZE_ORDER)
     # Sizes side by side while the volumes are few, one above the other when a row would grow too wide.
-    stacked = len(datasets) * len(sizes) > 8
-    figure = _figure(max(6.0, 1.3 * len(datasets) * (1 if stacked else len(sizes))), 3.6 * (len(sizes) if stacked else 1))
-    axes = figure.subplots(len(sizes) if stacked else 1, 1 if stacked else len(sizes), squeeze=False).ravel()
+    panel_rows, panel_columns = (len(sizes), 1) if len(datasets) * len(sizes) > 8 else (1, len(sizes))
+    figure = _figure(max(6.0, 1.3 * len(datasets) * panel_columns), 3.6 * panel_rows)
+    axes = figure.subplots(panel_rows, panel_columns, squeeze=False).ravel()
     width = 0.8 / len(models)
     for axis, size in zip(axes, sizes):
         for j, model in enumerate(models):

@@ -335,7 +335,8 @@ class Trainer:
         on each thread count the governor may choose, compared bit for bit. Matrix-product libraries split
         their work by thread count on some CPUs (seen on a 16-core machine with another PyTorch build, where
         the rule above held here). Measured once per model shape, batch and thread count in a process."""
-        counts = thread_candidates(torch.get_num_threads())
+        threads = torch.get_num_threads()
+        counts = thread_candidates(threads)
         if len(counts) == 1:
             return True
         key = (type(self.field).__name__, tuple((n, tuple(p.shape)) for n, p in self.field.named_parameters()),
@@ -345,7 +346,6 @@ class Trainer:
             points = torch.rand(self.config.batch_size, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1
             steps = (torch.zeros(1, dtype=torch.long),) if self.volume.dim() == 4 else ()
             results = []
-            threads = torch.get_num_threads()
             try:
                 for count in counts:
                     torch.set_num_threads(count)
