@@ -5,6 +5,7 @@
     python benchmarks/bench_time_series.py timing --threads 1     # one step's training right before and after
     python benchmarks/bench_time_series.py speed --model M        # decode/render one step: series vs single file
     python benchmarks/bench_time_series.py report                 # docs/time_series_results.md + chart
+    ... --kind hybrid                                              # the same with hybrid models (own CSVs, report)
     python benchmarks/bench_time_series.py moving --out DIR        # a series whose structures move (then --data DIR)
 
 Protocol (REFERENCE.md, CPU): 2,000 iterations x 32,768 points, lr 0.01, seed 0, the small preset, PSNR
@@ -42,6 +43,22 @@ SPEED_CSV = RESULTS / "time_series_speed.csv"
 SPEED_FIELDS = ["what", "series_seconds", "single_seconds", "repeats", "threads", "load_average", "cpu"]
 DOCS = ROOT / "docs"
 CHART = DOCS / "images" / "time_series_psnr.png"
+#: Model kinds compared: APMGSRN's files keep the names above; another kind's add ``_KIND``.
+KINDS = ("apmgsrn", "hybrid")
+
+
+def for_kind(path: Path, kind: str) -> Path:
+    """The CSV, report or chart of model kind ``kind``."""
+    return path if kind == "apmgsrn" else path.with_name(f"{path.stem}_{kind}{path.suffix}")
+
+
+def _train_config(args: argparse.Namespace, **given):
+    """The protocol's training config for ``args.kind`` (its own training defaults, then ``given``)."""
+    from apmgsrn.models.registry import training_defaults
+    from apmgsrn.training.trainer import TrainConfig
+
+    return TrainConfig(**{"iterations": args.iterations, "batch_size": args.batch_size, "lr": 0.01, "seed": 0,
+                          **training_defaults(args.kind), **given})
 
 
 def _cpu() -> str:
@@ -69,19 +86,18 @@ def run_baseline(args: argparse.Namespace) -> None:
     from apmgsrn.data import open_volume
     from apmgsrn.models.registry import preset_config
     from apmgsrn.training.fit import fit_volume
-    from apmgsrn.training.trainer import TrainConfig
 
     files = list(enumerate(_series_files(args.data)))
     if args.steps:
         files = [files[int(step)] for step in args.steps.split(",")]  # a subset, in the order given
-    config = TrainConfig(iterations=args.iterations, batch_size=args.batch_size, lr=0.01, seed=0)
+    config = _train_config(args)
     with tempfile.TemporaryDirectory() as tmp:
         for step, path in reversed(files) if args.reverse else files:
             # Read again before every step: a second process may share the table (one from each end).
             if path.name in {row["file"] for row in _done_rows(args.csv)}:
                 continue
             volume = open_volume(path)
-            result = fit_volume(volume, preset_config("apmgsrn", "small"), config, Path(tmp) / "m.apmgsrn",
+            result = fit_volume(volume, preset_config(args.kind, "small"), config, Path(tmp) / "m.apmgsrn",
                                 torch.device("cpu"), progress=False)
             row = {"step": step, "file": path.name, "psnr": f"{result.psnr:.4f}",
                    "max_abs_error": f"{result.max_abs_error:.6g}", "seconds": f"{result.seconds:.2f}",
@@ -109,10 +125,10 @@ def run_series(args: argparse.Namespace) -> None:
     from apmgsrn.training.series_fit import fit_series
     from apmgsrn.training.series_packing import SeriesPacking, default_series_packing
     from apmgsrn.training.series_steps import STEPWISE_VOXEL_FRACTION, StepwiseConfig, stepwise_config
-    from apmgsrn.training.trainer import SERIES_ANCHORED_GRIDS, TrainConfig, series_budget
+    from apmgsrn.training.trainer import SERIES_ANCHORED_GRIDS, series_budget
 
     series = open_series([str(p) for p in _series_files(args.data)])
-    small = preset_config("apmgsrn", "small")
+    small = preset_config(args.kind, "small")
     if args.series_training == "stepwise":
         joint = [name for name in ("basis", "coefficients", "residual", "storage", "series_iterations")
                  if getattr(args, name) is not None]
@@ -120,16 +136,19 @@ def run_series(args: argparse.Namespace) -> None:
             raise SystemExit(f"--{joint[0].replace('_', '-')} shapes a joint model: add --series-training joint")
         iterations, config = args.iterations, stepwise_config(small, len(series))
         stepwise = StepwiseConfig(start=args.start)
-        packing = default_series_packing(config) if args.bits is None else SeriesPacking(args.bits, min_bits=args.bits)
+        packing = (default_series_packing(config, series.shape) if args.bits is None
+                   else SeriesPacking(args.bits, min_bits=args.bits))
         voxel_fraction = STEPWISE_VOXEL_FRACTION if args.voxel_fraction is None else args.voxel_fraction
-        anchored = SERIES_ANCHORED_GRIDS if args.anchored_grids is None else args.anchored_grids
+        anchored = args.anchored_grids
+        if anchored is None:  # the hybrid's domain levels cover the domain: nothing to anchor
+            anchored = SERIES_ANCHORED_GRIDS if args.kind == "apmgsrn" else 0
     else:
         iterations = args.series_iterations or series_budget(args.iterations, len(series))
         config = series_config(small, len(series), args.basis, args.coefficients, args.residual, args.storage)
         stepwise, packing = None, None
         voxel_fraction, anchored = args.voxel_fraction or 0.0, args.anchored_grids or 0
-    train_config = TrainConfig(iterations=iterations, batch_size=args.batch_size, lr=0.01, seed=args.seed,
-                               voxel_fraction=voxel_fraction, anchored_grids=anchored)
+    train_config = _train_config(args, iterations=iterations, seed=args.seed, voxel_fraction=voxel_fraction,
+                                 anchored_grids=anchored)
     load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "series.apmgsrn"
@@ -140,7 +159,7 @@ def run_series(args: argparse.Namespace) -> None:
             args.keep.write_bytes(out.read_bytes())
         bits = apmgsrn.load(out).description.packing.report["bits"] if packing is not None else None
     if stepwise is not None:
-        described = (f"stepwise start={args.start} iterations={iterations} bits={bits} "
+        described = (f"{args.kind} stepwise start={args.start} iterations={iterations} bits={bits} "
                      f"voxel_fraction={voxel_fraction:g} anchored_grids={anchored}"
                      + (f" seed={args.seed}" if args.seed else ""))
     else:
@@ -190,13 +209,12 @@ def run_timing(args: argparse.Namespace) -> None:
     from apmgsrn.data import open_volume
     from apmgsrn.models.registry import preset_config
     from apmgsrn.training.fit import fit_volume
-    from apmgsrn.training.trainer import TrainConfig
 
     path = _series_files(args.data)[args.step]
-    config = TrainConfig(iterations=args.iterations, batch_size=args.batch_size, lr=0.01, seed=0)
+    config = _train_config(args)
     start_load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
-        result = fit_volume(open_volume(path), preset_config("apmgsrn", "small"), config, Path(tmp) / "m.apmgsrn",
+        result = fit_volume(open_volume(path), preset_config(args.kind, "small"), config, Path(tmp) / "m.apmgsrn",
                             torch.device("cpu"), progress=False)
     _append(args.csv, TIMING_FIELDS, {"what": f"one step ({path.name}) {args.label}", "seconds": f"{result.seconds:.2f}",
                                       "iterations": result.iterations, "threads": torch.get_num_threads(),
@@ -258,7 +276,7 @@ def run_speed(args: argparse.Namespace) -> None:
             print(f"{what}: series {min(times['series']):.3f} s, single {min(times['single']):.3f} s", flush=True)
 
 
-def write_report(out: Path, timing_steps: list[int] | None = None) -> None:
+def write_report(out: Path, timing_steps: list[int] | None = None, kind: str = "apmgsrn") -> None:
     """The per-step table (both methods side by side), the criteria, and the chart.
 
     Args:
@@ -266,12 +284,14 @@ def write_report(out: Path, timing_steps: list[int] | None = None) -> None:
         timing_steps: baseline steps whose training time is the one-step time of the 5x criterion (those
             trained while the series model trained, under the same load); None: the timing table, else the
             median baseline row.
+        kind: the model kind whose CSVs are read (the chart is written for it too).
     """
     from apmgsrn.atomic import atomic_write_text
     from apmgsrn.bench.charts import psnr_over_time_chart
 
-    baseline = {int(r["step"]): r for r in _done_rows(BASELINE_CSV)}
-    series = {int(r["step"]): r for r in _done_rows(SERIES_CSV)}
+    baseline = {int(r["step"]): r for r in _done_rows(for_kind(BASELINE_CSV, kind))}
+    series = {int(r["step"]): r for r in _done_rows(for_kind(SERIES_CSV, kind))}
+    chart = for_kind(CHART, kind)
     steps = sorted(set(baseline) & set(series))
     if not steps:
         raise SystemExit("run the baseline and series commands first")
@@ -287,7 +307,7 @@ def write_report(out: Path, timing_steps: list[int] | None = None) -> None:
     single_bytes = max(int(baseline[t]["model_bytes"]) for t in steps)
     series_bytes = int(series[steps[0]]["model_bytes"])
     series_seconds = float(series[steps[0]]["train_seconds"])
-    timing = _done_rows(TIMING_CSV)
+    timing = _done_rows(for_kind(TIMING_CSV, kind))
     if timing_steps:
         measured_steps = [t for t in timing_steps if t in baseline]
         step_seconds = sum(float(baseline[t]["seconds"]) for t in measured_steps) / len(measured_steps)
@@ -303,14 +323,16 @@ def write_report(out: Path, timing_steps: list[int] | None = None) -> None:
     else:
         step_seconds = sorted(float(baseline[t]["seconds"]) for t in steps)[len(steps) // 2]
         step_source = "the median single-step training of the baseline table"
-    speed = _done_rows(SPEED_CSV)
+    speed = _done_rows(for_kind(SPEED_CSV, kind))
     speed_lines = "\n".join(
         f"| {r['what']} | {float(r['series_seconds']):.3f} s | {float(r['single_seconds']):.3f} s | "
         f"{float(r['series_seconds']) / float(r['single_seconds']):.2f} |" for r in speed)
     config = series[steps[0]]["config"]
     baseline_note = "" if len(steps) == 30 else (
         f" Independent models were trained for {len(steps)} of the 30 steps ({', '.join(map(str, steps))}): "
-        "the others were not trained for lack of machine time (each took 2 to 17 minutes on this shared machine).")
+        "the others were not trained for lack of machine time (each took "
+        f"{min(float(baseline[t]['seconds']) for t in steps):.0f} to "
+        f"{max(float(baseline[t]['seconds']) for t in steps):.0f} s on this shared machine).")
     loads = ", ".join(sorted({r["load_average"] for r in series.values()}))
     text = f"""# One model for a whole run: measured (issue 16)
 
@@ -335,7 +357,7 @@ packed series decodes every step's grids once). Fastest of several interleaved r
 |---|---|---|---|
 {speed_lines}
 
-![PSNR over time](images/{CHART.name})
+![PSNR over time](images/{chart.name})
 
 {chr(10).join(lines)}
 """
@@ -343,22 +365,22 @@ packed series decodes every step's grids once). Fastest of several interleaved r
     every = sorted(series)
     lines = {"one small model per step": [float(baseline[t]["psnr"]) if t in baseline else math.nan for t in every],
              "one model for the series": [float(series[t]["psnr"]) for t in every]}
-    second = {int(r["step"]): float(r["psnr"]) for r in _done_rows(SERIES_SEED1_CSV)}
+    second = {int(r["step"]): float(r["psnr"]) for r in _done_rows(for_kind(SERIES_SEED1_CSV, kind))}
     if second:
         lines["one model for the series, seed 1"] = [second.get(t, math.nan) for t in every]
-    psnr_over_time_chart(every, lines, CHART, title="viscous fingering, 30 steps: PSNR of every step")
-    print(f"wrote {out} and {CHART}")
+    psnr_over_time_chart(every, lines, chart, title=f"viscous fingering, 30 steps: PSNR of every step ({kind})")
+    print(f"wrote {out} and {chart}")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     base = sub.add_parser("baseline", help="one small model per step")
-    base.add_argument("--csv", type=Path, default=BASELINE_CSV)
+    base.add_argument("--csv", type=Path)
     base.add_argument("--reverse", action="store_true", help="last step first (a second process shares the work)")
     base.add_argument("--steps", help="only these steps, e.g. 10,15,20,25 (default: all)")
     series = sub.add_parser("series", help="one model for the whole series")
-    series.add_argument("--csv", type=Path, default=SERIES_CSV)
+    series.add_argument("--csv", type=Path)
     series.add_argument("--basis", type=int)
     series.add_argument("--coefficients")
     series.add_argument("--residual", type=int)
@@ -377,7 +399,7 @@ def main() -> None:
     series.add_argument("--anchored-grids", type=int,
                         help="grids that keep their starting placement (default: stepwise 1, joint 0)")
     timing = sub.add_parser("timing", help="one step's training time, for the 5x comparison")
-    timing.add_argument("--csv", type=Path, default=TIMING_CSV)
+    timing.add_argument("--csv", type=Path)
     timing.add_argument("--step", type=int, default=15)
     timing.add_argument("--label", default="")
     speed = sub.add_parser("speed", help="decode/render one step: the series file against a single-step file")
@@ -395,16 +417,23 @@ def main() -> None:
     moving.add_argument("--axis", choices=("x", "y", "z"), default="x")
     moving.add_argument("--out", type=Path, required=True)
     report = sub.add_parser("report", help="the per-step table and chart in docs/")
-    report.add_argument("--out", type=Path, default=DOCS / "time_series_results.md")
+    report.add_argument("--out", type=Path)
     for p in (base, series, timing):
         p.add_argument("--data", type=Path, default=SERIES, help="a folder of volume files, one per step")
         p.add_argument("--iterations", type=int, default=2000)
         p.add_argument("--batch-size", type=int, default=32768)
     for p in (base, series, timing, moving, report):
         p.add_argument("--threads", type=int, default=1)
+    for p in (base, series, timing, report):
+        p.add_argument("--kind", choices=KINDS, default="apmgsrn", help="the model kind (default apmgsrn)")
     report.add_argument("--timing-steps", help="baseline steps trained alongside the series model, e.g. 15,10,20,25: "
                                                "their mean time is the one-step time of the 5x criterion")
     args = parser.parse_args()
+    defaults = {"baseline": BASELINE_CSV, "series": SERIES_CSV, "timing": TIMING_CSV}
+    if args.command in defaults and args.csv is None:
+        args.csv = for_kind(defaults[args.command], args.kind)
+    if args.command == "report" and args.out is None:
+        args.out = for_kind(DOCS / "time_series_results.md", args.kind)
     torch.set_num_threads(args.threads)
     start = time.perf_counter()
     if args.command == "baseline":
@@ -418,7 +447,8 @@ def main() -> None:
     elif args.command == "moving":
         write_moving(args)
     else:
-        write_report(args.out, [int(t) for t in args.timing_steps.split(",")] if args.timing_steps else None)
+        write_report(args.out, [int(t) for t in args.timing_steps.split(",")] if args.timing_steps else None,
+                     args.kind)
     print(f"done in {time.perf_counter() - start:.0f} s")
 
 

@@ -210,7 +210,7 @@ def test_resume_after_kill_reaches_the_same_series_model(pattern, tmp_path):
     (["--ratio", "50", "--storage", "float32"], "--storage keeps them unpacked: give one"),
     (["--max-error", "0.1"], "a time series packs to a bit width or a size only"),
     (["--bricks", "2,1,1", "--bits", "8"], "packing options (--bits, --max-error, ...) apply to single models"),
-    (["--model", "fvsrn"], "a time-series model extends adaptive grids (apmgsrn), not 'fvsrn'"),
+    (["--model", "fvsrn"], "a time-series model extends adaptive grids (apmgsrn) or the hybrid model, not 'fvsrn'"),
 ])
 def test_stepwise_options_that_do_not_apply_exit_2_with_one_line(pattern, tmp_path, capsys, extra, message):
     out = tmp_path / "m.apmgsrn"
@@ -345,3 +345,27 @@ def test_info_says_when_a_long_series_shortened_its_steps(tmp_path, capsys, patt
     assert 0 < scale <= 1 / 3
     assert main(["info", str(out)]) == 0
     assert f"every step's fine-tune shortened to {scale:.2f} of the base share" in capsys.readouterr().out
+
+
+def test_a_series_of_hybrid_models_trains_evaluates_decodes_and_fits_in_python(pattern, tmp_path, capsys, truth):
+    """--model hybrid: one hybrid model per step, packed at 10 bits; eval, decode and info read it like any series, and apmgsrn.fit builds the same kind."""
+    out = tmp_path / "h.apmgsrn"
+    trained = run_json(capsys, ["train", pattern, "--model", "hybrid", "--levels", "6", "--log2-table-size", "10",
+                                "--grids", "4", "--out", str(out), "--json", *FAST])
+    model = apmgsrn.load(out)
+    assert model.description.config.model == "hybrid" and model.description.kind == "packed-series"
+    assert model.description.packing.report["bits"] == 10
+    assert model.field.encoder.level_table.shape[0] == 4
+    figures = run_json(capsys, ["eval", str(out), pattern, "--json"])
+    for t, row in enumerate(figures["per_step"]):
+        assert row["psnr"] == pytest.approx(trained["per_step"][t]["psnr"], abs=1e-6)
+        assert row["psnr"] == pytest.approx(evaluate(model.step_field(t), truth[t]).psnr, abs=1e-6)
+    assert main(["decode", str(out), "--time", "2", "--out", str(tmp_path / "s2.nc")]) == 0
+    decoded = apmgsrn.load(out).decode(time=2).values
+    assert np.abs(decoded - truth[2]).max() == pytest.approx(trained["per_step"][2]["max_abs_error"], rel=1e-5)
+    info = run_json(capsys, ["info", str(out), "--json"])
+    assert info["model"] == "hybrid" and info["series"]["steps"] == 4
+    fitted = apmgsrn.fit(pattern, model="hybrid", iterations=60, batch_size=1024, levels=6, log2_table_size=10,
+                         grids=4, resolution=8, width=16, progress=False)
+    assert fitted.field.encoder.level_table.shape[0] == 4
+    assert fitted.description.config.model == "hybrid" and fitted.description.kind == "packed-series"

@@ -278,3 +278,59 @@ def test_a_step_that_drifts_is_fine_tuned_again_with_its_placement_moving(travel
         assert not torch.equal(encoder.translations[t], encoder.translations[0])
     psnr = {run: [evaluate(runs[run].field.step_field(t), truth[t]).psnr for t in range(3)] for run in runs}
     assert min(psnr["tracked"][t] - psnr["frozen"][t] for t in moved) > 0.5
+
+
+# ------------------------------------------------------------------------------------- hybrid steps
+TINY_HYBRID = preset_config("hybrid", "small", levels=6, log2_table_size=10, grids=4, resolution=8, width=16)
+HYBRID_TRAIN = replace(TRAIN, anchored_grids=0)
+
+
+@pytest.fixture(scope="module")
+def trained_hybrid(prepared):
+    return train_stepwise(prepared, stepwise_config(TINY_HYBRID, 4), HYBRID_TRAIN, (32, 32, 32),
+                          stepwise=StepwiseConfig(start=1), show_progress=False)
+
+
+def test_hybrid_steps_share_the_decoder_and_each_fits_its_own_data(trained_hybrid, truth):
+    """A series of hybrid models: every step its own level table and grids, fine-tuned from its neighbour
+    (its placement where the start model left it, not placed anew from the step's data), the decoder shared;
+    every step fits its own data better than its neighbours' tables do, and better than the start model."""
+    field = trained_hybrid.field
+    encoder = field.encoder
+    assert encoder.level_table.shape[0] == encoder.grids.shape[0] == 4
+    counts = trained_hybrid.summary["stepwise"]["step_iterations"]
+    assert counts[1] == 0 and trained_hybrid.state.iteration == HYBRID_TRAIN.iterations + sum(counts)
+    assert trained_hybrid.summary["stepwise"]["step_lr"] == pytest.approx(HYBRID_TRAIN.lr)  # the hybrid's share: 1
+    for t in range(4):
+        step = field.step_field(t)
+        assert step.config.model == "hybrid" and torch.equal(step.encoder.level_table, encoder.level_table[t])
+        own = evaluate(step, truth[t]).psnr
+        for other in (t - 1, t + 1):
+            if 0 <= other < 4:
+                assert not torch.equal(encoder.level_table[t], encoder.level_table[other])
+                assert own > evaluate(field.step_field(other), truth[t]).psnr
+        if t not in trained_hybrid.summary["stepwise"]["tracked_steps"]:
+            assert torch.equal(encoder.matrices[t], encoder.matrices[1])
+        assert all(torch.equal(a, b) for a, b in zip(step.decoder.parameters(), field.decoder.parameters()))
+
+
+def test_a_warm_trainer_leaves_a_trained_hybrid_where_it_is(prepared):
+    """A fresh hybrid trainer starts the adaptive grids on the data's box; a warm one (a step fine-tuned from
+    its neighbour) keeps the placement it is given: re-placing it at every step would compound the scaling."""
+    from apmgsrn.models.field import NeuralField
+
+    field = NeuralField(TINY_HYBRID, volume_shape=(32, 32, 32), generator=torch.Generator().manual_seed(0))
+    before = field.encoder.matrices.detach().clone()
+    Trainer(field, prepared.values[0], replace(HYBRID_TRAIN, iterations=1), None, {}, [], warm=True)
+    assert torch.equal(field.encoder.matrices, before)
+    Trainer(field, prepared.values[0], replace(HYBRID_TRAIN, iterations=1), None, {}, [])
+    assert not torch.equal(field.encoder.matrices, before)
+
+
+def test_a_hybrid_series_must_have_its_own_tables_per_step():
+    from apmgsrn.models.series_field import SeriesConfig, SeriesFieldConfig, series_config
+
+    with pytest.raises(ValueError, match="one grid set and placement per step"):
+        series_config(TINY_HYBRID, 4, basis=2)
+    with pytest.raises(ValueError, match="one grid set and placement per step"):
+        SeriesFieldConfig(TINY_HYBRID, SeriesConfig(steps=4, basis=4, coefficients="keyframes"))

@@ -345,16 +345,16 @@ def _fit_series(data, preset, model, iterations, batch_size, device, transform, 
                 fill_nonfinite, progress, options) -> Model:
     """:func:`fit` of a time series: trained stepwise and packed, as ``apmgsrn train`` does by default."""
     series = open_series(data, variable=variable, time=time, fill_nonfinite=fill_nonfinite)
+    anchored = {"anchored_grids": SERIES_ANCHORED_GRIDS} if model == "apmgsrn" else {}  # the hybrid's levels cover
     field_config, train_config = _configs(model, preset, iterations, batch_size, device, options,
-                                          {"voxel_fraction": STEPWISE_VOXEL_FRACTION,
-                                           "anchored_grids": SERIES_ANCHORED_GRIDS})
+                                          {"voxel_fraction": STEPWISE_VOXEL_FRACTION, **anchored})
     try:
         config = stepwise_config(field_config, len(series))
     except ValueError as exc:  # a model kind a series cannot extend
         raise ApmgsrnError(f"invalid time-series options: {exc}") from None
     return _fitted(lambda out: fit_series(series, config, train_config, out, device, transform=transform,
                                           log_offset=log_offset, progress=progress, stepwise=StepwiseConfig(),
-                                          packing=default_series_packing(config)), device)
+                                          packing=default_series_packing(config, series.shape)), device)
 
 
 def render(

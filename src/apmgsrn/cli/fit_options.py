@@ -123,7 +123,7 @@ def build_configs(args: argparse.Namespace, device, steps: int | None = None):
     try:
         field_config = preset_config(args.model, args.preset, **overrides)
         anchored = args.anchored_grids
-        if anchored is None and steps is not None and getattr(field_config.encoder, "grids", 0):
+        if anchored is None and steps is not None and args.model == "apmgsrn":
             anchored = SERIES_ANCHORED_GRIDS  # a time series' shared placement must cover moving structures
         train_config = TrainConfig(
             iterations=iterations if args.iterations is None else args.iterations,

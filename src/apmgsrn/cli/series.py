@@ -107,7 +107,7 @@ def run_series_train(args: argparse.Namespace, series, field_config, train_confi
 
     device = resolve_device(args.device)  # the same device build_configs sized the budget for
     config = build_series_config(args, field_config, len(series))
-    stepwise, packing = series_training(args, config, series.raw_bytes)
+    stepwise, packing = series_training(args, config, series.raw_bytes, series.shape)
     out = Path(args.out)
     try:
         result = fit_series(series, config, train_config, out, device, transform=args.transform,
@@ -179,13 +179,14 @@ def drifted_steps(evaluation, start: int) -> list[int]:
     return [t for t, e in enumerate(evaluation.steps) if reference - e.psnr > DRIFT_DB]
 
 
-def series_training(args: argparse.Namespace, config, raw_bytes: int):
+def series_training(args: argparse.Namespace, config, raw_bytes: int, shape: tuple[int, int, int]):
     """(StepwiseConfig or None for a joint model, SeriesPacking or None for a float file) of the command line.
 
     Args:
         args: the command line.
         config: the series model (sizes the default packing).
         raw_bytes: the series' bytes as float32 (``--ratio`` divides them).
+        shape: ``(D, H, W)`` of every step (sizes a hybrid's tables, hence the default packing).
 
     Raises:
         ApmgsrnError: a packing option a series does not take, packing with --storage, or a bad --start-step.
@@ -207,7 +208,7 @@ def series_training(args: argparse.Namespace, config, raw_bytes: int):
             raise ApmgsrnError(f"--start-step {start}: must be auto, first, last or a step index") from None
     stepwise = StepwiseConfig(start=start, step_iterations=args.step_iterations)
     if packing is None and args.storage is None:
-        packing = default_series_packing(config)
+        packing = default_series_packing(config, shape)
     return stepwise, packing
 
 

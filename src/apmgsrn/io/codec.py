@@ -197,10 +197,10 @@ def predictors_for(shape: tuple[int, ...]) -> tuple[str, ...]:
 
 def series_predictors_for(shape: tuple[int, ...]) -> tuple[str, ...]:
     """Predictors that make sense for a tensor with a leading time axis (a series' grids ``[T, M, C, D, H, W]``
-    or residuals): those of :func:`predictors_for`, plus ``time`` where there are at least four axes and two
-    steps."""
+    or residuals, a hybrid's level tables ``[T, P]``): those of :func:`predictors_for`, plus ``time`` where there
+    are two steps or more."""
     names = predictors_for(shape)
-    if len(shape) >= 4 and shape[0] > 1:
+    if len(shape) >= 2 and shape[0] > 1:
         names += ("time",)
     return names
 

@@ -10,8 +10,8 @@ holding one ``U8`` tensor, ``payload``, cut into sections whose compressed sizes
    coded with :func:`~apmgsrn.io.codec.compress_description`;
 1. one section per parameter of :meth:`~apmgsrn.models.series_field.SeriesFieldConfig.parameter_shapes`, in
    that order, stored as a packed field stores it (``quantized`` or ``float32``). Only the tensors with a
-   leading time (or basis) axis, the grids ``[K, M, C, D, H, W]`` and residuals ``[T, M, C, r, r, r]``, may
-   use the ``time`` predictor (:func:`~apmgsrn.io.codec.series_predictors_for`).
+   leading time (or basis) axis, the grids ``[K, M, C, D, H, W]`` and residuals ``[T, M, C, r, r, r]`` (a
+   hybrid series: its grids ``[T, M, R, R, R, C]`` and level tables ``[T, P]``), may use the ``time`` predictor (:func:`~apmgsrn.io.codec.series_predictors_for`).
 
 Loading validates everything before it allocates: the header and section sizes, the description (the
 field's entries, then the series config and step entries as a series file reads them), the declared tensors
@@ -55,7 +55,7 @@ from apmgsrn.io.series_file import parse_series_config, parse_step_entries, seri
 from apmgsrn.models.series_field import SeriesField, SeriesFieldConfig
 
 #: Parameters with a leading time (or basis) axis: the only ones the ``time`` predictor may code.
-TIME_AXIS_TENSORS = ("encoder.grids", "encoder.residuals")
+TIME_AXIS_TENSORS = ("encoder.grids", "encoder.residuals", "encoder.level_table")
 #: Entries of the training summary a packed series file keeps: a packed field's, plus ``steps`` (per-step
 #: figures, which ``info`` shows; the packer stores those of the packed field), ``stepwise`` (the start
 #: step and the steps' fine-tune of a stepwise run), and for the brick of a brick model its box (``brick``)

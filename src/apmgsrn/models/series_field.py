@@ -11,6 +11,9 @@ whose structures travel, see :mod:`apmgsrn.training.series_steps`). Two ways to 
 - ``"learned"``: the weights are parameters (initialised to those hat functions), so every step and
   every grid chooses its own mix of the basis; with ``K = T`` this is one small grid set per step.
 
+A series of the hybrid model (:mod:`apmgsrn.models.series_hybrid`) has no basis: every step holds all its own
+encoder parameters (level table, grids, placement), filled step by step; the decoder is shared the same way.
+
 Step ``t`` of ``T`` sits at time coordinate ``-1 + 2 t / (T - 1)``, corner-aligned like space; between two
 steps the weights are interpolated linearly. Because a step's features are one ordinary ``[M, C, D, H, W]``
 grid set, :meth:`SeriesField.step_field` materialises them once into a plain
@@ -19,7 +22,7 @@ grid set, :meth:`SeriesField.step_field` materialises them once into a plain
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import nn
@@ -36,6 +39,7 @@ from apmgsrn.models.encoders.adaptive_multigrid import (
 from apmgsrn.models.encoders.base import STORAGE_DTYPES, Encoder
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
+from apmgsrn.models.series_hybrid import SeriesHybridEncoder
 from apmgsrn.models.series_options import (
     COEFFICIENT_KINDS,
     MAX_BASIS,
@@ -48,7 +52,9 @@ from apmgsrn.models.value_transform import ValueTransform
 from apmgsrn.ops.multigrid import multigrid_features
 
 #: The parameters stored in ``SeriesConfig.storage`` (the rest is float32).
-GRID_PARAMETERS = ("encoder.grids", "encoder.residuals", "encoder.coefficients")
+GRID_PARAMETERS = ("encoder.grids", "encoder.residuals", "encoder.coefficients", "encoder.level_table")
+#: Model kinds a series extends: APMGSRN's grids (joint or stepwise), the hybrid's tables (stepwise).
+SERIES_MODELS = ("apmgsrn", "hybrid")
 
 
 @dataclass(frozen=True)
@@ -118,8 +124,12 @@ class SeriesFieldConfig:
     series: SeriesConfig
 
     def __post_init__(self) -> None:
-        if self.field.model != "apmgsrn":
-            raise ValueError(f"a time-series model extends adaptive grids (apmgsrn), not {self.field.model!r}")
+        if self.field.model not in SERIES_MODELS:
+            raise ValueError(f"a time-series model extends adaptive grids (apmgsrn) or the hybrid model, not "
+                             f"{self.field.model!r}")
+        if self.field.model == "hybrid" and not (self.series.per_step_grids and self.series.placement == "per_step"):
+            raise ValueError("a time series of hybrid models has one grid set and placement per step "
+                             "(trained stepwise)")
 
     def to_dict(self) -> dict:
         return {"field": self.field.to_dict(), "series": self.series.to_dict()}
@@ -127,6 +137,9 @@ class SeriesFieldConfig:
     def parameter_shapes(self) -> dict[str, tuple[int, ...]]:
         """Shape of every stored parameter, named as in the field's ``state_dict``."""
         shapes = self.field.parameter_shapes()
+        if self.field.model == "hybrid":  # every encoder parameter per step
+            return {name: (self.series.steps, *shape) if name.startswith("encoder.") else shape
+                    for name, shape in shapes.items()}
         grids = shapes["encoder.grids"]
         shapes["encoder.grids"] = (self.series.basis, *grids)  # [K, M, C, D, H, W]
         m, c = grids[:2]
@@ -145,6 +158,10 @@ class SeriesFieldConfig:
         rest (weights, maps, decoder) in float32."""
         grids = STORAGE_DTYPES[self.series.storage]
         return {name: grids if name in GRID_PARAMETERS else torch.float32 for name in self.parameter_shapes()}
+
+    def fitted_to(self, volume_shape: tuple[int, int, int]) -> "SeriesFieldConfig":
+        """This config for a series of ``(D, H, W)`` steps (the hybrid's layout follows their lattice)."""
+        return replace(self, field=self.field.fitted_to(volume_shape))
 
 
 def series_config(field: FieldConfig, steps: int, basis: int | None = None, coefficients: str | None = None,
@@ -264,6 +281,14 @@ class SeriesMultiGridEncoder(AdaptiveMultiGridEncoder):
             grids = grids + self._upsampled(residuals[steps])
         return grids
 
+    step_parameters = ("grids", "matrices", "translations")
+    step_features = ("grids",)
+
+    def step_state(self, step: int) -> dict[str, torch.Tensor]:
+        """Step ``step``'s grids and placement, named and shaped as a single grid set's."""
+        grids = self.step_grids(torch.tensor([int(step)], device=self.grids.device))[0]
+        return {"grids": grids, **dict(zip(("matrices", "translations"), self.step_placement(step)))}
+
     def step_placement(self, step: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Placement ``(A [M, 3, 3], t [M, 3])`` of the grids at step ``step``."""
         if self.series.placement == "per_step":
@@ -354,14 +379,18 @@ class SeriesField(nn.Module):
         generator: torch.Generator | None = None,
     ):
         super().__init__()
+        self.volume_shape = tuple(int(s) for s in volume_shape)
+        config = config.fitted_to(self.volume_shape)
         self.config = config
-        self.encoder = SeriesMultiGridEncoder(config.field.encoder, config.series, generator=generator)
+        if config.field.model == "hybrid":
+            self.encoder = SeriesHybridEncoder(config.field.encoder, config.series.steps, generator=generator)
+        else:
+            self.encoder = SeriesMultiGridEncoder(config.field.encoder, config.series, generator=generator)
         self.decoder = Decoder(self.encoder.out_features, config.field.decoder, generator=generator)
         self.fit_min, self.fit_max = float(fit_min), float(fit_max)
         self.value_min = float(fit_min if value_min is None else value_min)
         self.value_max = float(fit_max if value_max is None else value_max)
         self.transform = transform
-        self.volume_shape = tuple(int(s) for s in volume_shape)
 
     @property
     def steps(self) -> int:
@@ -378,9 +407,9 @@ class SeriesField(nn.Module):
         """Decoder output ``m(y)`` ``[G * n, 1]`` for groups of points at steps ``[G]`` (see the encoder)."""
         return self.decoder(self.encoder(points, steps, detach_placement=detach_placement), hidden_dtype)
 
-    def _materialise(self, grids: torch.Tensor, step: int) -> NeuralField:
-        """A single-step field with these feature grids ``[M, C, D, H, W]``, the placement of step ``step``
-        and the shared decoder."""
+    def _materialise(self, state: dict[str, torch.Tensor]) -> NeuralField:
+        """A single-step field with these encoder parameters (named and shaped as a single field's) and the
+        shared decoder."""
         # Building the shell initialises weights it then overwrites; nn.Linear draws from the global random
         # generator, so fork it: decoding a step must not change what a caller's seed gives.
         with torch.random.fork_rng(devices=[]):
@@ -396,10 +425,8 @@ class SeriesField(nn.Module):
             )
         device = self.decoder[0].weight.device
         with torch.no_grad():
-            field.encoder.grids.copy_(grids)
-            matrices, translations = self.encoder.step_placement(step)
-            field.encoder.matrices.copy_(matrices)
-            field.encoder.translations.copy_(translations)
+            for name, value in state.items():
+                getattr(field.encoder, name).copy_(value)
             field.decoder.load_state_dict(self.decoder.state_dict())
         return field.to(device).eval().requires_grad_(False)
 
@@ -412,8 +439,7 @@ class SeriesField(nn.Module):
         if not 0 <= int(step) < self.steps:
             raise IndexError(f"step {step} is outside the series of {self.steps} steps")
         with torch.no_grad():
-            grids = self.encoder.step_grids(torch.tensor([int(step)], device=self.decoder[0].weight.device))[0]
-            return self._materialise(grids, int(step))
+            return self._materialise(self.encoder.step_state(int(step)))
 
     def time_field(self, time: float) -> NeuralField:
         """The field at time coordinate ``time`` in ``[-1, 1]`` (between steps: grids interpolated linearly).
@@ -428,7 +454,7 @@ class SeriesField(nn.Module):
                 raise ValueError("steps placed apart have no grids between them; interpolate their values")
             return self.step_field(int(position))
         with torch.no_grad():
-            return self._materialise(self.encoder.grids_at(position), 0)
+            return self._materialise({**self.encoder.step_state(0), "grids": self.encoder.grids_at(position)})
 
     def _values_at(self, time: float, points: torch.Tensor) -> torch.Tensor:
         """Values ``[N, 1]`` at ``[N, 3]`` points at time coordinate ``time``: shared placement, the field of

@@ -34,10 +34,15 @@ from apmgsrn.io import SeriesStepInfo, SourceInfo
 from apmgsrn.io.packed import PackedTensor, encode_float32, encode_quantized
 from apmgsrn.io.packed_series import packed_series_bytes, save_packed_series, series_predictors
 from apmgsrn.io.quantization import MAX_BITS, MAX_GROUPS, MIN_BITS, group_size, quantize, steps_for_bits
+from apmgsrn.models.registry import stored_bytes
 from apmgsrn.models.series_field import SeriesField
 
 #: Bit width of a packed series when none is asked for: about 0.03 dB below float32 (8 bits: 0.4-0.5 dB).
 DEFAULT_SERIES_BITS = 10
+#: Per-step tensors whose groups share one step over all steps (what the ``time`` predictor needs).
+SHARED_STEP_TENSORS = ("encoder.grids", "encoder.level_table")
+#: About how many values of a hybrid's level table share a step.
+LEVEL_TABLE_GROUP = 1024
 
 
 @dataclass(frozen=True)
@@ -60,29 +65,45 @@ class PackedSeries:
         return sum(len(t.data) for t in self.tensors)
 
 
-def shared_steps(grids: np.ndarray, bits: int) -> tuple[np.ndarray, int]:
-    """Steps of basis grids ``[K, M, C, D, H, W]`` that one grid and channel share over the ``K`` slices.
+def shared_steps(grids: np.ndarray, bits: int, group: int | None = None) -> tuple[np.ndarray, int]:
+    """Steps that each group of a per-step tensor shares over its ``K`` slices (steps, or basis grids).
 
     Args:
-        grids: the basis grids.
+        grids: ``[K, ...]``: APMGSRN's basis grids ``[K, M, C, D, H, W]``, or any per-step tensor.
         bits: bit width, :data:`~apmgsrn.io.quantization.MIN_BITS`..:data:`~apmgsrn.io.quantization.MAX_BITS`.
+        group: elements per group within a slice, a divisor of the slice's size (None: one group per grid and
+            channel, ``D * H * W`` elements, of APMGSRN's grids).
 
     Returns:
-        ``([K * G] float16 steps, group size)``: groups of ``D * H * W`` elements (``G = M * C``), each step
-        repeated for every slice; should ``K * M * C`` exceed
-        :data:`~apmgsrn.io.quantization.MAX_GROUPS`, neighbouring channels share a group.
+        ``([K * G] float16 steps, group size)``: ``G`` groups per slice, each step repeated for every slice;
+        should ``K * G`` exceed :data:`~apmgsrn.io.quantization.MAX_GROUPS`, neighbouring groups merge.
     """
     slices = grids.shape[0]
-    channels, cells = math.prod(grids.shape[1:3]), math.prod(grids.shape[3:])
-    merged = next((n for n in range(1, channels + 1) if channels % n == 0 and slices * (channels // n) <= MAX_GROUPS),
-                  None)
+    size = math.prod(grids.shape[1:])
+    group = math.prod(grids.shape[3:]) if group is None else group
+    groups = size // group
+    merged = next((n for n in range(1, groups + 1) if groups % n == 0 and slices * (groups // n) <= MAX_GROUPS), None)
     if merged is None:
         raise InvalidArgument(f"steps={slices}: a packed series holds at most {MAX_GROUPS} steps; store it unpacked",
                               arguments=("steps",))
-    group = merged * cells
-    blocks = grids.reshape(slices, channels // merged, group).transpose(1, 0, 2)  # [G, K, group]
+    group *= merged
+    blocks = grids.reshape(slices, size // group, group).transpose(1, 0, 2)  # [G, K, group]
     steps = steps_for_bits(blocks, slices * group, bits)  # [G], one per group over all slices
-    return np.tile(steps, slices), group  # [K * G], in the C order of the grids' groups
+    return np.tile(steps, slices), group  # [K * G], in the C order of the slices' groups
+
+
+def slice_group(model: str, name: str, shape: tuple[int, ...]) -> int | None:
+    """Elements per quantisation group of one step of a per-step tensor of a ``model`` series
+    (:func:`shared_steps`): one per adaptive grid of the hybrid's ``grids`` ``[T, M, R, R, R, C]``; runs of about
+    :data:`LEVEL_TABLE_GROUP` values of its ``level_table`` ``[T, P]`` (a divisor of ``P``; the coarse levels
+    are about that size); None for APMGSRN's grids."""
+    if name == "encoder.level_table":
+        size = shape[1]
+        fewest = -(-size // LEVEL_TABLE_GROUP)
+        return next((size // n for n in range(fewest, 4 * fewest + 1) if size % n == 0), size)
+    if model == "hybrid" and name == "encoder.grids":
+        return math.prod(shape[2:])
+    return None
 
 
 def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS) -> PackedSeries:
@@ -104,8 +125,8 @@ def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS) -> PackedSe
     tensors, state = [], {}
     for name in field.config.parameter_shapes():
         values = parameters[name].detach().cpu().float()
-        if name == "encoder.grids":
-            steps, group = shared_steps(values.numpy(), bits)
+        if name in SHARED_STEP_TENSORS:
+            steps, group = shared_steps(values.numpy(), bits, slice_group(field.config.field.model, name, tuple(values.shape)))
         elif name == "encoder.residuals":
             group = group_size(tuple(values.shape))
             steps = steps_for_bits(values.numpy(), group, bits)
@@ -159,16 +180,24 @@ class SeriesPacking:
         return packed
 
 
-#: A stepwise series is packed within this many single-step float32 models of its preset unless the command
+#: A stepwise series is packed within this many single-step models of its preset unless the command
 #: line says otherwise (``--bits`` or ``--size``), lowering the bit width from 10 to at most 6 if it must: the 30
 #: viscous-finger steps take 4.2 at 10 bits; steps that change more code less well along time.
 DEFAULT_SERIES_MODELS, DEFAULT_SERIES_MIN_BITS = 5, 6
+#: The lowest bit width of the default packing where a model kind's steps lose more at the kind's default:
+#: a hybrid series' tables cost 0.06 dB at 10 bits (worst step 0.10), 0.27 at 9 (worst 0.40), 0.97 at 8 and
+#: 7.6 dB at 6 (30 viscous-finger steps, docs/time_series.md), so it stays at 10 bits, above the cap if need be.
+DEFAULT_SERIES_MIN_BITS_OF = {"hybrid": 10}
 
 
-def default_series_packing(field_config) -> SeriesPacking:
-    """How ``train`` packs a stepwise series of ``field_config`` (a :class:`SeriesFieldConfig`) by default."""
-    single = 4 * sum(math.prod(shape) for shape in field_config.field.parameter_shapes().values())
-    return SeriesPacking(DEFAULT_SERIES_BITS, DEFAULT_SERIES_MODELS * single, DEFAULT_SERIES_MIN_BITS, strict=False)
+def default_series_packing(field_config, volume_shape: tuple[int, int, int]) -> SeriesPacking:
+    """How ``train`` packs a stepwise series of ``field_config`` (a :class:`SeriesFieldConfig`) of
+    ``(D, H, W)`` steps by default: within :data:`DEFAULT_SERIES_MODELS` single-step files of its preset, each
+    counted at the bytes its parameters are stored in (float16 tables of the hybrid presets), lowering the bit
+    width to fit down to :data:`DEFAULT_SERIES_MIN_BITS` (a hybrid series: :data:`DEFAULT_SERIES_MIN_BITS_OF`)."""
+    single = stored_bytes(field_config.field.fitted_to(volume_shape))
+    lowest = DEFAULT_SERIES_MIN_BITS_OF.get(field_config.field.model, DEFAULT_SERIES_MIN_BITS)
+    return SeriesPacking(DEFAULT_SERIES_BITS, DEFAULT_SERIES_MODELS * single, lowest, strict=False)
 
 
 def parameter_budget(file_bytes: int, steps: int) -> int:

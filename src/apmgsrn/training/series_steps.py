@@ -57,6 +57,9 @@ STARTS = ("auto", "first", "last")
 #: A step's fine-tune, as a share of the start model's iterations and learning rate (200 iterations at
 #: lr 0.003 after 2,000 at 0.01: every viscous-finger step within 0.0-0.9 dB of its own model).
 STEP_ITERATION_SHARE, STEP_LR_SHARE = 0.1, 0.3
+#: The learning-rate share of a model kind's steps where it differs: the hybrid's steps at 0.3 ended 0.2-0.9 dB
+#: below the same fine-tune at the start model's rate (30 viscous-finger steps, docs/time_series.md).
+STEP_LR_SHARES = {"hybrid": 1.0}
 #: A step that differs from its neighbour by more than this many times the start model's RMS error gets
 #: proportionally more iterations, up to ``STEP_ITERATION_CAP`` times the share above (the start model's whole
 #: budget). Consecutive viscous-finger steps differ by 4-9 times the error (200 iterations enough); steps 40
@@ -118,7 +121,7 @@ class StepwiseConfig:
         return self.step_iterations or max(1, round(config.iterations * STEP_ITERATION_SHARE))
 
     def step_config(self, config: TrainConfig, change: float = 0.0, error: float = 1.0,
-                    scale: float = 1.0) -> TrainConfig:
+                    scale: float = 1.0, lr_share: float = STEP_LR_SHARE) -> TrainConfig:
         """How a step after the start is fine-tuned: its grids only (the density loss never starts), for
         :meth:`base_iterations`, more when the step differs from its neighbour by more than
         :data:`STEP_CHANGE_SCALE` times the start model's error.
@@ -128,10 +131,11 @@ class StepwiseConfig:
             change: RMS difference between the step's values and its neighbour's (scaled units).
             error: the start model's RMS error (scaled units).
             scale: a long series' share of the base (:meth:`budget_scale`).
+            lr_share: the learning rate's share of the start model's (:data:`STEP_LR_SHARES`), unless ``step_lr``.
         """
         factor = min(max(change / (STEP_CHANGE_SCALE * max(error, 1e-12)), 1.0), STEP_ITERATION_CAP)
         iterations = max(1, round(self.base_iterations(config) * factor * scale))
-        lr = config.lr * STEP_LR_SHARE if self.step_lr is None else self.step_lr
+        lr = config.lr * lr_share if self.step_lr is None else self.step_lr
         return replace(config, iterations=iterations, lr=lr, density_start=iterations + 1, history_every=None,
                        stop_after_lr_cuts=None)
 
@@ -284,7 +288,7 @@ def _adopt(series: SeriesField, start_field: NeuralField) -> None:
     """The start model's placement, decoder and grids into the series field (its grids and placement become
     every step's until that step is trained)."""
     encoder, start = series.encoder, start_field.encoder
-    for name in ("matrices", "translations", "grids"):
+    for name in encoder.step_parameters:
         getattr(encoder, name).copy_(getattr(start, name).unsqueeze(0).expand_as(getattr(encoder, name)))
     series.decoder.load_state_dict(start_field.decoder.state_dict())
 
@@ -294,29 +298,29 @@ def _worker(series: SeriesField) -> NeuralField:
     return series.step_field(0).train()  # a materialised copy; its grids and placement are set per step
 
 
-_STEP_PARAMETERS = ("grids", "matrices", "translations")
-
-
 @torch.no_grad()
 def _load_step(worker: NeuralField, series: SeriesField, step: int) -> None:
-    """Step ``step``'s grids and placement into the worker."""
-    for name in _STEP_PARAMETERS:
+    """Step ``step``'s grids (or tables) and placement into the worker."""
+    for name in series.encoder.step_parameters:
         getattr(worker.encoder, name).copy_(getattr(series.encoder, name)[step])
 
 
 @torch.no_grad()
 def _store_step(worker: NeuralField, series: SeriesField, step: int) -> None:
-    """The worker's grids and placement as step ``step``'s."""
-    for name in _STEP_PARAMETERS:
+    """The worker's grids (or tables) and placement as step ``step``'s."""
+    for name in series.encoder.step_parameters:
         getattr(series.encoder, name)[step].copy_(getattr(worker.encoder, name))
 
 
-def _fine_tune(worker: NeuralField, values: torch.Tensor, config: TrainConfig, track: bool) -> float:
-    """Fine-tune the worker's grids (and with ``track`` its placement) on one step; its final RMS error."""
-    worker.encoder.grids.requires_grad_(True)
+def _fine_tune(worker: NeuralField, values: torch.Tensor, config: TrainConfig, track: bool,
+               features: tuple[str, ...]) -> float:
+    """Fine-tune the worker's ``features`` (grids, or the hybrid's tables; with ``track`` its placement too)
+    on one step, from where they are; its final RMS error."""
+    for name in features:
+        getattr(worker.encoder, name).requires_grad_(True)
     for parameter in worker.encoder.placement_parameters():
         parameter.requires_grad_(track)
-    state = Trainer(worker, values, tracking_config(config) if track else config, None, {}, []).run()
+    state = Trainer(worker, values, tracking_config(config) if track else config, None, {}, [], warm=True).run()
     return math.sqrt(_final_loss(state))
 
 
@@ -329,14 +333,15 @@ def _train_step(worker: NeuralField, series: SeriesField, values: torch.Tensor, 
     Returns:
         Whether the kept fine-tune moved the placement, and how many fine-tunes ran (1 or 2).
     """
+    features = series.encoder.step_features
     _load_step(worker, series, neighbour)
-    first = _fine_tune(worker, values, config, track=track_first)
+    first = _fine_tune(worker, values, config, track_first, features)
     if first <= error * 10 ** (TRACK_DB / 20):
         _store_step(worker, series, t)
         return track_first, 1
     kept = {k: v.clone() for k, v in worker.encoder.state_dict().items()}
     _load_step(worker, series, neighbour)
-    second = _fine_tune(worker, values, config, track=not track_first)
+    second = _fine_tune(worker, values, config, not track_first, features)
     if second >= first:
         worker.encoder.load_state_dict(kept)
     _store_step(worker, series, t)
@@ -407,6 +412,7 @@ def train_stepwise(
         if checkpoint is not None:
             _save_steps(checkpoint, series, progress, fingerprint)
     worker = _worker(series)
+    lr_share = STEP_LR_SHARES.get(field_config.field.model, STEP_LR_SHARE)
     state = progress.state
     scale = stepwise.budget_scale(train_config, steps - 1)
     todo = [(t, n) for t, n in step_order(progress.start, steps) if t not in progress.done]
@@ -414,7 +420,7 @@ def train_stepwise(
     try:
         for t, neighbour in todo:
             began = time.perf_counter()
-            config = stepwise.step_config(train_config, change(values, t, neighbour), progress.error, scale)
+            config = stepwise.step_config(train_config, change(values, t, neighbour), progress.error, scale, lr_share)
             moved = dict(zip(progress.done, progress.tracked))
             tracked, runs = _train_step(worker, series, values[t], t, neighbour, config, progress.error,
                                         track_first=moved[neighbour])
@@ -437,7 +443,7 @@ def train_stepwise(
     series.requires_grad_(True)
     by_step = dict(zip(progress.done, progress.iterations))
     summary = {"start": progress.start, "step_iterations": [by_step[t] for t in range(steps)],
-               "step_lr": stepwise.step_config(train_config).lr,
+               "step_lr": stepwise.step_config(train_config, lr_share=lr_share).lr,
                "tracked_steps": sorted(t for t, moved in zip(progress.done, progress.tracked) if moved),
                "budget_scale": round(scale, 6)}
     return TrainedField(series.eval(), state, resumed_from, summary={"stepwise": summary})

@@ -260,6 +260,8 @@ class Trainer:
         checkpoint_path: where periodic training checkpoints go (None: no checkpoints).
         fingerprint: description of the run that a resumed checkpoint must match.
         callbacks: called around every iteration (progress display, grid recording, ...).
+        warm: the field is trained already (a series step fine-tuned from its neighbour): the encoder does not
+            start from the data (:meth:`~apmgsrn.models.encoders.base.Encoder.initialize_from_volume`).
     """
 
     def __init__(
@@ -270,6 +272,7 @@ class Trainer:
         checkpoint_path: Path | None = None,
         fingerprint: dict | None = None,
         callbacks: Sequence[TrainingCallback] = (),
+        warm: bool = False,
     ):
         self.field = field
         self.volume = volume
@@ -316,7 +319,8 @@ class Trainer:
         # Encoders that start from the data (hybrid: adaptive grids on the volume's detail) do it here, the
         # one place every training path (single file, bricks) goes through; a resumed run then loads its
         # checkpoint over it.
-        encoder.initialize_from_volume(volume)
+        if not warm:
+            encoder.initialize_from_volume(volume)
 
     def _thread_invariant(self) -> bool:
         """Whether a step gives the same numbers on any thread count up to the current one: a batch that

@@ -249,11 +249,14 @@ class HybridGridEncoder(Encoder):
         self.matrices.mul_(scale[None, :, None])
         self.translations.copy_(scale * (self.translations - centre))
 
-    def maps(self, detach_placement: bool = False) -> torch.Tensor:
-        """Index-space maps ``[L + M, 3, 4]`` of every level and grid."""
+    def maps(self, detach_placement: bool = False, matrices: torch.Tensor | None = None,
+             translations: torch.Tensor | None = None) -> torch.Tensor:
+        """Index-space maps ``[L + M, 3, 4]`` of every level and grid (the grids placed by ``matrices`` and
+        ``translations``, by default the encoder's own)."""
         if self.config.grids == 0:
             return self.level_maps
-        matrices, translations = self.matrices, self.translations
+        matrices = self.matrices if matrices is None else matrices
+        translations = self.translations if translations is None else translations
         if detach_placement:
             matrices, translations = matrices.detach(), translations.detach()
         grid_maps = index_space_maps(matrices, translations, self.resolutions[self.config.levels :])  # [M, 3, 4]
@@ -267,8 +270,16 @@ class HybridGridEncoder(Encoder):
             detach_placement: True on the reconstruction path (SPEC section 4, step 1), so only the
                 features and the decoder learn from the reconstruction error.
         """
-        table = torch.cat([self.level_table, self.grids.reshape(-1)])  # the layout's flat table
-        return level_grid_features(points, self.maps(detach_placement), table, self.layout, self.config.backend)
+        return self.features_of(points, self.level_table, self.grids, self.matrices, self.translations,
+                                detach_placement)
+
+    def features_of(self, points: torch.Tensor, level_table: torch.Tensor, grids: torch.Tensor,
+                    matrices: torch.Tensor, translations: torch.Tensor, detach_placement: bool = False) -> torch.Tensor:
+        """Features at ``points`` of this layout holding the given parameters (shaped as the encoder's own;
+        a time series passes one step's, :mod:`apmgsrn.models.series_hybrid`)."""
+        table = torch.cat([level_table, grids.reshape(-1)])  # the layout's flat table
+        maps = self.maps(detach_placement, matrices, translations)
+        return level_grid_features(points, maps, table, self.layout, self.config.backend)
 
     # The adaptive grids are APMGSRN's (same parameters, same maps): their feature density (SPEC section 3),
     # its mean over the domain and the grids' boxes are computed the same way.
