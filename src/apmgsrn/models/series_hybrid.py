@@ -39,11 +39,6 @@ class SeriesHybridEncoder(HybridGridEncoder):
             single = getattr(self, name).detach()
             setattr(self, name, nn.Parameter(single.expand(steps, *single.shape).clone()))
 
-    @staticmethod
-    def parameter_shapes(config: HybridGridConfig, steps: int) -> dict[str, tuple[int, ...]]:
-        """Shape of every parameter (named without the ``encoder.`` prefix)."""
-        return {name: (steps, *shape) for name, shape in config.parameter_shapes().items()}
-
     def step_state(self, step: int) -> dict[str, torch.Tensor]:
         """The parameters of step ``step``, named and shaped as a single hybrid encoder's."""
         return {name: getattr(self, name)[step] for name in HYBRID_STEP_PARAMETERS}
