@@ -56,10 +56,3 @@ class SeriesHybridEncoder(HybridGridEncoder):
 
     def initialize_from_volume(self, values: torch.Tensor) -> None:
         """Nothing: the steps start from their start model (:mod:`apmgsrn.training.series_steps`)."""
-
-    def prefers_ordered_batches(self) -> bool:
-        return False
-
-    def thread_invariant(self, threads: int) -> bool:
-        """Not shown for a series: a series run keeps its thread count."""
-        return False
