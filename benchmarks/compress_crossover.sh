@@ -3,7 +3,8 @@
 # docs/results_compress_packed_*.md were made: a small model (2,000 iterations) packed at 0.1 dB, at 1,000:1
 # and 3,000:1, with a bounded variant, and models that `train --ratio` sizes for 300:1 to 10,000:1 (all the
 # paper's APMGSRN); the default model (hybrid small) packed the same four ways; SZ3 and
-# ZFP at relative error bounds from 0.5 (to reach the highest ratios) down to 0.001.
+# ZFP at relative error bounds from 0.5 (to reach the highest ratios) down to 0.001, and ZFP's
+# fixed-precision mode at 1-8 bit planes (bench compress's default precisions).
 #
 #   bash benchmarks/compress_crossover.sh ../shared/data/miranda_density_256.nc density 0.12 OUT
 #

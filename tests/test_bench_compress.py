@@ -1,6 +1,7 @@
 """SZ3 and ZFP round trips on real data, and the ``bench compress`` harness output."""
 
 import csv
+import math
 import dataclasses
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from apmgsrn.bench.datasets import DataSpec
 from apmgsrn.bench.results import CompressRow
 from apmgsrn.cli.main import main
 from apmgsrn.data import open_volume
+from apmgsrn.errors import ApmgsrnError
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -55,20 +57,41 @@ def test_compressor_round_trip_honours_the_relative_error_bound(name, c60_block)
     assert data.nbytes > sizes[1] > sizes[0]  # compresses, and a tighter bound costs bytes
 
 
+def test_zfp_fixed_precision_trades_bit_planes_for_bytes_and_refuses_other_settings(c60_block):
+    pytest.importorskip("zfpy")
+    _, data = c60_block
+    compressor = compressors.get_compressor("zfp-precision")
+    assert compressor.setting == "precision"
+    sizes, errors = [], []
+    for precision in (2, 6, 12):
+        packed = compressor.compress(data, precision)
+        restored = compressor.decompress(packed)
+        assert restored.shape == data.shape and restored.dtype == np.float32
+        sizes.append(len(packed.data))
+        errors.append(float(np.abs(restored.astype(np.float64) - data).max()))
+    assert sizes[0] < sizes[1] < sizes[2] < data.nbytes
+    assert errors[0] > errors[1] > errors[2]
+    for bad in (0, 33, 2.5):
+        with pytest.raises(ApmgsrnError, match="precision"):
+            compressor.compress(data, bad)
+
+
 def test_compress_benchmark_writes_rows_table_and_rate_distortion_chart(c60_block, tmp_path, capsys):
     pytest.importorskip("pysz")
     pytest.importorskip("zfpy")
     path, data = c60_block
     out = tmp_path / "results"
     code = main(["bench", "compress", str(path), "--models", "apmgsrn", "ngp", "--iterations", "5",
-                 "--batch-size", "512", "--bounds", "0.01", "0.001", "--query-points", "5000", "--out", str(out),
+                 "--batch-size", "512", "--bounds", "0.01", "0.001", "--precisions", "2", "6", "--query-points", "5000",
+                 "--out", str(out),
                  "--device", "cpu"])
     assert code == 0
     with open(out / "compress_c60_block.csv", newline="") as handle:
         records = list(csv.DictReader(handle))
     assert list(records[0]) == [f.name for f in dataclasses.fields(CompressRow)]
     assert [(r["method"], r["setting"]) for r in records] == [
-        ("sz3", "0.01"), ("sz3", "0.001"), ("zfp", "0.01"), ("zfp", "0.001"), ("apmgsrn", "small"), ("ngp", "small"),
+        ("sz3", "0.01"), ("sz3", "0.001"), ("zfp", "0.01"), ("zfp", "0.001"), ("zfp-precision", "2"),
+        ("zfp-precision", "6"), ("apmgsrn", "small"), ("ngp", "small"),
     ]
     for r in records:
         # c60 is stored as uint8: its ratio counts 1 byte a voxel, the float32 ratio 4.
@@ -95,7 +118,7 @@ def test_a_missing_compressor_package_is_skipped_with_the_install_hint(c60_block
     plan = CompressPlan(DataSpec(path), models=("fvsrn",), iterations=3, batch_size=256, query_points=100)
     report = run_compress(plan, tmp_path / "r", torch.device("cpu"), log=lines.append)
     assert [r.method for r in report.rows] == ["fvsrn"]
-    assert len(report.skipped) == 2 and all("apmgsrn[baselines]" in s for s in report.skipped)
+    assert len(report.skipped) == 3 and all("apmgsrn[baselines]" in s for s in report.skipped)
     assert any(line.startswith("skipped sz3: the 'pysz' package is not installed") for line in lines)
 
 
@@ -159,3 +182,31 @@ def test_a_network_beyond_a_compressors_reach_is_ahead_only_above_its_last_point
     assert "| 3,000 | 20.00 | SZ3 | not reached (at most 400:1 measured) | |" in text
     assert "networks ahead of SZ3 from 1,000:1 up; ahead at 1,000:1; behind at 200:1" in text
     assert "ZFP" not in text  # no ZFP rows, no ZFP comparison
+
+
+def test_zfp_is_compared_in_whichever_of_its_modes_is_best_at_the_networks_ratio():
+    from apmgsrn.bench.tables import compressor_curve, crossover_lines
+
+    rows = [_row("zfp", "0.01", 20.0, 50.0), _row("zfp", "0.5", 30.0, 45.0),  # accuracy mode: exact-ish, 30:1 at most
+            _row("zfp-precision", "8", 25.0, 30.0),  # beaten by the accuracy mode at a higher ratio: not ZFP's best
+            _row("zfp-precision", "2", 100.0, 25.0), _row("zfp-precision", "1", 200.0, 10.0),
+            _row("hybrid", "small", 150.0, 20.0)]
+    assert compressor_curve(rows, ("zfp", "zfp-precision")) == [(20.0, 50.0), (30.0, 45.0), (100.0, 25.0),
+                                                                (200.0, 10.0)]
+    text = "\n".join(crossover_lines(rows))
+    zfp_at_150 = 25.0 + (10.0 - 25.0) * math.log(1.5) / math.log(2.0)
+    assert f"| 150 | 20.00 | ZFP | {zfp_at_150:.2f} | {20.0 - zfp_at_150:+.2f} |" in text
+    assert "networks ahead of ZFP at every ratio compared, from 150:1 up" in text
+    assert "ZFP-PRECISION" not in text  # one comparison per compressor, not per mode
+
+
+def test_no_models_runs_the_compressors_alone(c60_block, tmp_path):
+    pytest.importorskip("zfpy")
+    path, _ = c60_block
+    out = tmp_path / "r"
+    code = main(["bench", "compress", str(path), "--models", "--compressors", "zfp-precision", "--precisions", "3",
+                 "--query-points", "100", "--out", str(out), "--device", "cpu"])
+    assert code == 0
+    with open(out / "compress_c60_block.csv", newline="") as handle:
+        assert [(r["method"], r["setting"]) for r in csv.DictReader(handle)] == [("zfp-precision", "3")]
+    assert not (out / "quality.csv").exists()  # nothing was trained

@@ -75,7 +75,7 @@ SERIES_TRAINING = ("stepwise", "joint")
 PRESET_UNITS = ("normalized", "data")
 
 #: Lossy compressors of ``bench compress`` (:data:`apmgsrn.bench.compressors.COMPRESSORS`).
-COMPRESSORS = ("sz3", "zfp")
+COMPRESSORS = ("sz3", "zfp", "zfp-precision")
 
 #: Units of a decode region (:class:`apmgsrn.data.grid.Region`): voxel indices or the source's coordinates.
 REGION_UNITS = ("index", "coordinates")

@@ -1,6 +1,7 @@
 """``bench compress``: the networks against SZ3 and ZFP on one volume.
 
-For each compressor and error bound, and for each network: compressed size and ratio, PSNR and largest
+For each compressor setting (an error bound, or bit planes for ZFP's fixed-precision mode), and for each
+network: compressed size and ratio, PSNR and largest
 error over every voxel, compression time (training time for a network), whole-volume decompression time
 and throughput, and the cost of answering random point queries. A compressor has to decompress the whole
 volume before it can interpolate at a single point; a network evaluates the points directly.
@@ -38,6 +39,8 @@ from apmgsrn.models.registry import PRESETS
 from apmgsrn.ops.trilinear import sample_volume
 
 DEFAULT_BOUNDS = (1e-1, 3e-2, 1e-2, 3e-3, 1e-3, 3e-4, 1e-4)
+#: Bit planes of ZFP's fixed-precision mode: about 200:1 down to 20-40:1.
+DEFAULT_PRECISIONS = (1, 2, 3, 4, 5, 6, 8)
 
 
 @dataclass(frozen=True)
@@ -46,10 +49,12 @@ class CompressPlan:
 
     Attributes:
         dataset: the volume.
-        models, sizes: networks to train (through ``bench quality``) when ``model_files`` is empty.
+        models, sizes: networks to train (through ``bench quality``) when ``model_files`` is empty (no models
+            and no files: the compressors alone).
         model_files: trained models of this volume to use instead.
         compressors: names of :data:`apmgsrn.bench.compressors.COMPRESSORS`.
-        bounds: error bounds relative to the value range, one run per compressor and bound.
+        bounds: error bounds relative to the value range, one run per error-bounded compressor and bound.
+        precisions: bit planes, one run per fixed-precision compressor (``zfp-precision``) and precision.
         iterations, batch_size, seed: training budget of the networks.
         query_points: random points of the query test.
     """
@@ -60,6 +65,7 @@ class CompressPlan:
     model_files: tuple[Path, ...] = ()
     compressors: tuple[str, ...] = COMPRESSORS
     bounds: tuple[float, ...] = DEFAULT_BOUNDS
+    precisions: tuple[int, ...] = DEFAULT_PRECISIONS
     iterations: int = 2000
     batch_size: int = 32768
     seed: int = 0
@@ -74,6 +80,8 @@ class CompressPlan:
             check_choice("compressors", name, COMPRESSORS)
         for bound in self.bounds:
             check_number("bounds", bound, 0.0, 1.0, low_open=True, high_open=True)
+        for precision in self.precisions:
+            check_int("precisions", precision, 1, 32)
         check_int("iterations", self.iterations, 1)
         check_int("batch_size", self.batch_size, 1, MAX_BATCH_SIZE)
         check_int("seed", self.seed, 0, 2**63 - 1)
@@ -130,14 +138,15 @@ def run_compress(
             skipped.append(compressor.unavailable_reason())
             log(f"skipped {compressor.unavailable_reason()}")
             continue
-        for bound in plan.bounds:
-            row = measure_compressor(compressor, data, bound, points, label, volume.stored_bytes)
+        for setting in plan.bounds if compressor.setting == "bound" else plan.precisions:
+            row = measure_compressor(compressor, data, setting, points, label, volume.stored_bytes)
             rows.append(row)
-            log(f"{label} {name} bound {bound:g}: ratio {row.compression_ratio:.1f}, {row.psnr:.2f} dB")
+            log(f"{label} {name} {compressor.setting} {setting:g}: ratio {row.compression_ratio:.1f}, "
+                f"{row.psnr:.2f} dB")
 
     model_files = list(plan.model_files)
     settings = {}
-    if not model_files:
+    if not model_files and plan.models:
         quality = QualityPlan(
             datasets=(plan.dataset,), models=plan.models, sizes=plan.sizes, seeds=1,
             iterations=plan.iterations, batch_size=plan.batch_size,
@@ -165,20 +174,20 @@ def volume_shape_text(volume) -> str:
     return "x".join(str(n) for n in reversed(volume.shape))
 
 
-def measure_compressor(compressor, data: np.ndarray, bound: float, points: torch.Tensor, label: str,
+def measure_compressor(compressor, data: np.ndarray, setting: float, points: torch.Tensor, label: str,
                        data_bytes: int) -> CompressRow:
-    """Compress, decompress and query one volume with one compressor at one relative error bound.
+    """Compress, decompress and query one volume with one compressor at one setting.
 
     Args:
         compressor: a :class:`~apmgsrn.bench.compressors.Compressor`.
         data: ``[D, H, W]`` float32 volume.
-        bound: error bound relative to the value range.
+        setting: the compressor's setting (an error bound relative to the value range, or bit planes).
         points: ``[Q, 3]`` query points in ``[-1, 1]^3``.
         label: volume name for the row.
         data_bytes: the volume's size as stored (its own dtype), for the compression ratio.
     """
     start = time.perf_counter()
-    compressed = compressor.compress(data, bound)
+    compressed = compressor.compress(data, setting)
     compress_seconds = time.perf_counter() - start
     start = time.perf_counter()
     restored = compressor.decompress(compressed)
@@ -192,7 +201,7 @@ def measure_compressor(compressor, data: np.ndarray, bound: float, points: torch
     return CompressRow(
         dataset=label,
         method=compressor.name,
-        setting=f"{bound:g}",
+        setting=f"{setting:g}",
         compressed_bytes=len(compressed.data),
         compression_ratio=data_bytes / len(compressed.data),
         compression_ratio_float32=data.size * 4 / len(compressed.data),

@@ -13,6 +13,7 @@ from apmgsrn.bench.results import (
     group_quality,
     ordered,
 )
+from apmgsrn.choices import COMPRESSORS as COMPRESSOR_NAMES
 from apmgsrn.choices import MODEL_KINDS
 
 
@@ -149,7 +150,10 @@ def compress_table(rows: list[CompressRow]) -> str:
 
 
 #: Methods of ``bench compress`` that are compressors; every other method is a network.
-COMPRESSORS = ("sz3", "zfp")
+COMPRESSORS = COMPRESSOR_NAMES
+#: The compressors the networks are compared with, each with the methods (modes) it is measured in: at a
+#: ratio, the compressor's best mode there (:func:`compressor_curve`).
+COMPRESSOR_FAMILIES = {"SZ3": ("sz3",), "ZFP": ("zfp", "zfp-precision")}
 
 
 def compressor_psnr_at(curve: list[tuple[float, float]], ratio: float) -> tuple[float, str] | None:
@@ -175,6 +179,14 @@ def compressor_psnr_at(curve: list[tuple[float, float]], ratio: float) -> tuple[
     return None  # unreachable: the ratio lies in the curve's range
 
 
+def compressor_curve(rows: list[CompressRow], methods: tuple[str, ...]) -> list[tuple[float, float]]:
+    """``(ratio, PSNR)`` of ``methods``' rows that no other of them beats at an equal or higher ratio: the
+    best the compressor does in any of its modes, by increasing ratio."""
+    points = [(r.compression_ratio, r.psnr) for r in rows if r.method in methods]
+    return sorted((ratio, psnr) for ratio, psnr in points
+                  if not any(p > psnr and q >= ratio for q, p in points if (q, p) != (ratio, psnr)))
+
+
 def network_frontier(rows: list[CompressRow], same_ratio: float = 0.01) -> list[CompressRow]:
     """The networks no other network beats at an equal or higher ratio (the best choice at each ratio),
     by increasing ratio; ratios within ``same_ratio`` (relative) of each other count as equal."""
@@ -196,16 +208,16 @@ def crossover_lines(rows: list[CompressRow]) -> list[str]:
     for dataset in dict.fromkeys(r.dataset for r in rows):
         here = [r for r in rows if r.dataset == dataset]
         frontier = network_frontier(here)
-        for compressor in COMPRESSORS:
-            curve = [(r.compression_ratio, r.psnr) for r in here if r.method == compressor]
+        for name, methods in COMPRESSOR_FAMILIES.items():
+            curve = compressor_curve(here, methods)
             if not curve or not frontier:
                 continue
-            name = compressor.upper()
             if not lines:
                 lines += [
                     "Networks against each compressor at the same ratio (the networks no other network beats "
                     "at an equal or higher ratio; the compressor's PSNR interpolated in log(ratio) between its "
-                    "measured bounds, or, above its largest ratio, that point's PSNR: an upper bound).",
+                    "measured settings, in whichever of its modes is best there, or, above its largest ratio, "
+                    "that point's PSNR: an upper bound).",
                     "",
                     "| volume | network | ratio | network PSNR dB | compressor | compressor PSNR dB | margin dB |",
                     "|---|---|---|---|---|---|---|",
@@ -232,7 +244,7 @@ def crossover_lines(rows: list[CompressRow]) -> list[str]:
                     break
                 crossover = ratio
             if not verdicts:
-                summary = f"not compared: {name} reached at most {reach:,.0f}:1 with the bounds measured"
+                summary = f"not compared: {name} reached at most {reach:,.0f}:1 with the settings measured"
             else:
                 if crossover is None:
                     summary = f"{name} ahead at the highest ratio compared"

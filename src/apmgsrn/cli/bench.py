@@ -44,18 +44,21 @@ def register(subparsers) -> None:
         "compress",
         help="networks against SZ3 and ZFP: rate-distortion, compression time, decompression and queries",
         description="Compress one volume with SZ3 and ZFP at several error bounds (relative to the value "
-        "range) and train the networks (or take --model-files); write OUT/compress_NAME.csv, .md and a "
+        "range), and with ZFP's fixed-precision mode at several bit-plane counts, and train the networks (or take --model-files); write OUT/compress_NAME.csv, .md and a "
         "rate-distortion chart .png. Query cost: a compressor decompresses the whole volume before it can "
         "answer random points; a network evaluates them directly.",
     )
     compress.add_argument("data", metavar="DATA", help="volume file, as PATH or PATH:VARIABLE")
-    compress.add_argument("--models", nargs="+", choices=MODEL_KINDS, default=list(PAPER_MODELS))
+    compress.add_argument("--models", nargs="*", choices=MODEL_KINDS, default=list(PAPER_MODELS),
+                          help="networks to train (default: the paper's three); none: the compressors alone")
     compress.add_argument("--sizes", nargs="+", choices=SIZE_PRESETS, default=["small"])
     compress.add_argument("--model-files", nargs="+", default=[], metavar="MODEL",
                           help="use these trained models of DATA instead of training --models")
     compress.add_argument("--compressors", nargs="+", choices=COMPRESSORS, default=list(COMPRESSORS))
     compress.add_argument("--bounds", nargs="+", type=float,
                           help="error bounds relative to the value range (default: 1e-1 ... 1e-4)")
+    compress.add_argument("--precisions", nargs="+", type=int,
+                          help="bit planes of ZFP's fixed-precision mode, zfp-precision (default: 1 ... 8)")
     compress.add_argument("--query-points", type=int, default=2**20, help="random points of the query test")
     _add_budget(compress, None, None)
     compress.add_argument("--out", default="bench-results", help=OUT_HELP)
@@ -127,6 +130,7 @@ def run_compress_command(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         query_points=args.query_points,
         **({"bounds": tuple(args.bounds)} if args.bounds else {}),
+        **({"precisions": tuple(args.precisions)} if args.precisions else {}),
     )
     report = run_compress(plan, Path(args.out), resolve_device(args.device),
                           log=lambda line: print(line, flush=True))

@@ -97,6 +97,7 @@ FLAGS = {
     "compressors": "--compressors",
     "seeds": "--seeds",
     "bounds": "--bounds",
+    "precisions": "--precisions",
     "query_points": "--query-points",
     "every": "--every",
 }
