@@ -67,11 +67,13 @@ def test_pvpython_reads_what_decode_writes(fingers_model: Path, test_data: Path,
     (tmp_path / "requests.json").write_text(json.dumps(requests))
     # The plugin runs apmgsrn in this interpreter's environment (this checkout's source); ParaView keeps its own.
     env = {**os.environ, "APMGSRN_PYTHON": sys.executable, "APMGSRN_PYTHONPATH": str(REPO / "src"),
-           "HOME": str(tmp_path), "XDG_CONFIG_HOME": str(tmp_path / "config")}
+           "HOME": str(tmp_path), "XDG_CONFIG_HOME": str(tmp_path / "config"), "TMPDIR": str(tmp_path / "tmp")}
+    (tmp_path / "tmp").mkdir()
     env.pop("PYTHONPATH", None)
     done = subprocess.run([shutil.which("pvpython"), str(SCRIPT), str(PLUGIN), str(tmp_path / "requests.json")],
                           env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    assert list((tmp_path / "tmp").glob("apmgsrn-paraview-*")) == []  # no decoded volume left behind
 
     for index, (model, _, options) in enumerate(cases):
         folder = tmp_path / f"paraview{index}"

@@ -18,6 +18,7 @@ ParaView's own ``PYTHONPATH`` and ``PYTHONHOME`` are not passed on (they would m
 import ParaView's packages); ``APMGSRN_PYTHONPATH``, if set, becomes the command's ``PYTHONPATH``.
 """
 
+import atexit
 import json
 import os
 import shutil
@@ -74,6 +75,22 @@ def model_path(file_name):
     if os.path.basename(file_name) == MANIFEST_NAME:
         return os.path.dirname(os.path.abspath(file_name))
     return file_name
+
+
+#: Folders of decoded volumes not yet removed. A reader removes its folder when it decodes again or is
+#: collected, but ParaView does not always collect its readers before it exits: what is left goes at exit.
+_FOLDERS = set()
+
+
+def _remove(folder):
+    shutil.rmtree(folder, ignore_errors=True)
+    _FOLDERS.discard(folder)
+
+
+@atexit.register
+def _remove_all():
+    for folder in list(_FOLDERS):
+        _remove(folder)
 
 
 @smproxy.reader(name="ApmgsrnReader", label="apmgsrn model", extensions="apmgsrn",
@@ -144,19 +161,20 @@ class ApmgsrnReader(VTKPythonAlgorithmBase):
         if self._decoded is None or self._decoded[0] != key:
             self._forget()
             folder = tempfile.mkdtemp(prefix="apmgsrn-paraview-")
+            _FOLDERS.add(folder)
             out = os.path.join(folder, "decoded.vti")
             arguments = ["decode", *self._arguments(), "--out", out, "--json"]
             try:
                 report = json.loads(run_apmgsrn(arguments + ([] if time is None else ["--time", str(time)])))
             except BaseException:
-                shutil.rmtree(folder, ignore_errors=True)
+                _remove(folder)
                 raise
             self._decoded = (key, report, out)
         return self._decoded[1], self._decoded[2]
 
     def _forget(self):
         if self._decoded is not None:
-            shutil.rmtree(os.path.dirname(self._decoded[2]), ignore_errors=True)
+            _remove(os.path.dirname(self._decoded[2]))
             self._decoded = None
 
     def __del__(self):
