@@ -45,6 +45,9 @@ DOCS = ROOT / "docs"
 CHART = DOCS / "images" / "time_series_psnr.png"
 #: Model kinds compared: APMGSRN's files keep the names above; another kind's add ``_KIND``.
 KINDS = ("apmgsrn", "hybrid")
+#: Other series models drawn in a kind's chart for comparison (label -> CSV of the series command), when kept.
+COMPARED = {"hybrid": {"hybrid series, unpulled, 10 bits (9.5 files)": RESULTS / "time_series_model_hybrid_unpulled.csv",
+                       "APMGSRN series (4.6 files)": SERIES_CSV}}
 
 
 def for_kind(path: Path, kind: str) -> Path:
@@ -161,6 +164,7 @@ def run_series(args: argparse.Namespace) -> None:
     if stepwise is not None:
         described = (f"{args.kind} stepwise start={args.start} iterations={iterations} bits={bits} "
                      f"voxel_fraction={voxel_fraction:g} anchored_grids={anchored}"
+                     + (f" step_sparsity={stepwise.sparsity(args.kind):g}" if stepwise.sparsity(args.kind) else "")
                      + (f" seed={args.seed}" if args.seed else ""))
     else:
         described = f"basis={config.series.basis} {config.series.coefficients} residual={config.series.residual} " \
@@ -368,6 +372,10 @@ packed series decodes every step's grids once). Fastest of several interleaved r
     second = {int(r["step"]): float(r["psnr"]) for r in _done_rows(for_kind(SERIES_SEED1_CSV, kind))}
     if second:
         lines["one model for the series, seed 1"] = [second.get(t, math.nan) for t in every]
+    for label, path in COMPARED.get(kind, {}).items():
+        other = {int(r["step"]): float(r["psnr"]) for r in _done_rows(path)}
+        if other:
+            lines[label] = [other.get(t, math.nan) for t in every]
     psnr_over_time_chart(every, lines, chart, title=f"viscous fingering, 30 steps: PSNR of every step ({kind})")
     print(f"wrote {out} and {chart}")
 

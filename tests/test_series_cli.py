@@ -348,13 +348,15 @@ def test_info_says_when_a_long_series_shortened_its_steps(tmp_path, capsys, patt
 
 
 def test_a_series_of_hybrid_models_trains_evaluates_decodes_and_fits_in_python(pattern, tmp_path, capsys, truth):
-    """--model hybrid: one hybrid model per step, packed at 10 bits; eval, decode and info read it like any series, and apmgsrn.fit builds the same kind."""
+    """--model hybrid: one hybrid model per step, its tables pulled towards the neighbour's, packed at 10 bits (within
+    five files here); eval, decode and info read it like any series, and apmgsrn.fit builds the same kind."""
     out = tmp_path / "h.apmgsrn"
     trained = run_json(capsys, ["train", pattern, "--model", "hybrid", "--levels", "6", "--log2-table-size", "10",
                                 "--grids", "4", "--out", str(out), "--json", *FAST])
     model = apmgsrn.load(out)
     assert model.description.config.model == "hybrid" and model.description.kind == "packed-series"
     assert model.description.packing.report["bits"] == 10
+    assert model.description.training["stepwise"]["step_sparsity"] == 0.02  # the hybrid's default pull
     assert model.field.encoder.level_table.shape[0] == 4
     figures = run_json(capsys, ["eval", str(out), pattern, "--json"])
     for t, row in enumerate(figures["per_step"]):
@@ -365,6 +367,8 @@ def test_a_series_of_hybrid_models_trains_evaluates_decodes_and_fits_in_python(p
     assert np.abs(decoded - truth[2]).max() == pytest.approx(trained["per_step"][2]["max_abs_error"], rel=1e-5)
     info = run_json(capsys, ["info", str(out), "--json"])
     assert info["model"] == "hybrid" and info["series"]["steps"] == 4
+    assert main(["info", str(out)]) == 0
+    assert "iterations per other step, pulled towards its neighbour at 0.02" in capsys.readouterr().out
     fitted = apmgsrn.fit(pattern, model="hybrid", iterations=60, batch_size=1024, levels=6, log2_table_size=10,
                          grids=4, resolution=8, width=16, progress=False)
     assert fitted.field.encoder.level_table.shape[0] == 4

@@ -334,3 +334,42 @@ def test_a_hybrid_series_must_have_its_own_tables_per_step():
         series_config(TINY_HYBRID, 4, basis=2)
     with pytest.raises(ValueError, match="one grid set and placement per step"):
         SeriesFieldConfig(TINY_HYBRID, SeriesConfig(steps=4, basis=4, coefficients="keyframes"))
+
+
+def test_a_pull_towards_the_neighbour_keeps_entries_unchanged_and_packs_the_steps_smaller(prepared, truth,
+                                                                                         trained_hybrid):
+    """``step_sparsity``: every step's tables are pulled back to its neighbour's while it is fine-tuned, so (pulled
+    hard) many entries keep the neighbour's value exactly where Adam alone moves nearly all of them, the packed
+    file is smaller, and every step still fits its own data better than its neighbour's tables do."""
+    from apmgsrn.training.series_packing import pack_series
+
+    def trained(sparsity):
+        return train_stepwise(prepared, stepwise_config(TINY_HYBRID, 4), HYBRID_TRAIN, (32, 32, 32),
+                              stepwise=StepwiseConfig(start=1, step_sparsity=sparsity), show_progress=False)
+
+    pulled, free = trained(0.5), trained(0.0)
+    assert pulled.summary["stepwise"]["step_sparsity"] == 0.5 and free.summary["stepwise"]["step_sparsity"] == 0.0
+    assert trained_hybrid.summary["stepwise"]["step_sparsity"] == series_steps.STEP_SPARSITY_OF["hybrid"] > 0
+
+    def unchanged(field, t):
+        neighbour = t + 1 if t < 1 else t - 1
+        tables = field.encoder.level_table
+        return float((tables[t] == tables[neighbour]).float().mean())
+
+    for t in (0, 2, 3):
+        assert unchanged(free.field, t) < 0.05 < 0.3 < unchanged(pulled.field, t)
+        step = pulled.field.step_field(t)
+        for other in (t - 1, t + 1):
+            if 0 <= other < 4:
+                assert evaluate(step, truth[t]).psnr > evaluate(pulled.field.step_field(other), truth[t]).psnr
+    assert pack_series(pulled.field, 10).parameter_bytes < 0.9 * pack_series(free.field, 10).parameter_bytes
+
+
+def test_step_sparsity_must_be_a_number_not_below_zero():
+    from apmgsrn.errors import InvalidArgument
+
+    for bad in (-0.1, float("nan"), "x"):
+        with pytest.raises(InvalidArgument, match="step_sparsity"):
+            StepwiseConfig(step_sparsity=bad)
+    assert StepwiseConfig().sparsity("hybrid") == series_steps.STEP_SPARSITY_OF.get("hybrid", 0.0)
+    assert StepwiseConfig(step_sparsity=0.0).sparsity("hybrid") == 0.0

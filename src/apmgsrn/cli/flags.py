@@ -63,6 +63,7 @@ FLAGS = {
     "series_training": "--series-training",
     "start": "--start-step",
     "step_iterations": "--step-iterations",
+    "step_sparsity": "--step-sparsity",
     # packing
     "bits": "--bits",
     "psnr_loss": "--psnr-loss",

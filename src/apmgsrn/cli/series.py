@@ -41,6 +41,10 @@ def add_series_arguments(parser: argparse.ArgumentParser) -> None:
                        help="stepwise: the step the first model is trained on (default auto: the most detail)")
     group.add_argument("--step-iterations", type=int, metavar="N",
                        help="stepwise: fine-tune iterations of every other step (default: a tenth of --iterations)")
+    group.add_argument("--step-sparsity", type=float, metavar="S",
+                       help="stepwise: pull every step's features back to its neighbour's while it is fine-tuned "
+                            "(an L1 proximal step of S x the learning rate per iteration; default 0): fewer "
+                            "bytes per step in the packed file, a looser fit (docs/time_series.md)")
     group.add_argument("--basis", type=int, metavar="K",
                        help=f"joint: basis grids shared by the steps (default {SERIES_DEFAULTS['basis']}, at most "
                             "the steps)")
@@ -76,7 +80,7 @@ def single_input(args: argparse.Namespace) -> str:
         raise ApmgsrnError(f"{len(args.data)} inputs given where one volume is read; name one file")
     hybrid = getattr(args, "model", None) in (None, "hybrid")  # --storage: the hybrid's tables (None: default)
     for option in (*JOINT_OPTIONS, *(() if hybrid else ("storage",)), "series_training", "start_step",
-                   "step_iterations"):
+                   "step_iterations", "step_sparsity"):
         if getattr(args, option, None) is not None:
             flag = "--" + option.replace("_", "-")
             also = " or a hybrid model" if option == "storage" else ""
@@ -206,7 +210,7 @@ def series_training(args: argparse.Namespace, config, raw_bytes: int, shape: tup
             start = int(start)
         except ValueError:
             raise ApmgsrnError(f"--start-step {start}: must be auto, first, last or a step index") from None
-    stepwise = StepwiseConfig(start=start, step_iterations=args.step_iterations)
+    stepwise = StepwiseConfig(start=start, step_iterations=args.step_iterations, step_sparsity=args.step_sparsity)
     if packing is None and args.storage is None:
         packing = default_series_packing(config, shape)
     return stepwise, packing
@@ -222,7 +226,7 @@ def build_series_config(args: argparse.Namespace, field_config, steps: int):
     from apmgsrn.training.series_steps import stepwise_config
 
     stepwise = args.series_training == "stepwise"
-    for option in JOINT_OPTIONS if stepwise else ("start_step", "step_iterations"):
+    for option in JOINT_OPTIONS if stepwise else ("start_step", "step_iterations", "step_sparsity"):
         if getattr(args, option, None) is not None:
             flag = "--" + option.replace("_", "-")
             raise ApmgsrnError(f"{flag} shapes a joint series model; add --series-training joint or drop {flag}"
@@ -383,8 +387,10 @@ def print_series_info(info: dict) -> None:
     stepwise = info.get("stepwise") or {}
     counts = [n for n in stepwise.get("step_iterations") or [] if isinstance(n, int) and n > 0]
     if isinstance(stepwise.get("start"), int) and counts:
+        sparsity = stepwise.get("step_sparsity")
+        pulled = f", pulled towards its neighbour at {sparsity:g}" if isinstance(sparsity, (int, float)) and sparsity else ""
         print(f"time        {info['steps']} steps, each with its own grids: trained stepwise from step "
-              f"{stepwise['start']}, {min(counts)} to {max(counts)} iterations per other step")
+              f"{stepwise['start']}, {min(counts)} to {max(counts)} iterations per other step{pulled}")
         scale = stepwise.get("budget_scale")
         if isinstance(scale, (int, float)) and 0 < scale < 1:
             print(f"            a long series: every step's fine-tune shortened to {scale:.2f} of the base share, "
