@@ -204,6 +204,8 @@ def test_resume_after_kill_reaches_the_same_series_model(pattern, tmp_path):
 @pytest.mark.parametrize("extra, message", [
     (["--basis", "2"], "--basis shapes a joint series model; add --series-training joint"),
     (["--series-training", "joint", "--start-step", "2"], "--start-step applies to --series-training stepwise"),
+    (["--series-training", "joint", "--step-sparsity", "0.1"], "--step-sparsity applies to --series-training stepwise"),
+    (["--step-sparsity", "-1"], "--step-sparsity"),
     (["--start-step", "middle"], "--start-step middle: must be auto, first, last or a step index"),
     (["--start-step", "7"], "--start-step 7 is outside the series of 4 steps"),
     (["--bits", "8", "--storage", "float16"], "--storage keeps them unpacked: give one"),
