@@ -46,8 +46,9 @@ CHART = DOCS / "images" / "time_series_psnr.png"
 #: Model kinds compared: APMGSRN's files keep the names above; another kind's add ``_KIND``.
 KINDS = ("apmgsrn", "hybrid")
 #: Other series models drawn in a kind's chart for comparison (label -> CSV of the series command), when kept.
-COMPARED = {"hybrid": {"hybrid series, unpulled, 10 bits (9.5 files)": RESULTS / "time_series_model_hybrid_unpulled.csv",
-                       "APMGSRN series (4.6 files)": SERIES_CSV}}
+COMPARED = {"hybrid": {
+    "hybrid series, unpulled, 10 bits (9.5 files)": RESULTS / "time_series_model_hybrid_unpulled.csv",
+    "APMGSRN series (4.6 files)": SERIES_CSV}}
 
 
 def for_kind(path: Path, kind: str) -> Path:

@@ -44,9 +44,10 @@ def register(subparsers) -> None:
         "compress",
         help="networks against SZ3 and ZFP: rate-distortion, compression time, decompression and queries",
         description="Compress one volume with SZ3 and ZFP at several error bounds (relative to the value "
-        "range), and with ZFP's fixed-precision mode at several bit-plane counts, and train the networks (or take --model-files); write OUT/compress_NAME.csv, .md and a "
-        "rate-distortion chart .png. Query cost: a compressor decompresses the whole volume before it can "
-        "answer random points; a network evaluates them directly.",
+        "range), and with ZFP's fixed-precision mode at several bit-plane counts, and train the networks (or "
+        "take --model-files); write OUT/compress_NAME.csv, .md and a rate-distortion chart .png. Query cost: "
+        "a compressor decompresses the whole volume before it can answer random points; a network evaluates "
+        "them directly.",
     )
     compress.add_argument("data", metavar="DATA", help="volume file, as PATH or PATH:VARIABLE")
     compress.add_argument("--models", nargs="*", choices=MODEL_KINDS, default=list(PAPER_MODELS),

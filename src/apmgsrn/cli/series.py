@@ -43,8 +43,9 @@ def add_series_arguments(parser: argparse.ArgumentParser) -> None:
                        help="stepwise: fine-tune iterations of every other step (default: a tenth of --iterations)")
     group.add_argument("--step-sparsity", type=float, metavar="S",
                        help="stepwise: pull every step's features back to its neighbour's while it is fine-tuned "
-                            "(an L1 proximal step of S x the learning rate per iteration; default 0): fewer "
-                            "bytes per step in the packed file, a looser fit (docs/time_series.md)")
+                            "(an L1 proximal step of S x the learning rate per iteration; default 0.02 for a hybrid "
+                            "series, 0 for APMGSRN): fewer bytes per step in the packed file, a looser fit "
+                            "(docs/time_series.md)")
     group.add_argument("--basis", type=int, metavar="K",
                        help=f"joint: basis grids shared by the steps (default {SERIES_DEFAULTS['basis']}, at most "
                             "the steps)")
@@ -388,7 +389,8 @@ def print_series_info(info: dict) -> None:
     counts = [n for n in stepwise.get("step_iterations") or [] if isinstance(n, int) and n > 0]
     if isinstance(stepwise.get("start"), int) and counts:
         sparsity = stepwise.get("step_sparsity")
-        pulled = f", pulled towards its neighbour at {sparsity:g}" if isinstance(sparsity, (int, float)) and sparsity else ""
+        pulled = (f", pulled towards its neighbour at {sparsity:g}" if isinstance(sparsity, (int, float)) and sparsity
+                  else "")
         print(f"time        {info['steps']} steps, each with its own grids: trained stepwise from step "
               f"{stepwise['start']}, {min(counts)} to {max(counts)} iterations per other step{pulled}")
         scale = stepwise.get("budget_scale")

@@ -64,8 +64,8 @@ STEP_ITERATION_SHARE, STEP_LR_SHARE = 0.1, 0.3
 STEP_LR_SHARES = {"hybrid": 1.0}
 #: Default pull of a step's features towards its neighbour's (:attr:`StepwiseConfig.step_sparsity`) where a model
 #: kind has one (elsewhere none). A hybrid series' tables take 2.59 MB at 10 bits unpulled, 1.91 MB pulled at
-#: 0.02 and 1.35 MB at 8 bits (within five single-step files), 0.5-0.9 dB below the unpulled steps and 0.6-1.6
-#: dB above the APMGSRN series; at 0.05 they lose another 1.5 dB for 25 % fewer bytes (30 viscous-finger
+#: 0.02 and 1.35 MB at 8 bits (within five single-step files), 0.5-1.1 dB below the unpulled steps and 0.6-1.6
+#: dB above the APMGSRN series; at 0.05 they lose about 1.2 dB more for 25 % fewer bytes (30 viscous-finger
 #: steps, docs/time_series.md).
 STEP_SPARSITY_OF: dict[str, float] = {"hybrid": 0.02}
 #: A step that differs from its neighbour by more than this many times the start model's RMS error gets
