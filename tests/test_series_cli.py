@@ -20,6 +20,7 @@ import apmgsrn
 from apmgsrn.cli.main import main
 from apmgsrn.data import open_volume
 from apmgsrn.data.series import open_series
+from apmgsrn.errors import ApmgsrnError
 from apmgsrn.inference.decode import decode_array
 from apmgsrn.inference.evaluate import evaluate
 
@@ -372,6 +373,10 @@ def test_a_series_of_hybrid_models_trains_evaluates_decodes_and_fits_in_python(p
     assert main(["info", str(out)]) == 0
     assert "iterations per other step, pulled towards its neighbour at 0.02" in capsys.readouterr().out
     fitted = apmgsrn.fit(pattern, model="hybrid", iterations=60, batch_size=1024, levels=6, log2_table_size=10,
-                         grids=4, resolution=8, width=16, progress=False)
+                         grids=4, resolution=8, width=16, progress=False, step_sparsity=0.0, step_iterations=7)
     assert fitted.field.encoder.level_table.shape[0] == 4
+    stepwise = fitted.description.training["stepwise"]
+    assert stepwise["step_sparsity"] == 0.0 and set(stepwise["step_iterations"]) <= {0, 7, 14}
+    with pytest.raises(ApmgsrnError, match="step_sparsity"):
+        apmgsrn.fit(pattern, model="hybrid", iterations=5, progress=False, step_sparsity=-1.0)
     assert fitted.description.config.model == "hybrid" and fitted.description.kind == "packed-series"

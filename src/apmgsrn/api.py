@@ -276,7 +276,9 @@ def fit(
         progress: show training progress (a widget in Jupyter).
         options: model options (``grids``, ``features``, ``resolution`` as an integer or three,
             ``hidden_layers``, ``width``, ...) and training options (``lr``, ``seed``, ``lr_schedule``, ...:
-            fields of :class:`~apmgsrn.training.trainer.TrainConfig`).
+            fields of :class:`~apmgsrn.training.trainer.TrainConfig`); for a time series also how its steps
+            are trained: ``start_step``, ``step_iterations``, ``step_lr``, ``step_sparsity``
+            (:class:`~apmgsrn.training.series_steps.StepwiseConfig`).
 
     Returns:
         The fitted :class:`Model`; its ``description.training`` holds the PSNR and the largest error.
@@ -341,10 +343,18 @@ def _configs(model: str, preset: str, iterations, batch_size, device: torch.devi
         raise ApmgsrnError(f"invalid model options: {exc}") from None
 
 
+#: Options of :func:`fit` of a time series that set how its steps are trained -> the
+#: :class:`~apmgsrn.training.series_steps.StepwiseConfig` field each sets.
+STEPWISE_OPTIONS = {"start_step": "start", "step_iterations": "step_iterations", "step_lr": "step_lr",
+                    "step_sparsity": "step_sparsity"}
+
+
 def _fit_series(data, preset, model, iterations, batch_size, device, transform, log_offset, variable, time,
                 fill_nonfinite, progress, options) -> Model:
     """:func:`fit` of a time series: trained stepwise and packed, as ``apmgsrn train`` does by default."""
     series = open_series(data, variable=variable, time=time, fill_nonfinite=fill_nonfinite)
+    steps = {field: options.pop(name) for name, field in STEPWISE_OPTIONS.items() if name in options}
+    stepwise = StepwiseConfig(**steps)
     anchored = {"anchored_grids": SERIES_ANCHORED_GRIDS} if model == "apmgsrn" else {}  # the hybrid's levels cover
     field_config, train_config = _configs(model, preset, iterations, batch_size, device, options,
                                           {"voxel_fraction": STEPWISE_VOXEL_FRACTION, **anchored})
@@ -353,7 +363,7 @@ def _fit_series(data, preset, model, iterations, batch_size, device, transform, 
     except ValueError as exc:  # a model kind a series cannot extend
         raise ApmgsrnError(f"invalid time-series options: {exc}") from None
     return _fitted(lambda out: fit_series(series, config, train_config, out, device, transform=transform,
-                                          log_offset=log_offset, progress=progress, stepwise=StepwiseConfig(),
+                                          log_offset=log_offset, progress=progress, stepwise=stepwise,
                                           packing=default_series_packing(config, series.shape)), device)
 
 
