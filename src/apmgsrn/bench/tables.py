@@ -13,8 +13,7 @@ from apmgsrn.bench.results import (
     group_quality,
     ordered,
 )
-from apmgsrn.choices import COMPRESSORS as COMPRESSOR_NAMES
-from apmgsrn.choices import MODEL_KINDS
+from apmgsrn.choices import COMPRESSORS, MODEL_KINDS
 
 
 def quality_tables(rows: list[QualityRow]) -> str:
@@ -149,8 +148,6 @@ def compress_table(rows: list[CompressRow]) -> str:
     return "\n".join(lines) + "\n"
 
 
-#: Methods of ``bench compress`` that are compressors; every other method is a network.
-COMPRESSORS = COMPRESSOR_NAMES
 #: The compressors the networks are compared with, each with the methods (modes) it is measured in: at a
 #: ratio, the compressor's best mode there (:func:`compressor_curve`).
 COMPRESSOR_FAMILIES = {"SZ3": ("sz3",), "ZFP": ("zfp", "zfp-precision")}
@@ -190,7 +187,7 @@ def compressor_curve(rows: list[CompressRow], methods: tuple[str, ...]) -> list[
 def network_frontier(rows: list[CompressRow], same_ratio: float = 0.01) -> list[CompressRow]:
     """The networks no other network beats at an equal or higher ratio (the best choice at each ratio),
     by increasing ratio; ratios within ``same_ratio`` (relative) of each other count as equal."""
-    nets = [r for r in rows if r.method not in COMPRESSORS]
+    nets = [r for r in rows if r.method not in COMPRESSORS]  # every method but a compressor is a network
     frontier = [
         row for row in nets
         if not any(other.psnr > row.psnr and other.compression_ratio >= row.compression_ratio * (1 - same_ratio)

@@ -20,6 +20,8 @@ from apmgsrn.errors import ApmgsrnError
 STEP_FIELD = "{step}"
 #: Options of a joint series model (refused for stepwise training).
 JOINT_OPTIONS = ("basis", "coefficients", "residual", "steps_per_iteration")
+#: Options of a stepwise series (refused for a joint one).
+STEPWISE_OPTIONS = ("start_step", "step_iterations", "step_sparsity")
 
 
 def add_series_arguments(parser: argparse.ArgumentParser) -> None:
@@ -80,8 +82,7 @@ def single_input(args: argparse.Namespace) -> str:
     if len(args.data) != 1:
         raise ApmgsrnError(f"{len(args.data)} inputs given where one volume is read; name one file")
     hybrid = getattr(args, "model", None) in (None, "hybrid")  # --storage: the hybrid's tables (None: default)
-    for option in (*JOINT_OPTIONS, *(() if hybrid else ("storage",)), "series_training", "start_step",
-                   "step_iterations", "step_sparsity"):
+    for option in (*JOINT_OPTIONS, *(() if hybrid else ("storage",)), "series_training", *STEPWISE_OPTIONS):
         if getattr(args, option, None) is not None:
             flag = "--" + option.replace("_", "-")
             also = " or a hybrid model" if option == "storage" else ""
@@ -227,7 +228,7 @@ def build_series_config(args: argparse.Namespace, field_config, steps: int):
     from apmgsrn.training.series_steps import stepwise_config
 
     stepwise = args.series_training == "stepwise"
-    for option in JOINT_OPTIONS if stepwise else ("start_step", "step_iterations", "step_sparsity"):
+    for option in JOINT_OPTIONS if stepwise else STEPWISE_OPTIONS:
         if getattr(args, option, None) is not None:
             flag = "--" + option.replace("_", "-")
             raise ApmgsrnError(f"{flag} shapes a joint series model; add --series-training joint or drop {flag}"
