@@ -112,6 +112,9 @@ def test_the_step_config_fine_tunes_grids_only_longer_the_more_a_step_changes():
     # in proportion, up to the start model's whole budget.
     counts = [StepwiseConfig().step_config(start, change, 0.001).iterations for change in (0.004, 0.008, 0.016, 0.5)]
     assert counts == [200, 200, 400, 2000]
+    # A smaller step batch (the hybrid's) runs proportionally more iterations: the same points in all.
+    half = StepwiseConfig().step_config(replace(start, batch_size=32768), 0.016, 0.001, batch_share=0.5)
+    assert (half.iterations, half.batch_size) == (800, 16384) and half.density_start > half.iterations
 
 
 def test_a_long_series_shortens_every_step_to_stay_within_the_budget():

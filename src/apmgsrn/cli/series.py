@@ -42,7 +42,8 @@ def add_series_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--start-step", metavar="auto|first|last|K",
                        help="stepwise: the step the first model is trained on (default auto: the most detail)")
     group.add_argument("--step-iterations", type=int, metavar="N",
-                       help="stepwise: fine-tune iterations of every other step (default: a tenth of --iterations)")
+                       help="stepwise: fine-tune iterations of every other step, at the start model's batch "
+                            "(default: a tenth of --iterations; a hybrid series runs twice as many at half the batch)")
     group.add_argument("--step-sparsity", type=float, metavar="S",
                        help="stepwise: pull every step's features back to its neighbour's while it is fine-tuned "
                             "(an L1 proximal step of S x the learning rate per iteration; default 0.02 for a hybrid "

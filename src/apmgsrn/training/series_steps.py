@@ -62,11 +62,15 @@ STEP_ITERATION_SHARE, STEP_LR_SHARE = 0.1, 0.3
 #: The learning-rate share of a model kind's steps where it differs: the hybrid's steps at 0.3 ended 0.2-0.9 dB
 #: below the same fine-tune at the start model's rate (30 viscous-finger steps, docs/time_series.md).
 STEP_LR_SHARES = {"hybrid": 1.0}
+#: The batch of a model kind's steps as a share of the start model's, where it differs; the step then runs
+#: proportionally more iterations (the same points). The hybrid's steps at half the batch ended 0.03-0.54 dB
+#: higher in 16 % more time, the file 4 % smaller (30 viscous-finger steps, CPU; docs/time_series.md). CPU only.
+STEP_BATCH_SHARES = {"hybrid": 0.5}
 #: Default pull of a step's features towards its neighbour's (:attr:`StepwiseConfig.step_sparsity`) where a model
 #: kind has one (elsewhere none). A hybrid series' tables take 2.59 MB at 10 bits unpulled, 1.91 MB pulled at
 #: 0.02 and 1.35 MB at 8 bits (within five single-step files), 0.5-1.1 dB below the unpulled steps and 0.6-1.6
-#: dB above the APMGSRN series; at 0.05 they lose about 1.2 dB more for 25 % fewer bytes (30 viscous-finger
-#: steps, docs/time_series.md).
+#: dB above the APMGSRN series (all at the full batch); at 0.05 they lose about 1.2 dB more for 25 % fewer
+#: bytes (30 viscous-finger steps, docs/time_series.md).
 STEP_SPARSITY_OF: dict[str, float] = {"hybrid": 0.02}
 #: A step that differs from its neighbour by more than this many times the start model's RMS error gets
 #: proportionally more iterations, up to ``STEP_ITERATION_CAP`` times the share above (the start model's whole
@@ -103,7 +107,9 @@ class StepwiseConfig:
     Attributes:
         start: the step the first model is trained on: ``"auto"`` (the step with the most detail),
             ``"first"``, ``"last"``, or a step index.
-        step_iterations: fine-tune iterations of every other step (None: a tenth of the start model's).
+        step_iterations: fine-tune iterations of every other step (None: a tenth of the start model's), counted
+            at the start model's batch (a model kind with a smaller step batch, :data:`STEP_BATCH_SHARES`, runs
+            proportionally more).
         step_lr: their learning rate (None: 0.3 times the start model's).
         step_sparsity: how hard a step's features are pulled back to its neighbour's during its fine-tune
             (:class:`PullTowardsStart`; 0: not at all; None: the model kind's default, :data:`STEP_SPARSITY_OF`).
@@ -140,7 +146,7 @@ class StepwiseConfig:
         return self.step_iterations or max(1, round(config.iterations * STEP_ITERATION_SHARE))
 
     def step_config(self, config: TrainConfig, change: float = 0.0, error: float = 1.0,
-                    scale: float = 1.0, lr_share: float = STEP_LR_SHARE) -> TrainConfig:
+                    scale: float = 1.0, lr_share: float = STEP_LR_SHARE, batch_share: float = 1.0) -> TrainConfig:
         """How a step after the start is fine-tuned: its grids only (the density loss never starts), for
         :meth:`base_iterations`, more when the step differs from its neighbour by more than
         :data:`STEP_CHANGE_SCALE` times the start model's error.
@@ -151,12 +157,14 @@ class StepwiseConfig:
             error: the start model's RMS error (scaled units).
             scale: a long series' share of the base (:meth:`budget_scale`).
             lr_share: the learning rate's share of the start model's (:data:`STEP_LR_SHARES`), unless ``step_lr``.
+            batch_share: the batch's share of the start model's (:data:`STEP_BATCH_SHARES`); the iterations
+                above are counted at the start model's batch and divided by it.
         """
         factor = min(max(change / (STEP_CHANGE_SCALE * max(error, 1e-12)), 1.0), STEP_ITERATION_CAP)
-        iterations = max(1, round(self.base_iterations(config) * factor * scale))
+        iterations = max(1, round(self.base_iterations(config) * factor * scale / batch_share))
         lr = config.lr * lr_share if self.step_lr is None else self.step_lr
         return replace(config, iterations=iterations, lr=lr, density_start=iterations + 1, history_every=None,
-                       stop_after_lr_cuts=None)
+                       stop_after_lr_cuts=None, batch_size=max(1, round(config.batch_size * batch_share)))
 
 
     def budget_scale(self, config: TrainConfig, steps: int) -> float:
@@ -430,6 +438,9 @@ def train_stepwise(
         raise ApmgsrnError("stepwise training fills one grid set per step: basis = steps, keyframe coefficients")
     values = prepared.values
     steps = values.shape[0]
+    lr_share = STEP_LR_SHARES.get(field_config.field.model, STEP_LR_SHARE)
+    # On a GPU, where a step is bound by kernel launches, half the batch would not take half the time.
+    batch_share = STEP_BATCH_SHARES.get(field_config.field.model, 1.0) if values.device.type == "cpu" else 1.0
     fingerprint = {**(fingerprint or {}), "stepwise": asdict(stepwise), "train": asdict(train_config)}
     if prepared.constant:
         return TrainedField(build_field(prepared, field_config, volume_shape, train_config.seed).eval(),
@@ -438,7 +449,7 @@ def train_stepwise(
     if resumed:
         series = build_field(prepared, field_config, volume_shape, train_config.seed)
         most = train_config.iterations + (steps - 1) * 2 * math.ceil(  # two fine-tunes of a step at most
-            stepwise.base_iterations(train_config) * STEP_ITERATION_CAP)
+            stepwise.base_iterations(train_config) * STEP_ITERATION_CAP / batch_share)
         progress = _load_steps(checkpoint, series, fingerprint, most)
         resumed_from = progress.state.iteration
     else:
@@ -458,7 +469,6 @@ def train_stepwise(
         if checkpoint is not None:
             _save_steps(checkpoint, series, progress, fingerprint)
     worker = _worker(series)
-    lr_share = STEP_LR_SHARES.get(field_config.field.model, STEP_LR_SHARE)
     sparsity = stepwise.sparsity(field_config.field.model)
     state = progress.state
     scale = stepwise.budget_scale(train_config, steps - 1)
@@ -467,7 +477,8 @@ def train_stepwise(
     try:
         for t, neighbour in todo:
             began = time.perf_counter()
-            config = stepwise.step_config(train_config, change(values, t, neighbour), progress.error, scale, lr_share)
+            config = stepwise.step_config(train_config, change(values, t, neighbour), progress.error, scale, lr_share,
+                                          batch_share)
             moved = dict(zip(progress.done, progress.tracked))
             tracked, runs = _train_step(worker, series, values[t], t, neighbour, config, progress.error,
                                         track_first=moved[neighbour], sparsity=sparsity)
