@@ -298,7 +298,8 @@ def parameter_sensitivity(field: NeuralField, points: int = 1 << 18, batch: int 
     return {name: (total / points).cpu().numpy().reshape(-1) for name, total in sums.items()}
 
 
-def _group_means(values: np.ndarray, size: int) -> np.ndarray:
+def group_means(values: np.ndarray, size: int) -> np.ndarray:
+    """``[G]`` means of ``values`` over its groups of ``size`` elements (the last may be shorter)."""
     count = group_count(values.size, size)
     padded = np.zeros(count * size)
     padded[: values.size] = values
@@ -322,7 +323,7 @@ def sensitivity_quantizer(field: NeuralField, sensitivity: dict[str, np.ndarray]
         size = group_size(tuple(p.shape))
         s = sensitivity[name]
         groups[name] = size
-        steps[name] = round_steps(scale / np.sqrt(_group_means(s, size) + 1e-300))
+        steps[name] = round_steps(scale / np.sqrt(group_means(s, size) + 1e-300))
         dead[name] = s == 0 if name.startswith("encoder.") and id(p) not in placed else None
     return Quantizer(steps, groups, dead)
 

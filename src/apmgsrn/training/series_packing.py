@@ -14,10 +14,18 @@ At a bit width ``B`` the feature grids are quantised uniformly (:mod:`apmgsrn.io
 - per-step residual grids, if any, take one step per group (:func:`~apmgsrn.io.quantization.group_size`);
 - the learned weights, the grid placement and the decoder are kept exactly (float32, LZMA): they are small.
 
+The shared steps follow each group's effect on the output (:func:`sensitivity_steps`, the single-field packer's
+allocation, :mod:`apmgsrn.training.packing`): ``s_g`` proportional to ``1 / sqrt(sens_g)``, the mean squared
+derivative of the output with respect to the group's elements, measured on the first, middle and last step,
+and scaled so that the steps' mean ``log2`` over all elements is that of the uniform ``B``-bit steps (about
+the same bytes). Uniform steps spend as many bits on a fine level's hash entry as on a coarse level's, whose
+entries each reach far more voxels: the 30 viscous-finger steps' default hybrid series lost 0.52 dB to
+uniform steps at 8 bits and loses 0.10 dB to these, in 2 % fewer bytes (APMGSRN's at 10 bits: no change).
+
 Each quantised tensor is coded with whichever predictor codes it smallest (``time`` and the spatial ones).
 On the 30 viscous-fingering steps at 64^3 (per-step grids) the grids take about 0.81 MB at 8 bits and 1.24 MB
-at 10; the PSNR costs 0.4-0.5 dB at 8 bits and about 0.03 dB at 10. A hybrid series of the same steps takes
-2.59 MB at 10 bits (0.06 dB) and 1.80 MB at 8 (0.97 dB).
+at 10; the PSNR costs 0.4-0.5 dB at 8 bits and about 0.03 dB at 10. A hybrid series of the same steps, unpulled,
+takes 2.59 MB at 10 bits (0.06 dB) and 1.80 MB at 8 (0.97 dB) (all with uniform steps).
 """
 
 from __future__ import annotations
@@ -36,9 +44,20 @@ from apmgsrn.inference.evaluate import SeriesEvaluation
 from apmgsrn.io import SeriesStepInfo, SourceInfo
 from apmgsrn.io.packed import PackedTensor, encode_float32, encode_quantized
 from apmgsrn.io.packed_series import packed_series_bytes, save_packed_series, series_predictors
-from apmgsrn.io.quantization import MAX_BITS, MAX_GROUPS, MIN_BITS, group_size, quantize, steps_for_bits
+from apmgsrn.io.quantization import (
+    MAX_BITS,
+    MAX_GROUPS,
+    MIN_BITS,
+    MIN_STEP,
+    group_count,
+    group_size,
+    quantize,
+    round_steps,
+    steps_for_bits,
+)
 from apmgsrn.models.registry import stored_bytes
 from apmgsrn.models.series_field import SeriesField
+from apmgsrn.training.packing import group_means, parameter_sensitivity
 
 #: Bit width of a packed series when none is asked for: about 0.03 dB below float32 (8 bits: 0.4-0.5 dB).
 DEFAULT_SERIES_BITS = 10
@@ -46,6 +65,8 @@ DEFAULT_SERIES_BITS = 10
 SHARED_STEP_TENSORS = ("encoder.grids", "encoder.level_table")
 #: About how many values of a hybrid's level table share a step.
 LEVEL_TABLE_GROUP = 1024
+#: A sensitivity-allocated step is at most this many bits finer than the uniform one (:func:`sensitivity_steps`).
+FINEST_SHARE_BITS = 8
 
 
 @dataclass(frozen=True)
@@ -109,12 +130,66 @@ def slice_group(model: str, name: str, shape: tuple[int, ...]) -> int | None:
     return None
 
 
-def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS) -> PackedSeries:
+def series_sensitivity(field: SeriesField, points: int = 1 << 18) -> dict[str, np.ndarray]:
+    """Mean squared derivative of the output with respect to every element of one step's per-step tensors
+    (:data:`SHARED_STEP_TENSORS`), averaged over the first, middle and last step, each as a single-step field
+    (:func:`~apmgsrn.training.packing.parameter_sensitivity`): name -> ``[slice numel]`` float64."""
+    probed = sorted({0, field.steps // 2, field.steps - 1})
+    total: dict[str, np.ndarray] = {}
+    for t in probed:
+        for name, values in parameter_sensitivity(field.step_field(t), points).items():
+            if name in SHARED_STEP_TENSORS:
+                total[name] = total.get(name, 0.0) + values / len(probed)
+    return total
+
+
+def sensitivity_steps(uniform: dict[str, tuple[np.ndarray, int]],
+                      sensitivity: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Shared steps ``c / sqrt(sens_g)`` in place of uniform ones (module docstring).
+
+    Args:
+        uniform: name -> (``[K * G]`` uniform steps of :func:`shared_steps`, group size): ``K`` slices (steps,
+            or a joint series' basis grids) of ``G`` groups.
+        sensitivity: name -> ``[slice numel]`` (:func:`series_sensitivity`).
+
+    Returns:
+        name -> ``[K * G]`` float16 steps. ``c`` makes the mean ``log2`` step over every element of these
+        tensors that of the uniform steps (no finer than :data:`FINEST_SHARE_BITS` below them); a group no
+        probed point reaches keeps its uniform step.
+    """
+    counts = {name: group_count(sensitivity[name].size, group) for name, (_, group) in uniform.items()}
+    raw, reached, logs, weights = {}, {}, [], []
+    for name, (steps, group) in uniform.items():
+        count = counts[name]
+        means = group_means(sensitivity[name], group)[:count]
+        reached[name] = (means > 0) & (steps[:count] > MIN_STEP)  # an all-zero group has the smallest step
+        raw[name] = 1 / np.sqrt(np.where(reached[name], means, 1.0))
+        logs.append(np.log2(steps[:count].astype(np.float64)[reached[name]] / raw[name][reached[name]]))
+        weights.append(np.full(int(reached[name].sum()), group))
+    logs, weights = np.concatenate(logs), np.concatenate(weights)
+    if not weights.size:
+        return {name: steps for name, (steps, _) in uniform.items()}
+    scale = 2 ** (np.sum(logs * weights) / np.sum(weights))
+    out = {}
+    for name, (steps, _) in uniform.items():
+        count = counts[name]
+        uniform_steps = steps[:count].astype(np.float64)
+        # At most FINEST_SHARE_BITS bits finer than the uniform step: integers stay far inside MAX_LEVEL.
+        chosen = np.where(reached[name], np.maximum(scale * raw[name], uniform_steps / 2**FINEST_SHARE_BITS),
+                          uniform_steps)
+        out[name] = np.tile(round_steps(chosen), len(steps) // count)
+    return out
+
+
+def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS,
+                sensitivity: dict[str, np.ndarray] | None = None) -> PackedSeries:
     """Quantise and code a series field's parameters at ``bits`` (see the module docstring); nothing written.
 
     Args:
         field: the trained series field (not changed).
         bits: bit width of the grids and residuals.
+        sensitivity: :func:`series_sensitivity` of the field: the shared steps follow it
+            (:func:`sensitivity_steps`); None: uniform steps of ``bits``.
 
     Returns:
         The packed tensors and the values a loader restores (load them into a copy of ``field``, see
@@ -124,13 +199,17 @@ def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS) -> PackedSe
         InvalidArgument: ``bits`` outside :data:`~apmgsrn.io.quantization.MIN_BITS`..:data:`MAX_BITS`.
     """
     check_int("bits", bits, MIN_BITS, MAX_BITS)
-    parameters = dict(field.named_parameters())
+    parameters = {name: p.detach().cpu().float() for name, p in field.named_parameters()}
+    shared = {name: shared_steps(values.numpy(), bits, slice_group(field.config.field.model, name,
+                                                                   tuple(values.shape)))
+              for name, values in parameters.items() if name in SHARED_STEP_TENSORS}
+    allocated = ({name: steps for name, (steps, _) in shared.items()} if sensitivity is None
+                 else sensitivity_steps(shared, sensitivity))
     tensors, state = [], {}
     for name in field.config.parameter_shapes():
-        values = parameters[name].detach().cpu().float()
+        values = parameters[name]
         if name in SHARED_STEP_TENSORS:
-            group = slice_group(field.config.field.model, name, tuple(values.shape))
-            steps, group = shared_steps(values.numpy(), bits, group)
+            steps, group = allocated[name], shared[name][1]
         elif name == "encoder.residuals":
             group = group_size(tuple(values.shape))
             steps = steps_for_bits(values.numpy(), group, bits)
@@ -173,8 +252,9 @@ class SeriesPacking:
     def pack(self, field: SeriesField) -> PackedSeries:
         """The packed field (with a target: each bit width from the largest down, until one fits)."""
         budget = None if self.target_bytes is None else parameter_budget(self.target_bytes, field.steps)
+        sensitivity = series_sensitivity(field)
         for bits in range(self.bits, self.min_bits - 1, -1):
-            packed = pack_series(field, bits)
+            packed = pack_series(field, bits, sensitivity)
             if budget is None or packed.parameter_bytes <= budget:
                 return packed
         if self.strict:
