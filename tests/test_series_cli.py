@@ -359,7 +359,7 @@ def test_a_series_of_hybrid_models_trains_evaluates_decodes_and_fits_in_python(p
     model = apmgsrn.load(out)
     assert model.description.config.model == "hybrid" and model.description.kind == "packed-series"
     assert model.description.packing.report["bits"] == 10
-    assert model.description.training["stepwise"]["step_sparsity"] == 0.02  # the hybrid's default pull
+    assert model.description.training["stepwise"]["step_sparsity"] == 0.01  # the hybrid's default pull
     assert model.field.encoder.level_table.shape[0] == 4
     figures = run_json(capsys, ["eval", str(out), pattern, "--json"])
     for t, row in enumerate(figures["per_step"]):
@@ -371,7 +371,7 @@ def test_a_series_of_hybrid_models_trains_evaluates_decodes_and_fits_in_python(p
     info = run_json(capsys, ["info", str(out), "--json"])
     assert info["model"] == "hybrid" and info["series"]["steps"] == 4
     assert main(["info", str(out)]) == 0
-    assert "iterations per other step, pulled towards its neighbour at 0.02" in capsys.readouterr().out
+    assert "iterations per other step, pulled towards its neighbour at 0.01" in capsys.readouterr().out
     fitted = apmgsrn.fit(pattern, model="hybrid", iterations=60, batch_size=1024, levels=6, log2_table_size=10,
                          grids=4, resolution=8, width=16, progress=False, step_sparsity=0.0, step_iterations=7)
     assert fitted.field.encoder.level_table.shape[0] == 4

@@ -46,7 +46,7 @@ def add_series_arguments(parser: argparse.ArgumentParser) -> None:
                             "(default: a tenth of --iterations; a hybrid series runs twice as many at half the batch)")
     group.add_argument("--step-sparsity", type=float, metavar="S",
                        help="stepwise: pull every step's features back to its neighbour's while it is fine-tuned "
-                            "(an L1 proximal step of S x the learning rate per iteration; default 0.02 for a hybrid "
+                            "(an L1 proximal step of S x the learning rate per iteration; default 0.01 for a hybrid "
                             "series, 0 for APMGSRN): fewer bytes per step in the packed file, a looser fit "
                             "(docs/time_series.md)")
     group.add_argument("--basis", type=int, metavar="K",

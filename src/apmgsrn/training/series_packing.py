@@ -269,11 +269,11 @@ class SeriesPacking:
 #: viscous-finger steps take 4.2 at 10 bits; steps that change more code less well along time.
 DEFAULT_SERIES_MODELS, DEFAULT_SERIES_MIN_BITS = 5, 6
 #: The lowest bit width of the default packing for a model kind whose steps lose more than APMGSRN's at lower
-#: ones: a hybrid series' tables (pulled towards their neighbours', ``STEP_SPARSITY_OF``) cost 0.04 dB at 10 bits,
-#: 0.13 at 9 and 0.50 at 8 (worst step 0.64), where the 30 viscous-finger steps fit within five files; unpulled
-#: they cost 0.97 dB at 8 bits and 7.6 at 6 (docs/time_series.md). So a hybrid series stays at 8 bits at least,
-#: above the cap if need be.
-DEFAULT_SERIES_MIN_BITS_OF = {"hybrid": 8}
+#: ones: a hybrid series' tables (pulled towards their neighbours', ``STEP_SPARSITY_OF``) cost about 0.1 dB at
+#: 8 bits, 0.45 at 7 and 1.7 at 6 with steps that follow the output (with uniform steps: 0.50 at 8; unpulled
+#: 7.6 at 6), and the 30 viscous-finger steps fit within five files at 7 (docs/time_series.md). So a hybrid
+#: series stays at 7 bits at least, above the cap if need be.
+DEFAULT_SERIES_MIN_BITS_OF = {"hybrid": 7}
 
 
 def default_series_packing(field_config, volume_shape: tuple[int, int, int]) -> SeriesPacking:

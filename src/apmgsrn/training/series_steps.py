@@ -48,9 +48,11 @@ from apmgsrn.io.description import DescriptionError, require_int, require_number
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.models.series_field import SeriesConfig, SeriesField, SeriesFieldConfig
+from apmgsrn.ops.trilinear import axis_coordinates
 from apmgsrn.progress import Progress
 from apmgsrn.training.checkpoint import CHECKPOINT_KIND, TrainingState, check_tensors, state_from_json
 from apmgsrn.training.fit import PreparedValues, TrainedField, build_field, train_prepared
+from apmgsrn.training.points import draw_batch
 from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, TrainingInterrupted, as_json
 
 STEPS_CHECKPOINT_KIND = "series-steps"
@@ -70,8 +72,10 @@ STEP_BATCH_SHARES = {"hybrid": 0.5}
 #: kind has one (elsewhere none). A hybrid series' tables take 2.59 MB at 10 bits unpulled, 1.91 MB pulled at
 #: 0.02 and 1.35 MB at 8 bits (within five single-step files), 0.5-1.1 dB below the unpulled steps and 0.6-1.6
 #: dB above the APMGSRN series (all at the full batch); at 0.05 they lose about 1.2 dB more for 25 % fewer
-#: bytes (30 viscous-finger steps, docs/time_series.md).
-STEP_SPARSITY_OF: dict[str, float] = {"hybrid": 0.02}
+#: bytes (30 viscous-finger steps, docs/time_series.md). With quantisation steps that follow the output
+#: (:func:`~apmgsrn.training.series_packing.sensitivity_steps`) 0.01 at 7 bits beats 0.02 at 8: -0.41 dB on the
+#: start step, -0.01 to +0.36 on the others (mean +0.24), the file 9 % smaller (docs/time_series.md).
+STEP_SPARSITY_OF: dict[str, float] = {"hybrid": 0.01}
 #: A step that differs from its neighbour by more than this many times the start model's RMS error gets
 #: proportionally more iterations, up to ``STEP_ITERATION_CAP`` times the share above (the start model's whole
 #: budget). Consecutive viscous-finger steps differ by 4-9 times the error (200 iterations enough); steps 40
@@ -88,6 +92,10 @@ STEP_CHANGE_SCALE, STEP_ITERATION_CAP = 8.0, 10.0
 STEPS_BUDGET_CAP = 4.0
 #: Voxels compared to measure how much a step differs from its neighbour (a regular subset of larger steps).
 CHANGE_VOXELS = 1 << 20
+#: Voxels on which a step's fine-tune must end better than the neighbour's grids it started from, else the step
+#: keeps those (:func:`_train_step`): every voxel of a smaller step, else this many drawn at random (seeded by the
+#: step, so the same in every run).
+CHECK_VOXELS = 1 << 16
 #: A step whose fine-tune ends more than this many dB below the start model (RMS error ratio
 #: ``10^(TRACK_DB / 20)``) is fine-tuned again with its placement moving (viscous-finger steps end within
 #: 0.5 dB of the start and never are; a volume shifted 4 voxels a step is 9 dB below by its third step).
@@ -378,28 +386,53 @@ def _fine_tune(worker: NeuralField, values: torch.Tensor, config: TrainConfig, t
     return math.sqrt(_final_loss(state))
 
 
+def _check_sample(values: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Points and targets a step's fine-tune is checked on: every voxel of a step of at most
+    :data:`CHECK_VOXELS`, else that many drawn at random (seeded by the step)."""
+    if values.numel() > CHECK_VOXELS:
+        return draw_batch(values, CHECK_VOXELS, 1.0, torch.Generator(values.device).manual_seed(step))
+    axes = [axis_coordinates(torch.arange(n, device=values.device), n) for n in values.shape]  # z, y, x
+    z, y, x = torch.meshgrid(*axes, indexing="ij")
+    return torch.stack([x, y, z], dim=-1).reshape(-1, 3), values.reshape(-1)
+
+
+@torch.no_grad()
+def _voxel_error(worker: NeuralField, check: tuple[torch.Tensor, torch.Tensor]) -> float:
+    """Mean squared error of the worker at the ``(points, targets)`` of a step's check sample."""
+    points, targets = check
+    return float((worker.normalized(points).view(-1) - targets).square().mean())
+
+
 def _train_step(worker: NeuralField, series: SeriesField, values: torch.Tensor, t: int, neighbour: int,
                 config: TrainConfig, error: float, track_first: bool, sparsity: float = 0.0) -> tuple[bool, int]:
     """Train step ``t`` from ``neighbour`` into the series field (see the module docstring): first the way that
     ended the neighbour's training (placement kept, or moving with ``track_first``); if that ends more than
-    :data:`TRACK_DB` below the start model, the other way too, and the better of the two is kept.
+    :data:`TRACK_DB` below the start model, the other way too, and the better of the two is kept. Should the
+    kept one fit :data:`CHECK_VOXELS` of the step's voxels worse than the neighbour's grids it started from (a
+    short fine-tune whose first, noisy updates it could not undo), the step keeps the neighbour's.
 
     Returns:
-        Whether the kept fine-tune moved the placement, and how many fine-tunes ran (1 or 2).
+        Whether the kept fine-tune moved the placement (the neighbour's way, when the step keeps its grids), and
+        how many fine-tunes ran (1 or 2).
     """
     features = series.encoder.step_features
+    check = _check_sample(values, t)
     _load_step(worker, series, neighbour)
+    start = _voxel_error(worker, check)
     first = _fine_tune(worker, values, config, track_first, features, sparsity)
-    if first <= error * 10 ** (TRACK_DB / 20):
-        _store_step(worker, series, t)
-        return track_first, 1
-    kept = {k: v.clone() for k, v in worker.encoder.state_dict().items()}
-    _load_step(worker, series, neighbour)
-    second = _fine_tune(worker, values, config, not track_first, features, sparsity)
-    if second >= first:
-        worker.encoder.load_state_dict(kept)
+    tracked, runs = track_first, 1
+    if first > error * 10 ** (TRACK_DB / 20):
+        kept = {k: v.clone() for k, v in worker.encoder.state_dict().items()}
+        _load_step(worker, series, neighbour)
+        second = _fine_tune(worker, values, config, not track_first, features, sparsity)
+        if second >= first:
+            worker.encoder.load_state_dict(kept)
+        tracked, runs = (track_first if second >= first else not track_first), 2
+    if _voxel_error(worker, check) > start:
+        _load_step(worker, series, neighbour)
+        tracked = track_first
     _store_step(worker, series, t)
-    return track_first if second >= first else not track_first, 2
+    return tracked, runs
 
 
 def train_stepwise(
