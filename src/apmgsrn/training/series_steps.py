@@ -48,7 +48,7 @@ from apmgsrn.io.description import DescriptionError, require_int, require_number
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.models.series_field import SeriesConfig, SeriesField, SeriesFieldConfig
-from apmgsrn.ops.trilinear import axis_coordinates
+from apmgsrn.ops.trilinear import voxel_coordinates
 from apmgsrn.progress import Progress
 from apmgsrn.training.checkpoint import CHECKPOINT_KIND, TrainingState, check_tensors, state_from_json
 from apmgsrn.training.fit import PreparedValues, TrainedField, build_field, train_prepared
@@ -391,9 +391,7 @@ def _check_sample(values: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.
     :data:`CHECK_VOXELS`, else that many drawn at random (seeded by the step)."""
     if values.numel() > CHECK_VOXELS:
         return draw_batch(values, CHECK_VOXELS, 1.0, torch.Generator(values.device).manual_seed(step))
-    axes = [axis_coordinates(torch.arange(n, device=values.device), n) for n in values.shape]  # z, y, x
-    z, y, x = torch.meshgrid(*axes, indexing="ij")
-    return torch.stack([x, y, z], dim=-1).reshape(-1, 3), values.reshape(-1)
+    return voxel_coordinates(tuple(values.shape)).to(values.device), values.reshape(-1)
 
 
 @torch.no_grad()
