@@ -47,7 +47,9 @@ CHART = DOCS / "images" / "time_series_psnr.png"
 KINDS = ("apmgsrn", "hybrid")
 #: Other series models drawn in a kind's chart for comparison (label -> CSV of the series command), when kept.
 COMPARED = {"hybrid": {
-    "hybrid series, unpulled, 10 bits (9.5 files)": RESULTS / "time_series_model_hybrid_unpulled.csv",
+    "hybrid small per step, uniform voxel points (the default until 2026-11-25)":
+        RESULTS / "time_series_baseline_hybrid_uniform.csv",
+    "hybrid series, uniform voxel points (2026-11-24, 4.27 files)": RESULTS / "time_series_model_hybrid_uniform.csv",
     "APMGSRN series (4.6 files)": SERIES_CSV}}
 
 
@@ -94,7 +96,7 @@ def run_baseline(args: argparse.Namespace) -> None:
     files = list(enumerate(_series_files(args.data)))
     if args.steps:
         files = [files[int(step)] for step in args.steps.split(",")]  # a subset, in the order given
-    config = _train_config(args)
+    config = _train_config(args, **({} if args.error_sampling is None else {"error_sampling": args.error_sampling}))
     with tempfile.TemporaryDirectory() as tmp:
         for step, path in reversed(files) if args.reverse else files:
             # Read again before every step: a second process may share the table (one from each end).
@@ -166,6 +168,7 @@ def run_series(args: argparse.Namespace) -> None:
         described = (f"{args.kind} stepwise start={args.start} iterations={iterations} bits={bits} "
                      f"voxel_fraction={voxel_fraction:g} anchored_grids={anchored}"
                      + (f" step_sparsity={stepwise.sparsity(args.kind):g}" if stepwise.sparsity(args.kind) else "")
+                     + (f" error_sampling={train_config.error_sampling:g}" if train_config.error_sampling else "")
                      + (f" seed={args.seed}" if args.seed else ""))
     else:
         described = f"basis={config.series.basis} {config.series.coefficients} residual={config.series.residual} " \
@@ -388,6 +391,8 @@ def main() -> None:
     base.add_argument("--csv", type=Path)
     base.add_argument("--reverse", action="store_true", help="last step first (a second process shares the work)")
     base.add_argument("--steps", help="only these steps, e.g. 10,15,20,25 (default: all)")
+    base.add_argument("--error-sampling", type=float,
+                      help="share of the voxel points drawn where the model is wrong (default: the kind's own)")
     series = sub.add_parser("series", help="one model for the whole series")
     series.add_argument("--csv", type=Path)
     series.add_argument("--basis", type=int)

@@ -38,15 +38,20 @@ PROTOCOL = ["--iterations", "2000", "--batch-size", "32768", "--device", "cpu", 
 OFF_LATTICE_POINTS = 1 << 21
 
 
-def model_path(folder: Path, spec_text: str, kind: str, fraction: float, seed: int) -> Path:
+def model_path(folder: Path, spec_text: str, kind: str, fraction: float, seed: int,
+               error_sampling: float | None = None) -> Path:
     stem = Path(parse_data_spec(spec_text).path).stem
-    return folder / f"{stem}_{kind}_v{fraction:g}_s{seed}.apmgsrn"
+    guided = "" if error_sampling is None else f"_e{error_sampling:g}"
+    return folder / f"{stem}_{kind}_v{fraction:g}{guided}_s{seed}.apmgsrn"
 
 
-def train(spec_text: str, kind: str, fraction: float, seed: int, out: Path) -> None:
+def train(spec_text: str, kind: str, fraction: float, seed: int, out: Path,
+          error_sampling: float | None = None) -> None:
     spec = parse_data_spec(spec_text)
     command = [sys.executable, "-m", "apmgsrn", "train", str(spec.path), *PROTOCOL, "--model", kind,
                "--voxel-fraction", str(fraction), "--seed", str(seed), "--out", str(out), "--json"]
+    if error_sampling is not None:
+        command += ["--error-sampling", str(error_sampling)]
     if spec.variable:
         command += ["--variable", spec.variable]
     print(" ".join(command[2:]), flush=True)
@@ -72,6 +77,9 @@ def main() -> int:
     parser.add_argument("data", nargs="+", help="VOLUME[:VARIABLE]")
     parser.add_argument("--kinds", default="apmgsrn,hybrid")
     parser.add_argument("--fractions", default="0,0.5")
+    parser.add_argument("--error-sampling", default="",
+                        help="comma-separated shares of the voxel points drawn where the model is wrong (default: "
+                             "each kind's own, not named in the model files)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--models", type=Path, required=True, help="folder of the trained models (reused)")
     parser.add_argument("--out", type=Path, help="markdown table to write")
@@ -79,8 +87,9 @@ def main() -> int:
     args.models.mkdir(parents=True, exist_ok=True)
     kinds = args.kinds.split(",")
     fractions = [float(f) for f in args.fractions.split(",")]
-    lines = ["| volume | model | voxel fraction | PSNR at voxels dB | max error | PSNR between voxels dB | "
-             "parameters |", "|---|---|---|---|---|---|---|"]
+    guides = [float(g) for g in args.error_sampling.split(",")] if args.error_sampling else [None]
+    lines = ["| volume | model | voxel fraction | error sampling | PSNR at voxels dB | max error | "
+             "PSNR between voxels dB | parameters |", "|---|---|---|---|---|---|---|---|"]
     for spec_text in args.data:
         volume = open_spec(parse_data_spec(spec_text))
         truth = torch.from_numpy(np.ascontiguousarray(volume.to_numpy(), dtype=np.float32))
@@ -89,15 +98,18 @@ def main() -> int:
         between = sample_volume(truth, points)
         for kind in kinds:
             for fraction in fractions:
-                path = model_path(args.models, spec_text, kind, fraction, args.seed)
-                if not path.exists():
-                    train(spec_text, kind, fraction, args.seed, path)
-                row = measure(path, truth, points, between, span)
-                print(json.dumps({"volume": spec_text, "kind": kind, "fraction": fraction, **row}), flush=True)
-                lines.append(
-                    f"| {Path(spec_text).name} | {kind} | {fraction:g} | {row['psnr']:.2f} | "
-                    f"{row['max_abs_error']:.3g} | {row['off_lattice_psnr']:.2f} | {row['parameters']:,} |"
-                )
+                for guide in guides:
+                    path = model_path(args.models, spec_text, kind, fraction, args.seed, guide)
+                    if not path.exists():
+                        train(spec_text, kind, fraction, args.seed, path, guide)
+                    row = measure(path, truth, points, between, span)
+                    print(json.dumps({"volume": spec_text, "kind": kind, "fraction": fraction, "error_sampling": guide,
+                                      **row}), flush=True)
+                    lines.append(
+                        f"| {Path(spec_text).name} | {kind} | {fraction:g} | "
+                        f"{'default' if guide is None else f'{guide:g}'} | {row['psnr']:.2f} | "
+                        f"{row['max_abs_error']:.3g} | {row['off_lattice_psnr']:.2f} | {row['parameters']:,} |"
+                    )
     table = "\n".join(lines) + "\n"
     print(table)
     if args.out:

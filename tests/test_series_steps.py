@@ -390,3 +390,27 @@ def test_step_sparsity_must_be_a_number_not_below_zero():
             StepwiseConfig(step_sparsity=bad)
     assert StepwiseConfig().sparsity("hybrid") == series_steps.STEP_SPARSITY_OF.get("hybrid", 0.0)
     assert StepwiseConfig(step_sparsity=0.0).sparsity("hybrid") == 0.0
+
+
+def test_the_start_model_draws_its_voxel_points_uniformly_and_the_steps_where_they_are_wrong(prepared, monkeypatch):
+    """The start model's decoder serves every step, so it trains on uniformly drawn voxel points; each step's
+    fine-tune, the start step's own included, draws them where that step is wrong (the hybrid's default, given
+    here)."""
+    from apmgsrn.training import trainer as trainer_module
+
+    built = []
+    original = trainer_module.Trainer.__init__
+
+    def recording(self, field, volume, config, *args, **kwargs):
+        original(self, field, volume, config, *args, **kwargs)
+        built.append((config.error_sampling, self.error_guide is not None))
+
+    monkeypatch.setattr(trainer_module.Trainer, "__init__", recording)
+    train = replace(HYBRID_TRAIN, iterations=40, error_sampling=1.0)
+    trained = train_stepwise(prepared, stepwise_config(TINY_HYBRID, 4), train, (32, 32, 32),
+                             stepwise=StepwiseConfig(start=1, step_iterations=10), show_progress=False)
+    assert built[0] == (series_steps.START_ERROR_SAMPLING, False) == (0.0, False)
+    # Then the start step's own fine-tune (from itself), and one per other step, all drawn where they are wrong.
+    assert len(built) >= 5 and all(entry == (1.0, True) for entry in built[1:])
+    counts = trained.summary["stepwise"]["step_iterations"]
+    assert counts[1] > 0 and trained.state.iteration == train.iterations + sum(counts)

@@ -114,11 +114,14 @@ def run_quality(
             **training_defaults(model, lr_schedule=plan.lr_schedule, voxel_fraction=plan.voxel_fraction),
         )
         schedule = train_config.lr_schedule
-        key = (spec.label, model, size, seed, plan.iterations, plan.batch_size, schedule, train_config.voxel_fraction)
+        key = (spec.label, model, size, seed, plan.iterations, plan.batch_size, schedule, train_config.voxel_fraction,
+               train_config.error_sampling)
         if key in done:
             continue
         volume = open_spec(spec)
         voxels = f"_v{train_config.voxel_fraction:g}" if train_config.voxel_fraction else ""
+        if train_config.voxel_fraction and train_config.error_sampling:
+            voxels += f"_e{train_config.error_sampling:g}"
         model_file = paths["models"] / f"{spec.stem}_{model}_{size}_s{seed}_i{plan.iterations}{voxels}.apmgsrn"
         result = fit_volume(
             volume, preset_config(model, size), train_config, model_file, device,
@@ -148,6 +151,7 @@ def run_quality(
             model_file=str(model_file),
             voxel_fraction=train_config.voxel_fraction,
             max_abs_error=result.evaluation.max_abs_error,
+            error_sampling=train_config.error_sampling,
         )
         append_row(paths["csv"], row)
         rows.append(row)

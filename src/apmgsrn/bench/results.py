@@ -43,6 +43,8 @@ class QualityRow:
         voxel_fraction: share of every batch drawn on voxels (:class:`~apmgsrn.training.trainer.TrainConfig`;
             0 in files written before the option).
         max_abs_error: largest voxel error in data units (NaN in files written before the column).
+        error_sampling: share of the voxel points drawn where the model was wrong (0 in files written before the
+            option).
     """
 
     dataset: str
@@ -67,11 +69,12 @@ class QualityRow:
     model_file: str
     voxel_fraction: float = 0.0
     max_abs_error: float = math.nan
+    error_sampling: float = 0.0
 
     def key(self) -> tuple:
         """What identifies a run: a row with the same key is not run again."""
         return (self.dataset, self.model, self.size, self.seed, self.iterations, self.batch_size, self.lr_schedule,
-                self.voxel_fraction)
+                self.voxel_fraction, self.error_sampling)
 
 
 @dataclass(frozen=True)

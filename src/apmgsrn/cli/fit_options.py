@@ -56,6 +56,10 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     training.add_argument("--voxel-fraction", type=float,
                           help="share of every batch drawn on voxels (their own values) instead of uniform points "
                                "with trilinear targets, 0..1 (default: 0.5 for hybrid, 0 for the paper's models)")
+    training.add_argument("--error-sampling", type=float,
+                          help="share of the voxel points drawn where the model is wrong (in proportion to its error "
+                               "there, measured 20 times in the run) instead of uniformly, 0..1 (default: 1 for "
+                               "hybrid, 0 for the paper's models); nothing changes with --voxel-fraction 0")
     training.add_argument("--anchored-grids", type=int,
                           help="the first N adaptive grids keep their starting placement, over the whole domain "
                                "(default 0, the paper's training; 1 for a time series and for models of 8 grids or "
@@ -130,7 +134,8 @@ def build_configs(args: argparse.Namespace, device, steps: int | None = None):
             batch_size=batch_size if args.batch_size is None else args.batch_size,
             lr=args.lr,
             placement_lr=args.placement_lr,
-            **training_defaults(args.model, lr_schedule=args.lr_schedule, voxel_fraction=voxel_fraction),
+            **training_defaults(args.model, lr_schedule=args.lr_schedule, voxel_fraction=voxel_fraction,
+                                error_sampling=args.error_sampling),
             density_start=args.density_start,
             freeze_fraction=args.freeze_fraction,
             density_normalization=args.density_normalization,

@@ -45,6 +45,7 @@ FLAGS = {
     "placement_lr": "--placement-lr",
     "lr_schedule": "--lr-schedule",
     "voxel_fraction": "--voxel-fraction",
+    "error_sampling": "--error-sampling",
     "anchored_grids": "--anchored-grids",
     "density_start": "--density-start",
     "freeze_fraction": "--freeze-fraction",

@@ -181,6 +181,9 @@ def run(args: argparse.Namespace) -> int:
         config = t.get("config") if isinstance(t.get("config"), dict) else {}
         fraction = config.get("voxel_fraction")
         voxels = f" ({fraction:g} of each on voxels)" if isinstance(fraction, (int, float)) and fraction > 0 else ""
+        guided = config.get("error_sampling")
+        if voxels and isinstance(guided, (int, float)) and guided > 0:
+            voxels = f" ({fraction:g} of each on voxels, {guided:g} of those where the error was)"
         print(f"training        {t.get('iterations')} iterations x {t.get('batch_size')} points{voxels}, "
               f"{t.get('seconds')} s on {t.get('device')}{psnr}")
         if "final_reconstruction_loss" in info:  # a packed file keeps no loss history

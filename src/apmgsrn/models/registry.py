@@ -61,12 +61,14 @@ PRESETS: dict[str, dict[str, dict]] = {
 # kind. voxel_fraction: half of every batch on voxels measured from +0 (dense turbulence) to +8 dB (a sparse
 # uint8 volume) at the voxels, for 0 to 3 dB less between them against trilinear interpolation
 # (docs/models.md, "Voxel points"); the paper's APMGSRN and the two baselines keep SPEC section 4's uniform
-# points, so that their published results reproduce.
+# points, so that their published results reproduce. error_sampling: the hybrid's voxel points drawn where it
+# is wrong, -0.07 to +10.8 dB (mean +2.6) on the nine shared volumes under the CPU protocol, 0-10 % more time
+# (docs/models.md, "Error-guided voxel points").
 TRAINING_DEFAULTS: dict[str, dict] = {
     "apmgsrn": {"lr_schedule": "cosine"},
     "fvsrn": {"lr_schedule": "cosine"},
     "ngp": {"lr_schedule": "cosine"},
-    "hybrid": {"lr_schedule": "cosine", "voxel_fraction": 0.5},
+    "hybrid": {"lr_schedule": "cosine", "voxel_fraction": 0.5, "error_sampling": 1.0},
 }
 
 

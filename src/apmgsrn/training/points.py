@@ -6,12 +6,20 @@ ratios are all measured on them. :func:`draw_batch` can give a fraction of each 
 (their exact values, no interpolation): the network then fits the samples it is judged on, while the
 uniform rest keeps it close to the trilinear interpolant between them, which is what renders ray-march.
 docs/models.md ("Voxel points") has the measurements behind the model defaults.
+
+:class:`ErrorGuide` draws voxel points where the model is wrong rather than uniformly: in proportion to its
+absolute error, measured now and then. A series' step fine-tuned from its neighbour's grids is wrong mostly
+where the data moved, and there it learns fastest (docs/time_series.md).
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
+
 import torch
 
+from apmgsrn.io.description import DescriptionError
 from apmgsrn.ops.trilinear import axis_coordinates, sample_volume
 
 
@@ -20,8 +28,91 @@ def voxel_count(batch: int, fraction: float) -> int:
     return min(batch, round(batch * fraction))
 
 
+#: Most voxels an :class:`ErrorGuide` measures the error at: a volume of more voxels is cut into blocks of
+#: ``b^3`` voxels, at most this many, and one voxel drawn at random in every block stands for it.
+ERROR_POOL = 1 << 18
+
+
+class ErrorGuide:
+    """Voxel draws in proportion to the model's absolute error.
+
+    :meth:`measure` evaluates the model at every voxel of a volume of at most :data:`ERROR_POOL` voxels, else at
+    one random voxel of every block of ``b^3`` (the smallest ``b`` that leaves at most that many blocks), and
+    keeps the errors; :meth:`draw` then gives voxel indices, each voxel (or block) about
+    ``count * error / total error`` times (systematic sampling: one random offset, the voxels in memory order, so
+    the batch is spread over the volume and a voxel of large error is drawn at every draw), a block's draws
+    each at a voxel drawn at random inside it, so that every voxel of a block that is wrong is fitted, not only
+    the one measured. Voxels the model already fits exactly are not drawn; the trainer's uniform points keep
+    the whole domain in every batch.
+    """
+
+    def __init__(self, volume: torch.Tensor):
+        self.volume = volume
+        d, h, w = volume.shape
+        self.block = 1
+        while math.ceil(d / self.block) * math.ceil(h / self.block) * math.ceil(w / self.block) > ERROR_POOL:
+            self.block += 1
+        self.blocks = tuple(math.ceil(n / self.block) for n in (d, h, w))
+        self.block_count = math.prod(self.blocks)
+        self.cumulative: torch.Tensor | None = None  # [P] the blocks' errors' running sum, normalised to end at 1
+
+    def _voxels(self, block_index: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """A voxel (flat index) drawn at random in each of the blocks ``[N]``."""
+        d, h, w = self.volume.shape
+        _, bh, bw = self.blocks
+        corner = (block_index // (bh * bw), block_index // bw % bh, block_index % bw)
+        if self.block == 1:
+            z, y, x = corner
+        else:
+            offset = torch.randint(0, self.block, (3, len(block_index)), generator=generator, device=block_index.device)
+            z, y, x = ((c * self.block + o).clamp_max(n - 1) for c, o, n in zip(corner, offset, (d, h, w)))
+        return (z * h + y) * w + x
+
+    @torch.no_grad()
+    def measure(self, predict: Callable[[torch.Tensor], torch.Tensor], generator: torch.Generator) -> None:
+        """The errors of ``predict`` (``[N, 3]`` points to ``[N]`` values in the volume's units) at the voxels."""
+        device = self.volume.device
+        index = self._voxels(torch.arange(self.block_count, device=device), generator)
+        points = voxel_points(index, self.volume.shape)
+        error = torch.cat([(predict(chunk).view(-1) - self.volume.reshape(-1)[part]).abs()
+                           for chunk, part in zip(points.split(1 << 16), index.split(1 << 16))])
+        cumulative = error.double().cumsum(0)
+        if not float(cumulative[-1]) > 0:  # fitted exactly everywhere measured: draw uniformly
+            cumulative = torch.arange(1, len(index) + 1, device=device, dtype=torch.float64)
+        self.cumulative = cumulative / cumulative[-1]
+
+    def restore(self, cumulative: torch.Tensor) -> None:
+        """Take a measurement saved with a training checkpoint (``cumulative``, as :meth:`measure` leaves it).
+
+        Raises:
+            DescriptionError: values that are not a running sum from 0 to 1 (a damaged checkpoint).
+        """
+        if not (bool(torch.isfinite(cumulative).all()) and bool((cumulative.diff() >= 0).all())
+                and float(cumulative[0]) >= 0 and float(cumulative[-1]) == 1.0):
+            raise DescriptionError("error_guide is not a running sum of errors from 0 to 1")
+        self.cumulative = cumulative
+
+    def draw(self, count: int, generator: torch.Generator) -> torch.Tensor:
+        """``[count]`` voxel indices (flat) drawn in proportion to the measured errors."""
+        if self.cumulative is None:
+            raise RuntimeError("ErrorGuide.draw before measure")
+        offset = torch.rand((), generator=generator, device=self.volume.device, dtype=torch.float64)
+        edges = torch.floor(self.cumulative * count + offset).long()  # [P]
+        counts = torch.diff(edges, prepend=torch.floor(offset).long().view(1))
+        blocks = torch.repeat_interleave(torch.arange(len(counts), device=counts.device), counts, output_size=count)
+        return self._voxels(blocks, generator)
+
+
+def voxel_points(index: torch.Tensor, shape: tuple[int, int, int]) -> torch.Tensor:
+    """Positions ``[N, 3]`` (x, y, z in ``[-1, 1]``) of flat voxel indices ``[N]`` of a ``(D, H, W)`` volume."""
+    _, h, w = shape
+    z, y, x = index // (h * w), index // w % h, index % w
+    return torch.stack([axis_coordinates(x, w), axis_coordinates(y, h), axis_coordinates(z, shape[0])], dim=1)
+
+
 def draw_batch(
-    volume: torch.Tensor, count: int, voxel_fraction: float, generator: torch.Generator
+    volume: torch.Tensor, count: int, voxel_fraction: float, generator: torch.Generator,
+    guide: ErrorGuide | None = None, guided_share: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Training points ``[count, 3]`` in ``[-1, 1]^3`` and their targets ``[count]``.
 
@@ -32,15 +123,19 @@ def draw_batch(
             voxel's value as target); the others are uniform in the domain with trilinear targets. 0 draws
             exactly what SPEC section 4 (and every version before this option) draws.
         generator: the trainer's generator (same seed, same batches).
+        guide: where the voxel points of ``guided_share`` come from (measured already), the others uniform.
+        guided_share: share of the voxel points drawn by ``guide``.
     """
     on_voxels = voxel_count(count, voxel_fraction)
     uniform = torch.rand(count - on_voxels, 3, generator=generator, device=volume.device) * 2 - 1
     if on_voxels == 0:
         return uniform, sample_volume(volume, uniform)
     d, h, w = volume.shape
-    index = torch.randint(0, d * h * w, (on_voxels,), generator=generator, device=volume.device)
-    z, y, x = index // (h * w), index // w % h, index % w
-    voxels = torch.stack([axis_coordinates(x, w), axis_coordinates(y, h), axis_coordinates(z, d)], dim=1)
+    guided = voxel_count(on_voxels, guided_share) if guide is not None else 0
+    index = torch.randint(0, d * h * w, (on_voxels - guided,), generator=generator, device=volume.device)
+    if guided:
+        index = torch.cat([guide.draw(guided, generator), index])
+    voxels = voxel_points(index, volume.shape)
     points = torch.cat([voxels, uniform])
     targets = torch.cat([volume.reshape(-1)[index], sample_volume(volume, uniform)])
     return points, targets
