@@ -57,7 +57,8 @@ class ErrorGuide:
         self.cumulative: torch.Tensor | None = None  # [P] the blocks' errors' running sum, normalised to end at 1
 
     def _voxels(self, block_index: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-        """A voxel (flat index) drawn at random in each of the blocks ``[N]``."""
+        """A voxel (flat index) drawn at random in each of the blocks ``[N]`` (in a block the volume's edge cuts,
+        the draws past the edge land on the edge voxel)."""
         d, h, w = self.volume.shape
         _, bh, bw = self.blocks
         corner = (block_index // (bh * bw), block_index // bw % bh, block_index % bw)
