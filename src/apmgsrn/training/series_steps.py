@@ -481,6 +481,7 @@ def train_stepwise(
     lr_share = STEP_LR_SHARES.get(field_config.field.model, STEP_LR_SHARE)
     # On a GPU, where a step is bound by kernel launches, half the batch would not take half the time.
     batch_share = STEP_BATCH_SHARES.get(field_config.field.model, 1.0) if values.device.type == "cpu" else 1.0
+    sparsity = stepwise.sparsity(field_config.field.model)
     fingerprint = {**(fingerprint or {}), "stepwise": asdict(stepwise), "train": asdict(train_config)}
     if prepared.constant:
         return TrainedField(build_field(prepared, field_config, volume_shape, train_config.seed).eval(),
@@ -492,6 +493,7 @@ def train_stepwise(
             stepwise.base_iterations(train_config) * STEP_ITERATION_CAP / batch_share)
         progress = _load_steps(checkpoint, series, fingerprint, most)
         resumed_from = progress.state.iteration
+        worker = _worker(series)
     else:
         start = choose_start(values, stepwise.start)
         if checkpoint is not None and checkpoint.exists() and read_header(checkpoint).kind != CHECKPOINT_KIND:
@@ -504,17 +506,17 @@ def train_stepwise(
         # a decoder draws from the global random generator).
         series = build_field(prepared, field_config, volume_shape, train_config.seed)
         _adopt(series, first.field)
+        worker = _worker(series)
         # Its RMS error at the voxels, not its last batch's: a batch drawn where the model is wrong
         # (TrainConfig.error_sampling) overstates it.
         error = math.sqrt(_voxel_error(first.field, _check_sample(values[start], start)))
         polished = 0
-        if train_config.error_sampling > START_ERROR_SAMPLING and train_config.voxel_fraction > 0:
+        if train_config.error_guided and train_config.error_sampling != START_ERROR_SAMPLING:
             # The start step's own grids fine-tuned like any step's, from themselves, with the model kind's
             # draws where the step is wrong (the shared decoder stays what uniform draws made it).
             began = time.perf_counter()
             config = stepwise.step_config(train_config, 0.0, error, 1.0, lr_share, batch_share)
-            _train_step(_worker(series), series, values[start], start, start, config, error, False,
-                        stepwise.sparsity(field_config.field.model))
+            _train_step(worker, series, values[start], start, start, config, error, False, sparsity)
             polished = config.iterations
             first.state.iteration += polished
             first.state.elapsed += time.perf_counter() - began
@@ -522,8 +524,6 @@ def train_stepwise(
         resumed_from = first.resumed_from
         if checkpoint is not None:
             _save_steps(checkpoint, series, progress, fingerprint)
-    worker = _worker(series)
-    sparsity = stepwise.sparsity(field_config.field.model)
     state = progress.state
     scale = stepwise.budget_scale(train_config, steps - 1)
     todo = [(t, n) for t, n in step_order(progress.start, steps) if t not in progress.done]

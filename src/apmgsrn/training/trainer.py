@@ -176,6 +176,11 @@ class TrainConfig:
         object.__setattr__(self, "voxel_fraction", check_number("voxel_fraction", self.voxel_fraction, 0.0, 1.0))
         object.__setattr__(self, "error_sampling", check_number("error_sampling", self.error_sampling, 0.0, 1.0))
 
+    @property
+    def error_guided(self) -> bool:
+        """Whether some voxel points are drawn where the model is wrong (:attr:`error_sampling` of voxel points)."""
+        return self.error_sampling > 0 and self.voxel_fraction > 0
+
 
 #: Names older versions stored for today's :class:`TrainConfig` fields.
 RENAMED = {"transform_lr": "placement_lr"}
@@ -288,8 +293,7 @@ class Trainer:
         callbacks: Sequence[TrainingCallback] = (),
         warm: bool = False,
     ):
-        guided = config.error_sampling > 0 and config.voxel_fraction > 0
-        if guided and volume.dim() != 3:
+        if config.error_guided and volume.dim() != 3:
             raise InvalidArgument("error_sampling guides the points of a single volume, not of a joint series model",
                                   arguments=("error_sampling",))
         self.field = field
@@ -332,7 +336,7 @@ class Trainer:
         self._pending_density: list[torch.Tensor] = []
         #: A series: each step's recent reconstruction loss ``[T]`` (for progress; NaN until it is drawn).
         self.step_losses = torch.full((volume.shape[0],), math.nan, device=self.device) if volume.dim() == 4 else None
-        self.error_guide = ErrorGuide(volume) if guided else None
+        self.error_guide = ErrorGuide(volume) if config.error_guided else None
         if self.placement_optimizer is None:
             self.state.frozen_at = 0
         # Encoders that start from the data (hybrid: adaptive grids on the volume's detail) do it here, the
