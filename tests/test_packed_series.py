@@ -33,6 +33,7 @@ from apmgsrn.training.series_packing import (
     pack_series,
     packed_series_field,
     sensitivity_steps,
+    series_sensitivity,
     shared_steps,
     write_packed_series,
 )
@@ -172,6 +173,11 @@ def test_fewer_bits_give_fewer_grid_bytes_and_bits_are_checked(field):
     for bits in (1, 17, 32, 8.0):
         with pytest.raises(InvalidArgument, match="bits"):
             pack_series(field, bits)
+    finer = len(pack_series(field, 8, finer=0.5).tensors[0].data)
+    assert sizes[8] < finer < sizes[10]  # half a bit finer: between 8 and 9 bits
+    for bad in (-0.1, 1.0):
+        with pytest.raises(InvalidArgument, match="finer"):
+            pack_series(field, 8, finer=bad)
 
 
 def test_residual_grids_are_packed_too(field, tmp_path):
@@ -327,15 +333,24 @@ def test_pack_info_and_eval_of_a_series_model(field, pattern, tmp_path, capsys):
     assert main(["info", str(out)]) == 0 and "time        4 steps" in capsys.readouterr().out
 
 
-def test_pack_a_series_to_a_size_takes_the_largest_bit_width_that_fits(field, pattern, tmp_path, capsys):
+def test_pack_a_series_to_a_size_takes_the_finest_steps_that_fit(field, pattern, tmp_path, capsys):
+    """A size between what 7 and 8 bits take: the largest whole width that fits (7), its steps then made finer
+    by a fraction of a bit, as far as the size allows; the file lands closer to its target, and fits."""
     float32 = tmp_path / "s.apmgsrn"
     save_series(float32, field, SourceInfo(), {}, step_entries(4))
-    sizes = {bits: len(b"".join(t.data for t in pack_series(field, bits).tensors)) for bits in (6, 7, 8)}
-    budget = sizes[7] + 1024 + 64 * 4 + 10  # the file: coded parameters, description and framing
+    sensitivity = series_sensitivity(field)
+    sizes = {bits: pack_series(field, bits, sensitivity).parameter_bytes for bits in (7, 8)}
+    overhead = 1024 + 64 * 4  # the description and framing a target allows for
+    budget = (sizes[7] + sizes[8]) // 2 + overhead
     code, packed = run_json(["pack", str(float32), pattern, "--out", str(tmp_path / "p.apmgsrn"),
                              "--size", str(budget)], capsys)
-    assert code == 0 and packed["bits"] == 7 and packed["file_bytes"] <= budget
-    assert apmgsrn.load(tmp_path / "p.apmgsrn").description.packing.report["target_bytes"] == budget
+    assert code == 0 and 7 < packed["bits"] < 8 and packed["file_bytes"] <= budget
+    report = apmgsrn.load(tmp_path / "p.apmgsrn").description.packing.report
+    assert report["target_bytes"] == budget and report["bits"] == packed["bits"]
+    refined = pack_series(field, 7, sensitivity, packed["bits"] - 7)
+    assert sizes[7] < refined.parameter_bytes <= budget - overhead
+    # Within a sixteenth of a bit of the finest that fits.
+    assert pack_series(field, 7, sensitivity, packed["bits"] - 7 + 1 / 16).parameter_bytes > budget - overhead
 
 
 @pytest.mark.parametrize("options, message", [

@@ -227,7 +227,7 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
     before = evaluate_series(field.step_field, series, **options)
     log(f"measuring the packed model on {len(series)} steps")
     after = evaluate_series(packed_series_field(field, packed).step_field, series, **options)
-    report = series_packing_report(field, packed.bits, before, after, packing.target_bytes)
+    report = series_packing_report(field, packed.bit_width, before, after, packing.target_bytes)
     training = {**model.description.training,
                 "steps": [{"psnr": e.psnr, "max_abs_error": e.max_abs_error} for e in after.steps]}
     out = Path(args.out)

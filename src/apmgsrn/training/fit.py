@@ -284,7 +284,7 @@ def fit(
             trained.field.load_state_dict(packed.state)  # measure what the file will give back
         evaluation = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
         if packed is not None:
-            report = series_packing_report(trained.field, packed.bits, before, evaluation, packing.target_bytes)
+            report = series_packing_report(trained.field, packed.bit_width, before, evaluation, packing.target_bytes)
         summary_extra = {"steps": [{"psnr": e.psnr, "max_abs_error": e.max_abs_error} for e in evaluation.steps],
                          **(summary_extra or {})}
     else:

@@ -22,6 +22,11 @@ the same bytes). Uniform steps spend as many bits on a fine level's hash entry a
 entries each reach far more voxels: the 30 viscous-finger steps' default hybrid series lost 0.52 dB to
 uniform steps at 8 bits and loses 0.10 dB to these, in 2 % fewer bytes (APMGSRN's at 10 bits: no change).
 
+A size target (:class:`SeriesPacking`) takes the largest whole bit width that fits, then makes every step finer
+by a fraction of a bit as far as the target allows (:meth:`SeriesPacking._refine`): a whole bit is about a fifth
+of the bytes, and the default hybrid series of the viscous-finger steps landed at 4.4 of its five files at 7
+bits, 1.1 dB below float32; refined (and pulled at 0.02), 7.6 bits, 4.7 files, 0.36 dB (docs/time_series.md).
+
 Each quantised tensor is coded with whichever predictor codes it smallest (``time`` and the spatial ones).
 On the 30 viscous-fingering steps at 64^3 (per-step grids) the grids take about 0.81 MB at 8 bits and 1.24 MB
 at 10; the PSNR costs 0.4-0.5 dB at 8 bits and about 0.03 dB at 10. A hybrid series of the same steps, unpulled,
@@ -67,6 +72,8 @@ SHARED_STEP_TENSORS = ("encoder.grids", "encoder.level_table")
 LEVEL_TABLE_GROUP = 1024
 #: A sensitivity-allocated step is at most this many bits finer than the uniform one (:func:`sensitivity_steps`).
 FINEST_SHARE_BITS = 8
+#: The bisection of :meth:`SeriesPacking._refine` stops within this share of a bit (4 more packings).
+FINER_RESOLUTION = 1 / 16
 
 
 @dataclass(frozen=True)
@@ -77,11 +84,19 @@ class PackedSeries:
         tensors: every parameter packed, in the config's order.
         state: name -> the float32 tensor a loader restores (dequantised, or the exact value).
         bits: the bit width of the quantised tensors.
+        finer: their steps are ``2^finer`` times finer than those of ``bits`` (0 <= finer < 1;
+            :meth:`SeriesPacking.pack` refines a size target's bit width this way).
     """
 
     tensors: list[PackedTensor]
     state: dict[str, torch.Tensor]
     bits: int
+    finer: float = 0.0
+
+    @property
+    def bit_width(self) -> float:
+        """The effective bit width: :attr:`bits`, the steps made ``2^finer`` times finer."""
+        return self.bits + self.finer
 
     @property
     def parameter_bytes(self) -> int:
@@ -182,7 +197,7 @@ def sensitivity_steps(uniform: dict[str, tuple[np.ndarray, int]],
 
 
 def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS,
-                sensitivity: dict[str, np.ndarray] | None = None) -> PackedSeries:
+                sensitivity: dict[str, np.ndarray] | None = None, finer: float = 0.0) -> PackedSeries:
     """Quantise and code a series field's parameters at ``bits`` (see the module docstring); nothing written.
 
     Args:
@@ -190,6 +205,8 @@ def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS,
         bits: bit width of the grids and residuals.
         sensitivity: :func:`series_sensitivity` of the field: the shared steps follow it
             (:func:`sensitivity_steps`); None: uniform steps of ``bits``.
+        finer: every step of ``bits`` divided by ``2^finer``, ``0 <= finer < 1`` (a bit width between ``bits``
+            and ``bits + 1``).
 
     Returns:
         The packed tensors and the values a loader restores (load them into a copy of ``field``, see
@@ -199,6 +216,8 @@ def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS,
         InvalidArgument: ``bits`` outside :data:`~apmgsrn.io.quantization.MIN_BITS`..:data:`MAX_BITS`.
     """
     check_int("bits", bits, MIN_BITS, MAX_BITS)
+    if not 0 <= finer < 1:
+        raise InvalidArgument(f"finer={finer}: must be in [0, 1)", arguments=("finer",))
     parameters = {name: p.detach().cpu().float() for name, p in field.named_parameters()}
     shared = {name: shared_steps(values.numpy(), bits, slice_group(field.config.field.model, name,
                                                                    tuple(values.shape)))
@@ -217,10 +236,12 @@ def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS,
             tensors.append(encode_float32(name, values))
             state[name] = values.clone()
             continue
+        if finer:
+            steps = round_steps(steps.astype(np.float64) * 2.0**-finer)
         quantized = quantize(values, steps, group)
         tensors.append(encode_quantized(name, quantized, series_predictors(name, quantized.shape)))
         state[name] = quantized.dequantize()
-    return PackedSeries(tensors, state, bits)
+    return PackedSeries(tensors, state, bits, finer)
 
 
 @dataclass(frozen=True)
@@ -250,18 +271,35 @@ class SeriesPacking:
             check_int("target_bytes", self.target_bytes, 1)
 
     def pack(self, field: SeriesField) -> PackedSeries:
-        """The packed field (with a target: each bit width from the largest down, until one fits)."""
+        """The packed field (with a target: each bit width from the largest down, until one fits; then, if the
+        next larger width did not fit, the finest steps between the two that still fit, :meth:`_refine`)."""
         budget = None if self.target_bytes is None else parameter_budget(self.target_bytes, field.steps)
         sensitivity = series_sensitivity(field)
         for bits in range(self.bits, self.min_bits - 1, -1):
             packed = pack_series(field, bits, sensitivity)
             if budget is None or packed.parameter_bytes <= budget:
-                return packed
+                return packed if bits == self.bits else self._refine(field, packed, sensitivity, budget)
         if self.strict:
             raise InvalidArgument(f"target_bytes={self.target_bytes}: the series' parameters alone take "
                                   f"{packed.parameter_bytes:,} bytes even at {self.min_bits} bits; allow more bytes "
                                   "or train a smaller model", arguments=("target_bytes",))
         return packed
+
+    @staticmethod
+    def _refine(field: SeriesField, packed: PackedSeries, sensitivity: dict[str, np.ndarray],
+                budget: int) -> PackedSeries:
+        """The finest steps between ``packed``'s bit width (which fits the ``budget``) and the next (which did
+        not) that still fit: bisection on :attr:`PackedSeries.finer` to :data:`FINER_RESOLUTION` of a bit.
+        A whole bit is about a fifth of the bytes; without this a target lands up to that far below itself."""
+        low, high, best = 0.0, 1.0, packed
+        while high - low > FINER_RESOLUTION:
+            middle = (low + high) / 2
+            tried = pack_series(field, packed.bits, sensitivity, middle)
+            if tried.parameter_bytes <= budget:
+                low, best = middle, tried
+            else:
+                high = middle
+        return best
 
 
 #: A stepwise series is packed within this many single-step models of its preset unless the command
@@ -319,16 +357,17 @@ def write_packed_series(path: str | os.PathLike, field: SeriesField, packed: Pac
     return save_packed_series(path, packed_series_bytes(field, packed.tensors, source, training, steps, report))
 
 
-def series_packing_report(field: SeriesField, bits: int, before: SeriesEvaluation, after: SeriesEvaluation,
+def series_packing_report(field: SeriesField, bits: float, before: SeriesEvaluation, after: SeriesEvaluation,
                           target_bytes: int | None = None) -> dict:
     """What packing a series at ``bits`` cost, as the file's ``packing`` entry (``info`` shows it).
 
     Args:
         field: the series field (its float32 parameter count).
-        bits: the bit width packed to.
+        bits: the bit width packed to (:attr:`PackedSeries.bit_width`: fractional where a size target refined it).
         before, after: the field measured on every step before and after packing.
         target_bytes: the bytes the coded parameters were to fit in, if any.
     """
+    bits = int(bits) if float(bits).is_integer() else bits
     report = {"mode": "bits" if target_bytes is None else "size", "bits": bits, "target_bytes": target_bytes, "float32_psnr": before.psnr, "float32_max_abs_error": before.max_abs_error,
               "float32_parameter_bytes": 4 * field.parameter_count(), "qat_iterations": 0, "psnr": after.psnr,
               "max_abs_error": after.max_abs_error, "psnr_cost": _cost(before.psnr, after.psnr),
