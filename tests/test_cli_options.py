@@ -130,6 +130,7 @@ LIBRARY_ONLY = {
     "steps", "mixing",  # a series' step count comes from its data; weight lattices are a library option
     "step_lr",  # a stepwise series' fine-tune rate: 0.3 x --lr unless a Python caller sets it
     "min_bits",  # the smallest bit width a series' size target may lower to
+    "finer",  # the fraction of a bit a series' size target refines its bit width by (the packer chooses it)
     "placement",  # a series' placement per step: what stepwise training fills, not a choice on the command line
     "placement_loss",  # the reconstruction error moves a drifting step's placement (stepwise training decides)
 }

@@ -174,7 +174,7 @@ def test_fewer_bits_give_fewer_grid_bytes_and_bits_are_checked(field):
         with pytest.raises(InvalidArgument, match="bits"):
             pack_series(field, bits)
     finer = len(pack_series(field, 8, finer=0.5).tensors[0].data)
-    assert sizes[8] < finer < sizes[10]  # half a bit finer: between 8 and 9 bits
+    assert sizes[8] < finer < sizes[10]  # half a bit finer than 8 bits: more bytes, fewer than 10 bits take
     for bad in (-0.1, 1.0):
         with pytest.raises(InvalidArgument, match="finer"):
             pack_series(field, 8, finer=bad)

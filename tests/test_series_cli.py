@@ -23,6 +23,7 @@ from apmgsrn.data.series import open_series
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.inference.decode import decode_array
 from apmgsrn.inference.evaluate import evaluate
+from apmgsrn.training.series_steps import STEP_SPARSITY_OF
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 FAST = ["--iterations", "150", "--batch-size", "2048", "--device", "cpu", "--resolution", "8", "--width", "32"]
@@ -359,7 +360,7 @@ def test_a_series_of_hybrid_models_trains_evaluates_decodes_and_fits_in_python(p
     model = apmgsrn.load(out)
     assert model.description.config.model == "hybrid" and model.description.kind == "packed-series"
     assert model.description.packing.report["bits"] == 10
-    assert model.description.training["stepwise"]["step_sparsity"] == 0.01  # the hybrid's default pull
+    assert model.description.training["stepwise"]["step_sparsity"] == STEP_SPARSITY_OF["hybrid"] > 0  # its pull
     assert model.field.encoder.level_table.shape[0] == 4
     figures = run_json(capsys, ["eval", str(out), pattern, "--json"])
     for t, row in enumerate(figures["per_step"]):
@@ -371,7 +372,8 @@ def test_a_series_of_hybrid_models_trains_evaluates_decodes_and_fits_in_python(p
     info = run_json(capsys, ["info", str(out), "--json"])
     assert info["model"] == "hybrid" and info["series"]["steps"] == 4
     assert main(["info", str(out)]) == 0
-    assert "iterations per other step, pulled towards its neighbour at 0.01" in capsys.readouterr().out
+    pull = STEP_SPARSITY_OF["hybrid"]
+    assert f"iterations per other step, pulled towards its neighbour at {pull}" in capsys.readouterr().out
     fitted = apmgsrn.fit(pattern, model="hybrid", iterations=60, batch_size=1024, levels=6, log2_table_size=10,
                          grids=4, resolution=8, width=16, progress=False, step_sparsity=0.0, step_iterations=7)
     assert fitted.field.encoder.level_table.shape[0] == 4
