@@ -51,6 +51,7 @@ COMPARED = {"hybrid": {
         RESULTS / "time_series_baseline_hybrid_uniform.csv",
     "hybrid series, uniform voxel points (2026-11-24, 4.27 files)": RESULTS / "time_series_model_hybrid_uniform.csv",
     "hybrid series, pull 0.01 at 7 bits (2026-11-25, 4.43 files)": RESULTS / "time_series_model_hybrid_7bits.csv",
+    "hybrid series, pull 0.02, refined bits (2026-11-25, 4.70 files)": RESULTS / "time_series_model_hybrid_pull002.csv",
     "APMGSRN series (4.6 files)": SERIES_CSV}}
 
 

@@ -25,7 +25,7 @@ uniform steps at 8 bits and loses 0.10 dB to these, in 2 % fewer bytes (APMGSRN'
 A size target (:class:`SeriesPacking`) takes the largest whole bit width that fits, then makes every step finer
 by a fraction of a bit as far as the target allows (:meth:`SeriesPacking._refine`): a whole bit is about a fifth
 of the bytes, and the default hybrid series of the viscous-finger steps landed at 4.4 of its five files at 7
-bits, 1.1 dB below float32; refined (and pulled at 0.02), 7.6 bits, 4.7 files, 0.36 dB (docs/time_series.md).
+bits, 1.1 dB below float32; refined, at 7.25 bits, 4.7 files, 0.79 dB (docs/time_series.md).
 
 Each quantised tensor is coded with whichever predictor codes it smallest (``time`` and the spatial ones).
 On the 30 viscous-fingering steps at 64^3 (per-step grids) the grids take about 0.81 MB at 8 bits and 1.24 MB
