@@ -22,6 +22,7 @@ import os
 import platform
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -144,8 +145,8 @@ def run_series(args: argparse.Namespace) -> None:
             raise SystemExit(f"--{joint[0].replace('_', '-')} shapes a joint model: add --series-training joint")
         iterations, config = args.iterations, stepwise_config(small, len(series))
         stepwise = StepwiseConfig(start=args.start)
-        packing = (default_series_packing(config, series.shape) if args.bits is None
-                   else SeriesPacking(args.bits, min_bits=args.bits))
+        packing = replace(default_series_packing(config, series.shape) if args.bits is None
+                          else SeriesPacking(args.bits, min_bits=args.bits), qat_iterations=args.qat_iterations)
         voxel_fraction = STEPWISE_VOXEL_FRACTION if args.voxel_fraction is None else args.voxel_fraction
         anchored = args.anchored_grids
         if anchored is None:  # the hybrid's domain levels cover the domain: nothing to anchor
@@ -171,6 +172,7 @@ def run_series(args: argparse.Namespace) -> None:
                      f"voxel_fraction={voxel_fraction:g} anchored_grids={anchored}"
                      + (f" step_sparsity={stepwise.sparsity(args.kind):g}" if stepwise.sparsity(args.kind) else "")
                      + (f" error_sampling={train_config.error_sampling:g}" if train_config.error_sampling else "")
+                     + (f" qat_iterations={args.qat_iterations}" if args.qat_iterations else "")
                      + (f" seed={args.seed}" if args.seed else ""))
     else:
         described = f"basis={config.series.basis} {config.series.coefficients} residual={config.series.residual} " \
@@ -409,6 +411,8 @@ def main() -> None:
     series.add_argument("--bits", type=int,
                         help="stepwise: bit width the grids are packed to (default: as train packs, 10 bits within "
                              "five single-step models)")
+    series.add_argument("--qat-iterations", type=int, default=0,
+                        help="stepwise: every step's quantisation-aware fine-tune before packing (train's option)")
     series.add_argument("--seed", type=int, default=0)
     series.add_argument("--voxel-fraction", type=float,
                         help="share of every batch on voxels (default: stepwise 0.5, joint 0)")

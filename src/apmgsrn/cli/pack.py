@@ -41,7 +41,8 @@ def add_pack_arguments(parser: argparse.ArgumentParser, title: str = "packing") 
                        help="guarantee |model - data| <= E (data units) at every voxel with a stored sparse "
                             "correction; eval verifies it")
     group.add_argument("--qat-iterations", type=int, metavar="N",
-                       help="quantisation-aware fine-tune iterations before coding (default 0)")
+                       help="quantisation-aware fine-tune iterations before coding (default 0); for a "
+                            "stepwise time series (train only), iterations per step (docs/time_series.md)")
 
 
 def packing_requested(args: argparse.Namespace) -> bool:
@@ -117,7 +118,8 @@ def packing_lines(report: dict, file_bytes: int, compression: dict) -> list[str]
 
 def series_packing(args: argparse.Namespace, raw_bytes: int):
     """The :class:`~apmgsrn.training.series_packing.SeriesPacking` that ``--bits``, ``--size`` or ``--ratio``
-    ask for (``train`` and ``pack`` of a series), None when none is given.
+    ask for (``train`` and ``pack`` of a series), with ``--qat-iterations``; None when none of the first three
+    is given.
 
     Raises:
         ApmgsrnError: another packing option (a series packs to a bit width or a size only), or both a size
@@ -126,15 +128,18 @@ def series_packing(args: argparse.Namespace, raw_bytes: int):
     from apmgsrn.training.series_packing import DEFAULT_SERIES_BITS, SeriesPacking
 
     for option in PACK_OPTIONS:
-        if option not in ("bits", "size", "ratio") and getattr(args, option, None) is not None:
+        if option not in ("bits", "size", "ratio", "qat_iterations") and getattr(args, option, None) is not None:
             flag = "--" + option.replace("_", "-")
             raise ApmgsrnError(f"{flag}: a time series packs to a bit width or a size only (--bits, --size, "
-                               f"--ratio); drop {flag}")
+                               f"--ratio, with --qat-iterations); drop {flag}")
+    qat = args.qat_iterations or 0
+    if qat < 0:
+        raise ApmgsrnError(f"--qat-iterations {qat}: must be 0 or more")
     size = target_bytes(args, raw_bytes)
     if size is not None:
-        return SeriesPacking(args.bits or DEFAULT_SERIES_BITS, size)
+        return SeriesPacking(args.bits or DEFAULT_SERIES_BITS, size, qat_iterations=qat)
     if args.bits is not None:
-        return SeriesPacking(args.bits, min_bits=args.bits)
+        return SeriesPacking(args.bits, min_bits=args.bits, qat_iterations=qat)
     return None
 
 
@@ -218,6 +223,9 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
     if len(series) != len(layout.steps):
         raise ApmgsrnError(f"{args.model}: the model holds {len(layout.steps)} steps but the data names "
                            f"{len(series)}; pass the series it was trained on")
+    if args.qat_iterations:
+        raise ApmgsrnError("--qat-iterations: a time series is fine-tuned towards its packing while it trains; "
+                           "pass it to apmgsrn train")
     packing = series_packing(args, series.raw_bytes) or SeriesPacking()
     field = model.field.cpu().eval()
     log = (lambda line: None) if args.json else print

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 from apmgsrn.cli.common import format_bytes, percent_of_range, volume_options
@@ -203,9 +204,14 @@ def series_training(args: argparse.Namespace, config, raw_bytes: int, shape: tup
     from apmgsrn.training.series_steps import StepwiseConfig
 
     packing = series_packing(args, raw_bytes)
-    if packing is not None and args.storage is not None:
-        raise ApmgsrnError("--bits, --size and --ratio pack the grids, --storage keeps them unpacked: give one")
+    qat = args.qat_iterations or 0
+    if (packing is not None or qat) and args.storage is not None:
+        raise ApmgsrnError("--bits, --size, --ratio and --qat-iterations pack the grids, --storage keeps them "
+                           "unpacked: give one")
     if args.series_training == "joint":
+        if qat:
+            raise ApmgsrnError("--qat-iterations: fine-tunes every step of a stepwise series; a joint series "
+                               "has no grids of its own per step")
         return None, packing
     start = args.start_step or "auto"
     if start not in ("auto", "first", "last"):
@@ -215,7 +221,7 @@ def series_training(args: argparse.Namespace, config, raw_bytes: int, shape: tup
             raise ApmgsrnError(f"--start-step {start}: must be auto, first, last or a step index") from None
     stepwise = StepwiseConfig(start=start, step_iterations=args.step_iterations, step_sparsity=args.step_sparsity)
     if packing is None and args.storage is None:
-        packing = default_series_packing(config, shape)
+        packing = replace(default_series_packing(config, shape), qat_iterations=qat)
     return stepwise, packing
 
 

@@ -12,6 +12,7 @@ import pickle
 import resource
 import socket
 from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +30,7 @@ from apmgsrn.io import SeriesStepInfo, SourceInfo
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.training.fit import fit, prepare_values
 from apmgsrn.training.series_packing import SeriesPacking
+from apmgsrn.training.series_qat import fine_tune_rounded
 from apmgsrn.training.series_steps import StepwiseConfig, series_trainer
 from apmgsrn.training.trainer import TrainConfig
 
@@ -280,7 +282,8 @@ def _fit_region(job: BrickJob, region: np.ndarray, device: torch.device, worker:
     # A brick always resumes its own checkpoint: the job may be a retry after a crash.
     result = fit(prepared, region, job.field_config, job.train_config, Path(job.model_path), job.source,
                  fingerprint, resume=True, psnr_voxels=job.psnr_voxels, summary_extra={"brick": box}, steps=steps,
-                 train=series_trainer(job.stepwise, show_progress=False), packing=job.packing)
+                 train=series_trainer(job.stepwise, show_progress=False), packing=job.packing,
+                 tune_packed=partial(fine_tune_rounded, show_progress=False))
     peak_device = int(torch.cuda.max_memory_allocated(device)) if device.type == "cuda" else 0
     return BrickResult(
         name=brick.name,

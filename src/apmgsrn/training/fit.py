@@ -244,6 +244,7 @@ def fit(
     steps: Sequence[SeriesStepInfo] | None = None,
     train: Callable[..., TrainedField] = train_prepared,
     packing: SeriesPacking | None = None,
+    tune_packed: Callable[..., tuple[int, float]] | None = None,
 ) -> FitResult:
     """Train a field on prepared values, measure it against the truth and save it to ``out``.
 
@@ -267,6 +268,8 @@ def fit(
             :func:`~apmgsrn.training.series_steps.train_stepwise`).
         packing: a series: how to pack its grids (a ``packed-series`` file; None: the series file of its
             config's storage dtype).
+        tune_packed: a series packed with ``qat_iterations``: fine-tunes the field towards its first packing
+            (:func:`~apmgsrn.training.series_qat.fine_tune_rounded`'s signature, less ``show_progress``).
     """
     out = Path(out)
     series = isinstance(field_config, SeriesFieldConfig)
@@ -281,10 +284,19 @@ def fit(
         if packing is not None:
             before = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
             packed = packing.pack(trained.field)
+            if packing.qat_iterations:  # trained towards the packing's steps, then packed on them
+                if tune_packed is None:
+                    raise ValueError("packing.qat_iterations needs tune_packed")
+                ran, seconds = tune_packed(trained.field, prepared.values, packed, train_config,
+                                           packing.qat_iterations)
+                trained.state.iteration += ran
+                trained.state.elapsed += seconds
+                packed = packing.repack(trained.field, packed)
             trained.field.load_state_dict(packed.state)  # measure what the file will give back
         evaluation = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
         if packed is not None:
-            report = series_packing_report(trained.field, packed.bit_width, before, evaluation, packing.target_bytes)
+            report = series_packing_report(trained.field, packed.bit_width, before, evaluation, packing.target_bytes,
+                                           packing.qat_iterations)
         summary_extra = {"steps": [{"psnr": e.psnr, "max_abs_error": e.max_abs_error} for e in evaluation.steps],
                          **(summary_extra or {})}
     else:

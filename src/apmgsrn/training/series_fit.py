@@ -13,6 +13,7 @@ Two ways to train (docs/time_series.md measures both):
 from __future__ import annotations
 
 from dataclasses import asdict
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -25,6 +26,7 @@ from apmgsrn.models.series_field import SeriesFieldConfig
 from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.fit import FitResult, check_output, fit, prepare_values
 from apmgsrn.training.series_packing import SeriesPacking
+from apmgsrn.training.series_qat import fine_tune_rounded
 from apmgsrn.training.series_steps import StepwiseConfig, series_trainer
 from apmgsrn.training.trainer import TrainConfig
 
@@ -78,4 +80,5 @@ def fit_series(
                    "transform": asdict(prepared.transform)}
     display = TrainingProgress("train" if stepwise is None else "start step", enabled=progress)
     return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
-               callbacks=[display], steps=steps, packing=packing, train=series_trainer(stepwise, progress))
+               callbacks=[display], steps=steps, packing=packing, train=series_trainer(stepwise, progress),
+               tune_packed=partial(fine_tune_rounded, show_progress=progress))

@@ -38,7 +38,7 @@ from __future__ import annotations
 import copy
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -86,12 +86,15 @@ class PackedSeries:
         bits: the bit width of the quantised tensors.
         finer: their steps are ``2^finer`` times finer than those of ``bits`` (0 <= finer < 1;
             :meth:`SeriesPacking.pack` refines a size target's bit width this way).
+        steps: name -> ``[K * G]`` float16 steps of each of :data:`SHARED_STEP_TENSORS` as quantised (what a
+            quantisation-aware fine-tune, :mod:`apmgsrn.training.series_qat`, trains towards).
     """
 
     tensors: list[PackedTensor]
     state: dict[str, torch.Tensor]
     bits: int
     finer: float = 0.0
+    steps: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def bit_width(self) -> float:
@@ -197,7 +200,8 @@ def sensitivity_steps(uniform: dict[str, tuple[np.ndarray, int]],
 
 
 def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS,
-                sensitivity: dict[str, np.ndarray] | None = None, finer: float = 0.0) -> PackedSeries:
+                sensitivity: dict[str, np.ndarray] | None = None, finer: float = 0.0,
+                steps: dict[str, np.ndarray] | None = None) -> PackedSeries:
     """Quantise and code a series field's parameters at ``bits`` (see the module docstring); nothing written.
 
     Args:
@@ -207,6 +211,9 @@ def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS,
             (:func:`sensitivity_steps`); None: uniform steps of ``bits``.
         finer: every step of ``bits`` divided by ``2^finer``, ``0 <= finer < 1`` (a bit width between ``bits``
             and ``bits + 1``).
+        steps: the steps of :data:`SHARED_STEP_TENSORS` as :attr:`PackedSeries.steps` gave them (``bits``,
+            ``sensitivity`` and ``finer`` then only label them): a field fine-tuned towards those steps is
+            packed on exactly them.
 
     Returns:
         The packed tensors and the values a loader restores (load them into a copy of ``field``, see
@@ -222,26 +229,31 @@ def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS,
     shared = {name: shared_steps(values.numpy(), bits, slice_group(field.config.field.model, name,
                                                                    tuple(values.shape)))
               for name, values in parameters.items() if name in SHARED_STEP_TENSORS}
-    allocated = ({name: steps for name, (steps, _) in shared.items()} if sensitivity is None
-                 else sensitivity_steps(shared, sensitivity))
+    if steps is None:
+        allocated = ({name: steps for name, (steps, _) in shared.items()} if sensitivity is None
+                     else sensitivity_steps(shared, sensitivity))
+        if finer:
+            allocated = {name: round_steps(s.astype(np.float64) * 2.0**-finer) for name, s in allocated.items()}
+    else:
+        allocated = steps
     tensors, state = [], {}
     for name in field.config.parameter_shapes():
         values = parameters[name]
         if name in SHARED_STEP_TENSORS:
-            steps, group = allocated[name], shared[name][1]
+            group_steps, group = allocated[name], shared[name][1]
         elif name == "encoder.residuals":
             group = group_size(tuple(values.shape))
-            steps = steps_for_bits(values.numpy(), group, bits)
+            group_steps = steps_for_bits(values.numpy(), group, bits)
+            if finer:
+                group_steps = round_steps(group_steps.astype(np.float64) * 2.0**-finer)
         else:  # weights, grid placement and decoder: small, kept exactly
             tensors.append(encode_float32(name, values))
             state[name] = values.clone()
             continue
-        if finer:
-            steps = round_steps(steps.astype(np.float64) * 2.0**-finer)
-        quantized = quantize(values, steps, group)
+        quantized = quantize(values, group_steps, group)
         tensors.append(encode_quantized(name, quantized, series_predictors(name, quantized.shape)))
         state[name] = quantized.dequantize()
-    return PackedSeries(tensors, state, bits, finer)
+    return PackedSeries(tensors, state, bits, finer, {name: allocated[name] for name in shared})
 
 
 @dataclass(frozen=True)
@@ -256,17 +268,21 @@ class SeriesPacking:
         min_bits: the smallest bit width tried for a target.
         strict: refuse to pack when not even ``min_bits`` fits (False: pack at ``min_bits`` anyway, as the
             default cap of ``train`` does).
+        qat_iterations: a quantisation-aware fine-tune of every step before coding, this many iterations each
+            (:mod:`apmgsrn.training.series_qat`; 0: none). Needs the data: ``train`` runs it.
     """
 
     bits: int = DEFAULT_SERIES_BITS
     target_bytes: int | None = None
     min_bits: int = MIN_BITS
     strict: bool = True
+    qat_iterations: int = 0
 
     def __post_init__(self) -> None:
         """Refuse values packing cannot run with (:class:`~apmgsrn.errors.InvalidArgument`)."""
         check_int("bits", self.bits, MIN_BITS, MAX_BITS)
         check_int("min_bits", self.min_bits, MIN_BITS, self.bits)
+        check_int("qat_iterations", self.qat_iterations, 0)
         if self.target_bytes is not None:
             check_int("target_bytes", self.target_bytes, 1)
 
@@ -284,6 +300,15 @@ class SeriesPacking:
                                   f"{packed.parameter_bytes:,} bytes even at {self.min_bits} bits; allow more bytes "
                                   "or train a smaller model", arguments=("target_bytes",))
         return packed
+
+    def repack(self, field: SeriesField, packed: PackedSeries) -> PackedSeries:
+        """``field`` packed on the steps of ``packed`` (an earlier packing of it, which a quantisation-aware
+        fine-tune then trained it towards); should the result no longer fit the target, packed anew
+        (:meth:`pack`)."""
+        again = pack_series(field, packed.bits, finer=packed.finer, steps=packed.steps)
+        if self.target_bytes is None or again.parameter_bytes <= parameter_budget(self.target_bytes, field.steps):
+            return again
+        return self.pack(field)
 
     @staticmethod
     def _refine(field: SeriesField, packed: PackedSeries, sensitivity: dict[str, np.ndarray],
@@ -358,7 +383,7 @@ def write_packed_series(path: str | os.PathLike, field: SeriesField, packed: Pac
 
 
 def series_packing_report(field: SeriesField, bits: float, before: SeriesEvaluation, after: SeriesEvaluation,
-                          target_bytes: int | None = None) -> dict:
+                          target_bytes: int | None = None, qat_iterations: int = 0) -> dict:
     """What packing a series at ``bits`` cost, as the file's ``packing`` entry (``info`` shows it).
 
     Args:
@@ -366,10 +391,11 @@ def series_packing_report(field: SeriesField, bits: float, before: SeriesEvaluat
         bits: the bit width packed to (:attr:`PackedSeries.bit_width`: fractional where a size target refined it).
         before, after: the field measured on every step before and after packing.
         target_bytes: the bytes the coded parameters were to fit in, if any.
+        qat_iterations: each step's quantisation-aware fine-tune (``before`` is the field before it).
     """
     bits = int(bits) if float(bits).is_integer() else bits
     report = {"mode": "bits" if target_bytes is None else "size", "bits": bits, "target_bytes": target_bytes, "float32_psnr": before.psnr, "float32_max_abs_error": before.max_abs_error,
-              "float32_parameter_bytes": 4 * field.parameter_count(), "qat_iterations": 0, "psnr": after.psnr,
+              "float32_parameter_bytes": 4 * field.parameter_count(), "qat_iterations": qat_iterations, "psnr": after.psnr,
               "max_abs_error": after.max_abs_error, "psnr_cost": _cost(before.psnr, after.psnr),
               "worst_step_psnr_cost": max(_cost(b.psnr, a.psnr) for b, a in zip(before.steps, after.steps))}
     return {k: float(f"{v:.6g}") if isinstance(v, float) else v for k, v in report.items()}

@@ -343,20 +343,20 @@ def _adopt(series: SeriesField, start_field: NeuralField) -> None:
     series.decoder.load_state_dict(start_field.decoder.state_dict())
 
 
-def _worker(series: SeriesField) -> NeuralField:
+def step_worker(series: SeriesField) -> NeuralField:
     """A single-step field with the series' decoder (frozen): the steps' fine-tunes train it."""
     return series.step_field(0).train()  # a materialised copy; its grids and placement are set per step
 
 
 @torch.no_grad()
-def _load_step(worker: NeuralField, series: SeriesField, step: int) -> None:
+def load_step(worker: NeuralField, series: SeriesField, step: int) -> None:
     """Step ``step``'s grids (or tables) and placement into the worker."""
     for name in series.encoder.step_parameters:
         getattr(worker.encoder, name).copy_(getattr(series.encoder, name)[step])
 
 
 @torch.no_grad()
-def _store_step(worker: NeuralField, series: SeriesField, step: int) -> None:
+def store_step(worker: NeuralField, series: SeriesField, step: int) -> None:
     """The worker's grids (or tables) and placement as step ``step``'s."""
     for name in series.encoder.step_parameters:
         getattr(series.encoder, name)[step].copy_(getattr(worker.encoder, name))
@@ -430,21 +430,21 @@ def _train_step(worker: NeuralField, series: SeriesField, values: torch.Tensor, 
     """
     features = series.encoder.step_features
     check = _check_sample(values, t)
-    _load_step(worker, series, neighbour)
+    load_step(worker, series, neighbour)
     start = _voxel_error(worker, check)
     first = _fine_tune(worker, values, config, track_first, features, check, sparsity)
     tracked, runs = track_first, 1
     if first > error * 10 ** (TRACK_DB / 20):
         kept = {k: v.clone() for k, v in worker.encoder.state_dict().items()}
-        _load_step(worker, series, neighbour)
+        load_step(worker, series, neighbour)
         second = _fine_tune(worker, values, config, not track_first, features, check, sparsity)
         if second >= first:
             worker.encoder.load_state_dict(kept)
         tracked, runs = (track_first if second >= first else not track_first), 2
     if _voxel_error(worker, check) > start:
-        _load_step(worker, series, neighbour)
+        load_step(worker, series, neighbour)
         tracked = track_first
-    _store_step(worker, series, t)
+    store_step(worker, series, t)
     return tracked, runs
 
 
@@ -499,7 +499,7 @@ def train_stepwise(
             stepwise.base_iterations(train_config) * STEP_ITERATION_CAP / batch_share)
         progress = _load_steps(checkpoint, series, fingerprint, most)
         resumed_from = progress.state.iteration
-        worker = _worker(series)
+        worker = step_worker(series)
     else:
         start = choose_start(values, stepwise.start)
         if checkpoint is not None and checkpoint.exists() and read_header(checkpoint).kind != CHECKPOINT_KIND:
@@ -512,7 +512,7 @@ def train_stepwise(
         # a decoder draws from the global random generator).
         series = build_field(prepared, field_config, volume_shape, train_config.seed)
         _adopt(series, first.field)
-        worker = _worker(series)
+        worker = step_worker(series)
         # Its RMS error at the voxels, not its last batch's: a batch drawn where the model is wrong
         # (TrainConfig.error_sampling) overstates it.
         error = math.sqrt(_voxel_error(first.field, _check_sample(values[start], start)))
