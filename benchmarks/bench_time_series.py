@@ -144,7 +144,7 @@ def run_series(args: argparse.Namespace) -> None:
         if joint:
             raise SystemExit(f"--{joint[0].replace('_', '-')} shapes a joint model: add --series-training joint")
         iterations, config = args.iterations, stepwise_config(small, len(series))
-        stepwise = StepwiseConfig(start=args.start)
+        stepwise = StepwiseConfig(start=args.start, step_iterations=args.step_iterations)
         packing = replace(default_series_packing(config, series.shape) if args.bits is None
                           else SeriesPacking(args.bits, min_bits=args.bits), qat_iterations=args.qat_iterations)
         voxel_fraction = STEPWISE_VOXEL_FRACTION if args.voxel_fraction is None else args.voxel_fraction
@@ -173,6 +173,7 @@ def run_series(args: argparse.Namespace) -> None:
                      + (f" step_sparsity={stepwise.sparsity(args.kind):g}" if stepwise.sparsity(args.kind) else "")
                      + (f" error_sampling={train_config.error_sampling:g}" if train_config.error_sampling else "")
                      + (f" qat_iterations={args.qat_iterations}" if args.qat_iterations else "")
+                     + (f" step_iterations={args.step_iterations}" if args.step_iterations else "")
                      + (f" seed={args.seed}" if args.seed else ""))
     else:
         described = f"basis={config.series.basis} {config.series.coefficients} residual={config.series.residual} " \
@@ -411,6 +412,8 @@ def main() -> None:
     series.add_argument("--bits", type=int,
                         help="stepwise: bit width the grids are packed to (default: as train packs, 10 bits within "
                              "five single-step models)")
+    series.add_argument("--step-iterations", type=int,
+                        help="stepwise: a step's base fine-tune iterations (default: a tenth of --iterations)")
     series.add_argument("--qat-iterations", type=int, default=0,
                         help="stepwise: every step's quantisation-aware fine-tune before packing (train's option)")
     series.add_argument("--seed", type=int, default=0)

@@ -38,7 +38,8 @@ from __future__ import annotations
 import copy
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 
 import numpy as np
 import torch
@@ -94,7 +95,7 @@ class PackedSeries:
     state: dict[str, torch.Tensor]
     bits: int
     finer: float = 0.0
-    steps: dict[str, np.ndarray] = field(default_factory=dict)
+    steps: dict[str, np.ndarray] = dataclass_field(default_factory=dict)
 
     @property
     def bit_width(self) -> float:
@@ -230,10 +231,11 @@ def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS,
                                                                    tuple(values.shape)))
               for name, values in parameters.items() if name in SHARED_STEP_TENSORS}
     if steps is None:
-        allocated = ({name: steps for name, (steps, _) in shared.items()} if sensitivity is None
+        allocated = ({name: uniform for name, (uniform, _) in shared.items()} if sensitivity is None
                      else sensitivity_steps(shared, sensitivity))
         if finer:
-            allocated = {name: round_steps(s.astype(np.float64) * 2.0**-finer) for name, s in allocated.items()}
+            allocated = {name: round_steps(chosen.astype(np.float64) * 2.0**-finer)
+                         for name, chosen in allocated.items()}
     else:
         allocated = steps
     tensors, state = [], {}
@@ -394,9 +396,10 @@ def series_packing_report(field: SeriesField, bits: float, before: SeriesEvaluat
         qat_iterations: each step's quantisation-aware fine-tune (``before`` is the field before it).
     """
     bits = int(bits) if float(bits).is_integer() else bits
-    report = {"mode": "bits" if target_bytes is None else "size", "bits": bits, "target_bytes": target_bytes, "float32_psnr": before.psnr, "float32_max_abs_error": before.max_abs_error,
-              "float32_parameter_bytes": 4 * field.parameter_count(), "qat_iterations": qat_iterations, "psnr": after.psnr,
-              "max_abs_error": after.max_abs_error, "psnr_cost": _cost(before.psnr, after.psnr),
+    report = {"mode": "bits" if target_bytes is None else "size", "bits": bits, "target_bytes": target_bytes,
+              "float32_psnr": before.psnr, "float32_max_abs_error": before.max_abs_error,
+              "float32_parameter_bytes": 4 * field.parameter_count(), "qat_iterations": qat_iterations,
+              "psnr": after.psnr, "max_abs_error": after.max_abs_error, "psnr_cost": _cost(before.psnr, after.psnr),
               "worst_step_psnr_cost": max(_cost(b.psnr, a.psnr) for b, a in zip(before.steps, after.steps))}
     return {k: float(f"{v:.6g}") if isinstance(v, float) else v for k, v in report.items()}
 

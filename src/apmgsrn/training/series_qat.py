@@ -102,7 +102,8 @@ def fine_tune_rounded(series: SeriesField, values: torch.Tensor, packed: PackedS
     device = values.device
     batch_share = STEP_BATCH_SHARES.get(series.config.field.model, 1.0) if device.type == "cpu" else 1.0
     tune = replace(config, iterations=iterations, lr=config.lr * QAT_LR_SHARE, density_start=iterations + 1,
-                   history_every=None, stop_after_lr_cuts=None, batch_size=max(1, round(config.batch_size * batch_share)))
+                   history_every=None, stop_after_lr_cuts=None,
+                   batch_size=max(1, round(config.batch_size * batch_share)))
     series.requires_grad_(False)
     worker = step_worker(series)
     with Progress(series.steps, unit="step", description="quantisation-aware", enabled=show_progress) as shown:
