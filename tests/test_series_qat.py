@@ -18,9 +18,11 @@ from apmgsrn.inference.evaluate import evaluate_series
 from apmgsrn.models.registry import preset_config
 from apmgsrn.training.fit import prepare_values
 from apmgsrn.training.series_packing import (
+    TUNED_BYTES_MARGIN,
     SeriesPacking,
     pack_series,
     packed_series_field,
+    parameter_budget,
     series_sensitivity,
 )
 from apmgsrn.training.series_qat import RoundedForward, element_steps, fine_tune_rounded
@@ -121,6 +123,24 @@ def test_repack_packs_anew_when_the_fine_tuned_field_no_longer_fits(hybrid_serie
     assert loose.repack(hybrid_series, packed).parameter_bytes == packed.parameter_bytes
     with pytest.raises(InvalidArgument, match="even at 2 bits"):
         packing.repack(hybrid_series, packed)
+
+
+def test_the_packing_to_tune_towards_leaves_room_for_the_fine_tuned_values(hybrid_series, prepared):
+    """With a size target the packing a fine-tune trains towards keeps TUNED_BYTES_MARGIN of the target free, so
+    the fine-tuned field, packed on the same steps, still fits (without the margin, a target the bisection
+    filled would send it back to packing anew on other steps)."""
+    tight = SeriesPacking(8, target_bytes=pack_series(hybrid_series, 6).parameter_bytes + 1024 + 64 * 4, min_bits=4,
+                          qat_iterations=20)
+    plain, to_tune = tight.pack(hybrid_series), tight.pack_to_tune(hybrid_series)
+    budget = parameter_budget(tight.target_bytes, 4)
+    assert plain.parameter_bytes <= budget and to_tune.parameter_bytes <= (1 - TUNED_BYTES_MARGIN) * tight.target_bytes
+    assert to_tune.bit_width < plain.bit_width
+    tuned = copy.deepcopy(hybrid_series)
+    fine_tune_rounded(tuned, prepared.values, to_tune, CONFIG, 20, show_progress=False)
+    repacked = tight.repack(tuned, to_tune)
+    assert all(np.array_equal(repacked.steps[k], to_tune.steps[k]) for k in to_tune.steps)  # the same steps
+    assert repacked.parameter_bytes <= budget
+    assert SeriesPacking(8).pack_to_tune(hybrid_series).bit_width == 8  # no target: no margin
 
 
 def test_train_with_qat_iterations_records_them_and_counts_them(pattern, tmp_path, capsys):

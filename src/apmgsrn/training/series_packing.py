@@ -38,7 +38,7 @@ from __future__ import annotations
 import copy
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from dataclasses import field as dataclass_field
 
 import numpy as np
@@ -75,6 +75,11 @@ LEVEL_TABLE_GROUP = 1024
 FINEST_SHARE_BITS = 8
 #: The bisection of :meth:`SeriesPacking._refine` stops within this share of a bit (4 more packings).
 FINER_RESOLUTION = 1 / 16
+#: Share of a size target left free by the packing a quantisation-aware fine-tune trains towards
+#: (:meth:`SeriesPacking.pack_to_tune`): the fine-tuned steps of the default hybrid series of the 30 viscous-finger
+#: steps coded 1.0 % larger, and a target the bisection had filled to within a sixteenth of a bit then no longer
+#: held them, so the field was packed anew on other steps, losing what the fine-tune gained (and 0.1-0.4 dB more).
+TUNED_BYTES_MARGIN = 0.02
 
 
 @dataclass(frozen=True)
@@ -302,6 +307,17 @@ class SeriesPacking:
                                   f"{packed.parameter_bytes:,} bytes even at {self.min_bits} bits; allow more bytes "
                                   "or train a smaller model", arguments=("target_bytes",))
         return packed
+
+    def pack_to_tune(self, field: SeriesField) -> PackedSeries:
+        """The packing a quantisation-aware fine-tune trains ``field`` towards: as :meth:`pack`, within
+        :data:`TUNED_BYTES_MARGIN` less than the target, so that the fine-tuned values, which code a little
+        larger, still fit on the same steps (:meth:`repack`)."""
+        if self.target_bytes is None:
+            return self.pack(field)
+        try:
+            return replace(self, target_bytes=max(1, round(self.target_bytes * (1 - TUNED_BYTES_MARGIN)))).pack(field)
+        except InvalidArgument:  # fits the target only without the margin
+            return self.pack(field)
 
     def repack(self, field: SeriesField, packed: PackedSeries) -> PackedSeries:
         """``field`` packed on the steps of ``packed`` (an earlier packing of it, which a quantisation-aware
