@@ -13,7 +13,7 @@ import torch
 import apmgsrn
 from apmgsrn.cli.main import main
 from apmgsrn.data.series import open_series
-from apmgsrn.errors import InvalidArgument
+from apmgsrn.errors import ApmgsrnError, InvalidArgument
 from apmgsrn.inference.evaluate import evaluate_series
 from apmgsrn.models.registry import preset_config
 from apmgsrn.training.fit import prepare_values
@@ -25,7 +25,7 @@ from apmgsrn.training.series_packing import (
     parameter_budget,
     series_sensitivity,
 )
-from apmgsrn.training.series_qat import RoundedForward, element_steps, fine_tune_rounded
+from apmgsrn.training.series_qat import RoundedForward, element_steps, fine_tune_rounded, stored_train_config
 from apmgsrn.training.series_steps import StepwiseConfig, stepwise_config, train_stepwise
 from apmgsrn.training.trainer import TrainConfig
 
@@ -158,3 +158,46 @@ def test_train_with_qat_iterations_records_them_and_counts_them(pattern, tmp_pat
     assert model.description.training["iterations"] == apmgsrn.load(tmp_path / "plain.apmgsrn").description.training[
         "iterations"] + 30 * 4
     assert tuned["psnr"] > plain["psnr"]
+
+
+def test_pack_with_qat_iterations_fine_tunes_a_float_series_file(pattern, tmp_path, capsys):
+    """``apmgsrn pack SERIES DATA --qat-iterations N`` fine-tunes a float series file's steps from the training
+    settings it recorded: closer to the data than the same packing without, the iterations in the report; a
+    file whose recorded settings are damaged is refused in one line."""
+    floats = tmp_path / "f.apmgsrn"
+    assert main(["train", pattern, "--model", "hybrid", "--levels", "6", "--log2-table-size", "10", "--grids", "4",
+                 "--resolution", "8", "--width", "16", "--iterations", "100", "--batch-size", "2048", "--device",
+                 "cpu", "--storage", "float32", "--out", str(floats)]) == 0
+    capsys.readouterr()
+    figures = {}
+    for label, extra in (("plain", []), ("tuned", ["--qat-iterations", "30"])):
+        out = tmp_path / f"{label}.apmgsrn"
+        assert main(["pack", str(floats), pattern, "--bits", "5", "--json", "--out", str(out), *extra]) == 0
+        figures[label] = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert figures["tuned"]["qat_iterations"] == 30 and figures["plain"]["qat_iterations"] == 0
+    assert figures["tuned"]["psnr"] > figures["plain"]["psnr"] + 0.2
+    assert figures["tuned"]["file_bytes"] < 1.1 * figures["plain"]["file_bytes"]
+    # The float file is untouched (the fine-tune works on the loaded copy).
+    assert apmgsrn.load(floats).description.kind == "series"
+
+
+def test_stored_train_config_refuses_damaged_settings():
+    assert stored_train_config({"config": {"lr": 0.01, "iterations": 10}}, "m").lr == 0.01
+    for training, message in (({}, "does not record its training settings"),
+                              ({"config": {"iterations": -4}}, "recorded training settings are damaged"),
+                              ({"config": {"betas": "x"}}, "recorded training settings are damaged")):
+        with pytest.raises(ApmgsrnError, match=message):
+            stored_train_config(training, "m")
+
+
+def test_pack_with_qat_iterations_refuses_a_joint_series_in_one_line(pattern, tmp_path, capsys):
+    joint = tmp_path / "j.apmgsrn"
+    assert main(["train", pattern, "--series-training", "joint", "--basis", "2", "--storage", "float32",
+                 "--iterations", "30", "--batch-size", "1024", "--device", "cpu", "--resolution", "8", "--width", "16",
+                 "--out", str(joint)]) == 0
+    capsys.readouterr()
+    out = tmp_path / "p.apmgsrn"
+    assert main(["pack", str(joint), pattern, "--bits", "8", "--qat-iterations", "5", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "a joint series has no grids of its own per step" in err and err.count("\n") == 1
+    assert not out.exists()

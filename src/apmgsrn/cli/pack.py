@@ -42,7 +42,7 @@ def add_pack_arguments(parser: argparse.ArgumentParser, title: str = "packing") 
                             "correction; eval verifies it")
     group.add_argument("--qat-iterations", type=int, metavar="N",
                        help="quantisation-aware fine-tune iterations before coding (default 0); for a "
-                            "stepwise time series (train only), iterations per step (docs/time_series.md)")
+                            "stepwise time series, iterations per step (docs/time_series.md)")
 
 
 def packing_requested(args: argparse.Namespace) -> bool:
@@ -204,8 +204,9 @@ def run(args: argparse.Namespace) -> int:
 
 def run_series_pack(args: argparse.Namespace, model) -> int:
     """``apmgsrn pack`` of a time-series model: every grid at ``--bits`` (or the largest bit width that fits
-    ``--size`` / ``--ratio``), the PSNR cost measured on every step of its series (per step in the file, which
-    ``info`` shows).
+    ``--size`` / ``--ratio``), with ``--qat-iterations`` every step of a stepwise series fine-tuned towards its
+    packed grids first (from the training settings the file recorded), the PSNR cost measured on every step of
+    its series (per step in the file, which ``info`` shows).
 
     Imports nothing of :mod:`apmgsrn.cli.series`, which imports this module (the packing options).
     """
@@ -217,25 +218,37 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
         series_packing_report,
         write_packed_series,
     )
+    from apmgsrn.training.packing import fitted_values
+    from apmgsrn.training.series_qat import fine_tune_rounded, stored_train_config
 
     layout = model.description.series
     series = open_series(args.data, **volume_options(args, allow_series=True))
     if len(series) != len(layout.steps):
         raise ApmgsrnError(f"{args.model}: the model holds {len(layout.steps)} steps but the data names "
                            f"{len(series)}; pass the series it was trained on")
-    if args.qat_iterations:
-        raise ApmgsrnError("--qat-iterations: a time series is fine-tuned towards its packing while it trains; "
-                           "pass it to apmgsrn train")
-    packing = series_packing(args, series.raw_bytes) or SeriesPacking()
+    packing = series_packing(args, series.raw_bytes) or SeriesPacking(qat_iterations=args.qat_iterations or 0)
     field = model.field.cpu().eval()
     log = (lambda line: None) if args.json else print
-    packed = packing.pack(field)
+    if packing.qat_iterations:  # refused before any work: no settings, or no grids per step
+        config = stored_train_config(model.description.training, str(args.model))
+        if not field.config.series.per_step_grids:
+            raise ApmgsrnError("--qat-iterations: fine-tunes every step of a stepwise series; a joint series "
+                               "has no grids of its own per step")
+        packed = packing.pack_to_tune(field)
+    else:
+        packed = packing.pack(field)
     options = dict(trained_shape=model.description.volume_shape, progress=not args.json)
     log(f"measuring the float32 model on {len(series)} steps")
     before = evaluate_series(field.step_field, series, **options)
+    if packing.qat_iterations:
+        log(f"fine-tuning every step towards its packed grids, {packing.qat_iterations} iterations each")
+        fine_tune_rounded(field, fitted_values(field, series.to_numpy()), packed, config, packing.qat_iterations,
+                          show_progress=not args.json)
+        packed = packing.repack(field, packed)
     log(f"measuring the packed model on {len(series)} steps")
     after = evaluate_series(packed_series_field(field, packed).step_field, series, **options)
-    report = series_packing_report(field, packed.bit_width, before, after, packing.target_bytes)
+    report = series_packing_report(field, packed.bit_width, before, after, packing.target_bytes,
+                                   packing.qat_iterations)
     training = {**model.description.training,
                 "steps": [{"psnr": e.psnr, "max_abs_error": e.max_abs_error} for e in after.steps]}
     out = Path(args.out)

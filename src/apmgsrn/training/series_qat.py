@@ -9,6 +9,11 @@ steps and the gradient moves the float values beneath (straight-through), the de
 Its voxel points are drawn where the rounded step is wrong, as a step's fine-tune draws them: with uniform
 draws the same fine-tune lost 1.1 dB instead of gaining. The field then holds the float values; packing it on
 the same steps stores what was trained (:meth:`~apmgsrn.training.series_packing.SeriesPacking.repack`).
+
+``train --qat-iterations N`` runs it at the end of a series' training, ``pack SERIES DATA --qat-iterations N`` on
+a float series file (from the training settings the file recorded). A single field's fine-tune
+(:func:`~apmgsrn.training.packing.quantization_aware_fine_tune`) quantises every parameter of one network on
+random points; here only a step's own grids are rounded and the trainer's guided voxel draws pick the points.
 """
 
 from __future__ import annotations
@@ -19,12 +24,13 @@ from dataclasses import replace
 import numpy as np
 import torch
 
+from apmgsrn.errors import ApmgsrnError, InvalidArgument
 from apmgsrn.io.quantization import group_ids
 from apmgsrn.models.series_field import SeriesField
 from apmgsrn.progress import Progress
 from apmgsrn.training.series_packing import SHARED_STEP_TENSORS, PackedSeries
 from apmgsrn.training.series_steps import STEP_BATCH_SHARES, load_step, store_step, step_worker
-from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback
+from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, current_names
 
 #: The fine-tune's learning rate as a share of the start model's. A viscous-finger step (7.25 bits, 50
 #: iterations at half the batch) gained 0.54 dB at 0.03 of it, 0.46 at 0.05, and lost 0.25 dB at 0.3: Adam's
@@ -118,3 +124,20 @@ def fine_tune_rounded(series: SeriesField, values: torch.Tensor, packed: PackedS
             shown.update(1)
     series.requires_grad_(True)
     return iterations * series.steps, time.perf_counter() - began
+
+
+def stored_train_config(training: dict, where: str) -> TrainConfig:
+    """The training settings a model file recorded (its summary's ``config``), as a :class:`TrainConfig`.
+
+    Raises:
+        ApmgsrnError: missing, or not settings the loop can run with (a damaged or hostile file).
+    """
+    stored = training.get("config") if isinstance(training, dict) else None
+    if not isinstance(stored, dict):
+        raise ApmgsrnError(f"{where}: the file does not record its training settings, which a quantisation-aware "
+                           "fine-tune starts from")
+    known = {key: value for key, value in current_names(stored).items() if key in TrainConfig.__dataclass_fields__}
+    try:
+        return TrainConfig(**known)
+    except (InvalidArgument, TypeError, ValueError) as exc:
+        raise ApmgsrnError(f"{where}: its recorded training settings are damaged ({exc})") from None
