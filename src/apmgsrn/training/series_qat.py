@@ -36,6 +36,9 @@ from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, cur
 #: iterations at half the batch) gained 0.54 dB at 0.03 of it, 0.46 at 0.05, and lost 0.25 dB at 0.3: Adam's
 #: first updates move every value by about the rate, a large share of a quantisation step.
 QAT_LR_SHARE = 0.03
+#: Share of the fine-tune's voxel points drawn where the rounded step is wrong, whatever the model kind's own
+#: training draws (:attr:`~apmgsrn.training.trainer.TrainConfig.error_sampling`; no voxel points, no guide).
+GUIDED_SHARE = 1.0
 
 
 class RoundedForward(TrainingCallback):
@@ -94,7 +97,7 @@ def fine_tune_rounded(series: SeriesField, values: torch.Tensor, packed: PackedS
         values: ``[T, D, H, W]`` the training values.
         packed: the field packed once (its :attr:`~apmgsrn.training.series_packing.PackedSeries.steps`).
         config: the start model's training (the fine-tune takes its learning rate times
-            :data:`QAT_LR_SHARE`, the steps' batch share on a CPU and the model kind's voxel draws).
+            :data:`QAT_LR_SHARE`, the steps' batch share on a CPU, its voxel share, guided :data:`GUIDED_SHARE`).
         iterations: each step's iterations.
         show_progress: one line of progress over the steps.
 
@@ -108,7 +111,7 @@ def fine_tune_rounded(series: SeriesField, values: torch.Tensor, packed: PackedS
     device = values.device
     batch_share = STEP_BATCH_SHARES.get(series.config.field.model, 1.0) if device.type == "cpu" else 1.0
     tune = replace(config, iterations=iterations, lr=config.lr * QAT_LR_SHARE, density_start=iterations + 1,
-                   history_every=None, stop_after_lr_cuts=None,
+                   history_every=None, stop_after_lr_cuts=None, error_sampling=GUIDED_SHARE,
                    batch_size=max(1, round(config.batch_size * batch_share)))
     series.requires_grad_(False)
     worker = step_worker(series)
