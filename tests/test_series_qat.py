@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -131,7 +132,7 @@ def test_the_packing_to_tune_towards_leaves_room_for_the_fine_tuned_values(hybri
     filled would send it back to packing anew on other steps)."""
     tight = SeriesPacking(8, target_bytes=pack_series(hybrid_series, 6).parameter_bytes + 1024 + 64 * 4, min_bits=4,
                           qat_iterations=20)
-    plain, to_tune = tight.pack(hybrid_series), tight.pack_to_tune(hybrid_series)
+    plain, to_tune = replace(tight, qat_iterations=0).pack(hybrid_series), tight.pack(hybrid_series)
     budget = parameter_budget(tight.target_bytes, 4)
     assert plain.parameter_bytes <= budget and to_tune.parameter_bytes <= (1 - TUNED_BYTES_MARGIN) * tight.target_bytes
     assert to_tune.bit_width < plain.bit_width
@@ -140,7 +141,7 @@ def test_the_packing_to_tune_towards_leaves_room_for_the_fine_tuned_values(hybri
     repacked = tight.repack(tuned, to_tune)
     assert all(np.array_equal(repacked.steps[k], to_tune.steps[k]) for k in to_tune.steps)  # the same steps
     assert repacked.parameter_bytes <= budget
-    assert SeriesPacking(8).pack_to_tune(hybrid_series).bit_width == 8  # no target: no margin
+    assert SeriesPacking(8, qat_iterations=20).pack(hybrid_series).bit_width == 8  # no target: no margin
 
 
 def test_train_with_qat_iterations_records_them_and_counts_them(pattern, tmp_path, capsys):

@@ -234,9 +234,7 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
         if not field.config.series.per_step_grids:
             raise ApmgsrnError("--qat-iterations: fine-tunes every step of a stepwise series; a joint series "
                                "has no grids of its own per step")
-        packed = packing.pack_to_tune(field)
-    else:
-        packed = packing.pack(field)
+    packed = packing.pack(field)
     options = dict(trained_shape=model.description.volume_shape, progress=not args.json)
     log(f"measuring the float32 model on {len(series)} steps")
     before = evaluate_series(field.step_field, series, **options)

@@ -283,17 +283,15 @@ def fit(
     if series:
         if packing is not None:
             before = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
+            packed = packing.pack(trained.field)
             if packing.qat_iterations:  # trained towards the packing's steps, then packed on them
                 if tune_packed is None:
                     raise ValueError("packing.qat_iterations needs tune_packed")
-                packed = packing.pack_to_tune(trained.field)
                 ran, seconds = tune_packed(trained.field, prepared.values, packed, train_config,
                                            packing.qat_iterations)
                 trained.state.iteration += ran
                 trained.state.elapsed += seconds
                 packed = packing.repack(trained.field, packed)
-            else:
-                packed = packing.pack(trained.field)
             trained.field.load_state_dict(packed.state)  # measure what the file will give back
         evaluation = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
         if packed is not None:

@@ -76,9 +76,10 @@ FINEST_SHARE_BITS = 8
 #: The bisection of :meth:`SeriesPacking._refine` stops within this share of a bit (4 more packings).
 FINER_RESOLUTION = 1 / 16
 #: Share of a size target left free by the packing a quantisation-aware fine-tune trains towards
-#: (:meth:`SeriesPacking.pack_to_tune`): the fine-tuned steps of the default hybrid series of the 30 viscous-finger
-#: steps coded 1.0 % larger, and a target the bisection had filled to within a sixteenth of a bit then no longer
-#: held them, so the field was packed anew on other steps, losing what the fine-tune gained (and 0.1-0.4 dB more).
+#: (:meth:`SeriesPacking.pack` with ``qat_iterations``): the fine-tuned steps of the default hybrid series of the
+#: 30 viscous-finger steps coded 1.0 % larger, and a target the bisection had filled to within a sixteenth of a
+#: bit then no longer held them, so the field was packed anew on other steps, losing what the fine-tune gained
+#: (and 0.1-0.4 dB more).
 TUNED_BYTES_MARGIN = 0.02
 
 
@@ -295,7 +296,17 @@ class SeriesPacking:
 
     def pack(self, field: SeriesField) -> PackedSeries:
         """The packed field (with a target: each bit width from the largest down, until one fits; then, if the
-        next larger width did not fit, the finest steps between the two that still fit, :meth:`_refine`)."""
+        next larger width did not fit, the finest steps between the two that still fit, :meth:`_refine`).
+
+        With :attr:`qat_iterations` the field is to be fine-tuned towards these steps and packed on them again
+        (:meth:`repack`): a target is then met within :data:`TUNED_BYTES_MARGIN` less, where it can be, so that
+        the fine-tuned values, which code a little larger, still fit."""
+        if self.qat_iterations and self.target_bytes is not None:
+            try:
+                return replace(self, target_bytes=max(1, round(self.target_bytes * (1 - TUNED_BYTES_MARGIN))),
+                               qat_iterations=0).pack(field)
+            except InvalidArgument:  # fits the target only without the margin
+                pass
         budget = None if self.target_bytes is None else parameter_budget(self.target_bytes, field.steps)
         sensitivity = series_sensitivity(field)
         for bits in range(self.bits, self.min_bits - 1, -1):
@@ -307,17 +318,6 @@ class SeriesPacking:
                                   f"{packed.parameter_bytes:,} bytes even at {self.min_bits} bits; allow more bytes "
                                   "or train a smaller model", arguments=("target_bytes",))
         return packed
-
-    def pack_to_tune(self, field: SeriesField) -> PackedSeries:
-        """The packing a quantisation-aware fine-tune trains ``field`` towards: as :meth:`pack`, within
-        :data:`TUNED_BYTES_MARGIN` less than the target, so that the fine-tuned values, which code a little
-        larger, still fit on the same steps (:meth:`repack`)."""
-        if self.target_bytes is None:
-            return self.pack(field)
-        try:
-            return replace(self, target_bytes=max(1, round(self.target_bytes * (1 - TUNED_BYTES_MARGIN)))).pack(field)
-        except InvalidArgument:  # fits the target only without the margin
-            return self.pack(field)
 
     def repack(self, field: SeriesField, packed: PackedSeries) -> PackedSeries:
         """``field`` packed on the steps of ``packed`` (an earlier packing of it, which a quantisation-aware

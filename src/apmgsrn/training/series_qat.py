@@ -114,14 +114,13 @@ def fine_tune_rounded(series: SeriesField, values: torch.Tensor, packed: PackedS
                    history_every=None, stop_after_lr_cuts=None, error_sampling=GUIDED_SHARE,
                    batch_size=max(1, round(config.batch_size * batch_share)))
     series.requires_grad_(False)
-    worker = step_worker(series)
+    worker = step_worker(series).requires_grad_(False)
+    parameters = [getattr(worker.encoder, name).requires_grad_(True) for name in steps]
+    step_sizes = [steps[name].to(device) for name in steps]
     with Progress(series.steps, unit="step", description="quantisation-aware", enabled=show_progress) as shown:
         for t in range(series.steps):
             load_step(worker, series, t)
-            for parameter in worker.parameters():
-                parameter.requires_grad_(False)
-            parameters = [getattr(worker.encoder, name).requires_grad_(True) for name in steps]
-            rounded = RoundedForward(parameters, [steps[name].to(device) for name in steps])
+            rounded = RoundedForward(parameters, step_sizes)
             Trainer(worker, values[t], tune, None, {}, [rounded], warm=True).run()
             store_step(worker, series, t)
             shown.update(1)
