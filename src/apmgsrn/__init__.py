@@ -4,11 +4,14 @@ Importing this package imports nothing heavy (the command line starts fast): it 
 compiles kernels or imports torch or optional extras until a name below is used.
 """
 
+from apmgsrn.allocator import keep_freed_memory
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.threads import set_openmp_wait_policy
 
 # Before torch loads libgomp, which reads its wait policy once: see apmgsrn.threads.
 set_openmp_wait_policy()
+# glibc's allocator keeps the memory a training step frees for the next one: see apmgsrn.allocator.
+keep_freed_memory()
 
 __version__ = "0.1.0"
 __all__ = ["ApmgsrnError", "Model", "Region", "fit", "load", "render", "__version__"]

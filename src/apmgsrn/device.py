@@ -34,24 +34,6 @@ def resolve_device(name: str = "auto") -> torch.device:
     return device
 
 
-def keep_large_allocations_cached() -> None:
-    """Stop glibc from returning large blocks to the OS after every free.
-
-    PyTorch's CPU allocator is plain malloc: each multi-megabyte activation would otherwise be a fresh
-    mmap whose pages fault in on first touch, which costs more than the arithmetic of a small MLP.
-    Harmless where glibc is absent.
-    """
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6")
-        m_trim_threshold, m_mmap_threshold = -1, -3
-        libc.mallopt(m_mmap_threshold, 1 << 30)
-        libc.mallopt(m_trim_threshold, 1 << 31)
-    except (OSError, AttributeError):
-        pass
-
-
 @functools.cache
 def cpu_has_native_bfloat16() -> bool:
     """Whether this CPU has bfloat16 dot-product instructions (elsewhere oneDNN emulates them, slowly)."""

@@ -25,7 +25,6 @@ import torch
 
 from apmgsrn.data import Volume
 from apmgsrn.data.fingerprint import volume_fingerprint
-from apmgsrn.device import keep_large_allocations_cached
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.inference.evaluate import Evaluation, SeriesEvaluation, evaluate, evaluate_series
 from apmgsrn.io import SeriesStepInfo, SourceInfo, save_field, save_series
@@ -178,8 +177,6 @@ def train_prepared(
         fingerprint: what a resumed checkpoint must match (data and model).
         callbacks: called around every iteration.
     """
-    if prepared.values.device.type == "cpu":
-        keep_large_allocations_cached()
     field = build_field(prepared, field_config, volume_shape, train_config.seed)
     if prepared.constant:
         # Empty space (a constant brick) is exact without training: the output scaling returns the
