@@ -1,14 +1,18 @@
 """Decoding as a user decodes (issue 18): a trained model loaded with ``apmgsrn.load`` in a fresh process,
 library defaults, 2^18 random points per call under ``torch.no_grad()``, beside the CPU's measured limit.
+Models: APMGSRN's small and medium presets and the hybrid's (``--models``).
 
-Rows, each in its own fresh process (no allocator settings or other process-wide changes here):
-- ``default``: ``apmgsrn.load(FILE)`` then ``model(points)``: the library's own path (on CPUs the fused
-  encoder + decoder kernel in float32, or bfloat16 hidden layers where the CPU multiplies them natively).
-- ``float32 unfused``: the path before issue 18: the encoder's CPU kernel, then the decoder's matrix
-  products in PyTorch (``field.decoder(field.encoder(points))``).
+Rows, each in its own fresh process (what ``import apmgsrn`` sets, nothing more):
+- ``default``: ``apmgsrn.load(FILE)`` then ``model(points)``: the library's own path (float32, as ``decode``
+  and ``eval`` run by default; on CPUs the fused encoder + decoder kernel).
+- ``auto``: ``apmgsrn.load(FILE, precision="auto")``: bfloat16 hidden layers where the CPU multiplies them
+  natively (AVX512-BF16 or AMX), else the same as ``default``.
+- ``float32 unfused``: the path before the fused kernels (issue 18 for APMGSRN, 2026-11-27 for the hybrid):
+  the encoder's CPU kernel, then the decoder's matrix products in PyTorch
+  (``field.decoder(field.encoder(points))``).
 - ``bfloat16``: ``apmgsrn.load(FILE, precision="bfloat16")``: hidden layers in bfloat16 (fast only where the
   CPU has AVX512-BF16 or AMX; emulated, slowly, elsewhere).
-- ``encoder only``: the multi-grid encoder's CPU kernel alone (features, no decoder): the ceiling of any
+- ``encoder only``: the encoder's CPU kernel alone (features, no decoder): the ceiling of any
   decoding path with this encoder on these points.
 
 PSNR: each row's values on the training volume's whole lattice against the volume (value range of the
@@ -37,17 +41,19 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"
 VOLUME = ("c60_128x128x128_uint8.raw", (128, 128, 128))
 PRESETS = ("small", "medium")
-ROWS = ("default", "float32 unfused", "bfloat16", "encoder only")
+KINDS = ("apmgsrn", "hybrid")
+ROWS = ("default", "auto", "float32 unfused", "bfloat16", "encoder only")
 POINTS = 2**18
 
 
-def trained_model(folder: Path, preset: str, iterations: int) -> Path:
-    """A model of ``preset`` trained ``iterations`` on the c60 volume with the command line (made once)."""
-    path = folder / f"c60_{preset}_{iterations}.apmgsrn"
+def trained_model(folder: Path, kind: str, preset: str, iterations: int) -> Path:
+    """A ``kind`` model of ``preset`` trained ``iterations`` on the c60 volume with the command line (made once)."""
+    path = folder / f"c60_{preset}_{iterations}.apmgsrn" if kind == "apmgsrn" else \
+        folder / f"c60_{kind}_{preset}_{iterations}.apmgsrn"
     if not path.exists():
         name, shape = VOLUME
         command = [sys.executable, "-m", "apmgsrn", "train", str(SHARED / name), "--shape",
-                   ",".join(map(str, shape)), "--dtype", "uint8", "--model", "apmgsrn", "--preset", preset,
+                   ",".join(map(str, shape)), "--dtype", "uint8", "--model", kind, "--preset", preset,
                    "--iterations", str(iterations), "--device", "cpu", "--out", str(path)]
         print("$", " ".join(command), flush=True)
         subprocess.run(command, check=True, capture_output=True, env=dict(os.environ, PYTHONPATH=str(REPO / "src")))
@@ -74,7 +80,7 @@ def child_decode(model_path: str, row: str, repeats: int) -> dict:
     import torch
     from apmgsrn.inference.decode import decode_array
 
-    model = apmgsrn.load(model_path, precision="bfloat16" if row == "bfloat16" else "auto")
+    model = apmgsrn.load(model_path, **({"precision": row} if row in ("auto", "bfloat16") else {}))
     field = model.field
     if row == "encoder only":
         run = field.encoder
@@ -88,7 +94,7 @@ def child_decode(model_path: str, row: str, repeats: int) -> dict:
     with torch.no_grad():
         seconds, cpu_seconds = _median_seconds(lambda: run(points), repeats)
     config = field.config
-    widths = [config.encoder.grids * config.encoder.features] + [config.decoder.width] * config.decoder.hidden_layers + [1]
+    widths = [field.encoder.out_features] + [config.decoder.width] * config.decoder.hidden_layers + [1]
     flop = 2 * sum(a * b for a, b in zip(widths[:-1], widths[1:]))
     result = {"mpps": POINTS / seconds / 1e6, "cpu_mpps": POINTS / cpu_seconds / 1e6, "psnr": None, "flop": flop,
               "threads": torch.get_num_threads()}
@@ -158,6 +164,7 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=500, help="training iterations of the models")
     parser.add_argument("--models-dir", default=str(Path(tempfile.gettempdir()) / "apmgsrn-bench-models"))
     parser.add_argument("--out", default=None, help="markdown file to write")
+    parser.add_argument("--models", default=",".join(KINDS), help="model kinds, comma-separated")
     args = parser.parse_args()
     if args.child == "decode":
         print(json.dumps(child_decode(args.model, args.row, args.repeats)))
@@ -167,22 +174,23 @@ def main() -> None:
         return
     folder = Path(args.models_dir)
     folder.mkdir(parents=True, exist_ok=True)
-    models = {preset: trained_model(folder, preset, args.iterations) for preset in PRESETS}
+    kinds = [kind for kind in args.models.split(",") if kind]
+    models = {(kind, preset): trained_model(folder, kind, preset, args.iterations) for kind in kinds for preset in PRESETS}
     load_start = os.getloadavg()[0]
     limits = in_fresh_process("--child", "matmul", "--repeats", str(args.repeats))
     lines = [f"Matrix product [65536, 64] x [64, 64], {limits['threads']} threads: float32 {limits['float32']:.1f} "
              f"GFLOP/s ({limits['float32_cpu']:.1f} per CPU-second), bfloat16 {limits['bfloat16']:.1f} GFLOP/s "
              f"({limits['bfloat16_cpu']:.1f} per CPU-second).", "",
-             "| preset | path | M points/s | M points per CPU-s | PSNR dB (128^3 lattice) | decoder FLOP/point | "
+             "| model | preset | path | M points/s | M points per CPU-s | PSNR dB (128^3 lattice) | decoder FLOP/point | "
              "limit f32 M/s | limit bf16 M/s | limit f32 per CPU-s | limit bf16 per CPU-s |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(lines), flush=True)
-    for preset in PRESETS:
+    for (kind, preset), model in models.items():
         for row in ROWS:
-            r = in_fresh_process("--child", "decode", "--model", str(models[preset]), "--row", row,
+            r = in_fresh_process("--child", "decode", "--model", str(model), "--row", row,
                                  "--repeats", str(args.repeats))
             psnr = "-" if r["psnr"] is None else f"{r['psnr']:.2f}"
-            line = (f"| {preset} | {row} | {r['mpps']:.2f} | {r['cpu_mpps']:.2f} | {psnr} | {r['flop']:,} | "
+            line = (f"| {kind} | {preset} | {row} | {r['mpps']:.2f} | {r['cpu_mpps']:.2f} | {psnr} | {r['flop']:,} | "
                     f"{limits['float32'] * 1e3 / r['flop']:.2f} | {limits['bfloat16'] * 1e3 / r['flop']:.2f} | "
                     f"{limits['float32_cpu'] * 1e3 / r['flop']:.2f} | {limits['bfloat16_cpu'] * 1e3 / r['flop']:.2f} |")
             lines.append(line)
@@ -197,13 +205,13 @@ Machine: {cpu_name()}, {os.cpu_count()} cores ({cpu_flags()}), torch {torch.__ve
 {platform.python_version()}; 1-minute load average {load_start:.1f} at the start, {load_end:.1f} at the end (the
 machine is shared with other jobs: a load above 2 means the cores were not ours alone, and every figure
 here is lower than on an idle machine). Command: `python benchmarks/bench_decode.py --repeats {args.repeats}
---out {args.out}`. No GPU was lent to this session: GPU rows are left for a session that has one.
+--models {args.models} --out {args.out}`. No GPU was lent to this session: GPU rows are left for a session that has one.
 
-Models: the small and medium presets trained {args.iterations} iterations on c60 128^3 (uint8) with
-`apmgsrn train`; each row in a fresh process, `apmgsrn.load(FILE)` with the library's defaults (no allocator
-or thread settings in the benchmark), {POINTS:,} random points per call under `torch.no_grad()`, median of
+Models: the small and medium presets of {", ".join(kinds)} trained {args.iterations} iterations on c60 128^3
+(uint8) with `apmgsrn train`; each row in a fresh process, `apmgsrn.load(FILE)` with the library's defaults (no
+allocator or thread settings of the benchmark's own), {POINTS:,} random points per call under `torch.no_grad()`, median of
 {args.repeats} calls after 3 warm-ups. The authors' code on the same kind of 2-core CPU: 0.96 M (small) and
-0.77 M (medium) points/s (REFERENCE.md).
+0.77 M (medium) points/s (REFERENCE.md), for APMGSRN.
 
 {chr(10).join(lines)}
 
@@ -213,7 +221,7 @@ it. "limit": the matrix-product rate divided by the decoder's dense FLOP per poi
 could reach if the encoder cost nothing. The fused kernel adds only the non-zero inputs of each layer (zero
 features outside a grid, ReLU zeros), so it is not bound by that line. "encoder only": the grids' look-ups
 alone, no decoder (PSNR "-": features are not values); where it is close to `default`, the encoder's
-gathers from the grids bound the whole path (the medium preset samples 16 grids of 2 x 32^3 values, 8
+gathers from the grids bound the whole path (APMGSRN's medium preset samples 16 grids of 2 x 32^3 values, 8
 corners each, at random points; encoding blocks of tiles grid by grid, so that a grid stays in cache,
 gained at most 8 % here, so it is the number and latency of the gathers rather than cache capacity).
 """

@@ -1,5 +1,6 @@
-"""The fused CPU inference kernel (ops/field_cpu.py: encoder + decoder MLP in one pass) against the
-reference ``decoder(multigrid_features_reference(...))``. Inference only, so forward only."""
+"""The fused CPU inference kernels (ops/field_cpu.py: encoder + decoder MLP in one pass) against the reference
+``decoder(multigrid_features_reference(...))`` for APMGSRN's encoder and ``decoder(level_grid_features_reference(...))``
+for level grids (the hybrid's). Inference only, so forward only."""
 
 from __future__ import annotations
 
@@ -13,6 +14,8 @@ import torch
 import apmgsrn
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config
+from apmgsrn.ops import field_cpu
+from apmgsrn.ops.level_grids import level_grid_decoded, level_grid_features_reference
 from apmgsrn.ops.multigrid import multigrid_decoded, multigrid_features_reference
 from apmgsrn.training.trainer import Trainer, TrainConfig
 
@@ -181,3 +184,111 @@ def test_eval_and_decode_take_the_precision_and_eval_reports_float32_unless_aske
     capsys.readouterr()
     assert main(["decode", model, "--out", str(tmp_path / "x.npy"), "--precision", "int4"]) == 2
     assert "--precision" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------ level grids (the hybrid)
+def level_parts(field: NeuralField) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]:
+    encoder = field.encoder
+    return encoder.maps(), torch.cat([encoder.level_table, encoder.grids.reshape(-1)]), field.decoder.weights()
+
+
+def level_reference(pts: torch.Tensor, field: NeuralField) -> torch.Tensor:
+    maps, table, weights = level_parts(field)
+    x = level_grid_features_reference(pts, maps, table, field.encoder.layout)
+    for w in weights[:-1]:
+        x = torch.relu(x @ w.t())
+    return (x @ weights[-1].t()).view(-1)
+
+
+@pytest.fixture(scope="module")
+def trained_hybrid(test_data) -> NeuralField:
+    """The hybrid small preset after a short fit to a real volume (dense and hashed levels, adaptive grids,
+    the ReLU zeros of a trained decoder)."""
+    raw = np.fromfile(test_data / "neghip_64x64x64_uint8.raw", dtype=np.uint8).reshape(64, 64, 64)
+    values = torch.from_numpy(raw.astype(np.float32) / 255.0)
+    field = NeuralField(preset_config("hybrid", "small"), volume_shape=(64, 64, 64),
+                        generator=torch.Generator().manual_seed(0))
+    Trainer(field, values, TrainConfig(iterations=40, batch_size=4096)).run()
+    return field.eval()
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_fused_decoding_of_a_trained_hybrid_matches_the_reference(trained_hybrid, threads):
+    assert any(trained_hybrid.encoder.layout.hashed) and not all(trained_hybrid.encoder.layout.hashed)
+    pts = points(20_000, seed=threads)
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        with torch.no_grad():
+            fused = level_grid_decoded(pts, *level_parts(trained_hybrid)[:2], trained_hybrid.encoder.layout,
+                                       trained_hybrid.decoder.weights())
+            ref = level_reference(pts, trained_hybrid)
+    finally:
+        torch.set_num_threads(before)
+    assert fused is not None
+    assert_matches(fused, ref)
+
+
+def test_a_hybrid_field_decodes_fused_for_users_and_the_reference_where_asked(trained_hybrid, monkeypatch):
+    calls = []
+    original = field_cpu.level_grid_decoder_cpu
+    monkeypatch.setattr(field_cpu, "level_grid_decoder_cpu", lambda *a: calls.append(1) or original(*a))
+    pts = points(5000, seed=7)
+    with torch.no_grad():
+        values = trained_hybrid.normalized(pts).view(-1)
+    assert calls == [1]  # the user's path (eval, decode, render, the error guide) is the fused one
+    assert_matches(values, level_reference(pts, trained_hybrid))
+    # gradients wanted: the autograd path, whose gradient reaches the tables
+    trained_hybrid.zero_grad()
+    trained_hybrid.normalized(pts).sum().backward()
+    assert calls == [1] and trained_hybrid.encoder.level_table.grad.abs().sum() > 0
+    trained_hybrid.zero_grad(set_to_none=True)
+    maps, table, weights = level_parts(trained_hybrid)
+    layout = trained_hybrid.encoder.layout
+    with torch.no_grad():
+        assert level_grid_decoded(pts.double(), maps, table, layout, weights) is None
+        assert level_grid_decoded(pts, maps, table, layout, weights, backend="torch") is None
+        assert level_grid_decoded(torch.empty(0, 3), maps, table, layout, weights).shape == (0,)
+
+
+@pytest.mark.parametrize("levels,features,log2_table_size,grids,grid_features,widths", [
+    (12, 2, 11, 8, 1, [64, 64]),  # the small preset's shapes
+    (3, 3, 6, 0, 1, [20]),        # no adaptive grids, every fine level hashed
+    (5, 1, 14, 2, 3, [3, 9, 40]),  # dense levels only, odd widths
+    (4, 2, 8, 1, 2, [130, 17]),   # a hidden layer wider than a register block
+])
+def test_fused_level_decoding_of_odd_sizes_matches_the_reference(levels, features, log2_table_size, grids,
+                                                                  grid_features, widths):
+    config = preset_config("hybrid", "small", levels=levels, features=features, log2_table_size=log2_table_size,
+                           grids=grids, grid_features=grid_features, hidden_layers=len(widths), width=widths[0])
+    field = NeuralField(config, volume_shape=(40, 24, 32), generator=torch.Generator().manual_seed(levels))
+    g = torch.Generator().manual_seed(1)
+    with torch.no_grad():  # features and weights away from their tiny start, odd widths in every layer
+        field.encoder.level_table.copy_(torch.randn(field.encoder.level_table.shape, generator=g))
+        field.encoder.grids.copy_(torch.randn(field.encoder.grids.shape, generator=g))
+    sizes = [field.encoder.out_features, *widths, 1]
+    weights = [torch.randn(o, i, generator=g) / i**0.5 for i, o in zip(sizes[:-1], sizes[1:])]
+    maps, table, _ = level_parts(field)
+    pts = points(3000, seed=1)
+    with torch.no_grad():
+        fused = level_grid_decoded(pts, maps, table, field.encoder.layout, weights)
+        x = level_grid_features_reference(pts, maps, table, field.encoder.layout)
+        for w in weights[:-1]:
+            x = torch.relu(x @ w.t())
+    assert fused is not None
+    assert_matches(fused, (x @ weights[-1].t()).view(-1))
+
+
+def test_a_series_step_of_hybrids_evaluates_through_the_fused_kernel(test_data, tmp_path, monkeypatch):
+    steps = sorted((test_data / "viscous_fingers_run01").glob("*.vti"))[:2]
+    model = apmgsrn.fit([str(p) for p in steps], model="hybrid", iterations=30, batch_size=2048, device="cpu",
+                        progress=False)
+    calls = []
+    original = field_cpu.level_grid_decoder_cpu
+    monkeypatch.setattr(field_cpu, "level_grid_decoder_cpu", lambda *a: calls.append(1) or original(*a))
+    step = model.field.step_field(1)
+    pts = points(2000, seed=5)
+    with torch.no_grad():
+        values = step.normalized(pts).view(-1)
+    assert calls == [1]
+    assert_matches(values, level_reference(pts, step))

@@ -1,4 +1,5 @@
-"""Fused CPU inference of an adaptive multi-grid field: encoder and decoder MLP in one pass per tile.
+"""Fused CPU inference of a field: encoder and decoder MLP in one pass per tile, for the adaptive multi-grid
+encoder (APMGSRN's, :func:`multigrid_decoder_cpu`) and for level grids (the hybrid's, :func:`level_grid_decoder_cpu`).
 
 Why: decoding through PyTorch runs the encoder kernel, writes ``[N, M * C]`` features, then three matrix
 products whose ``[N, 64]`` activations go through memory (and, for each fresh multi-megabyte buffer,
@@ -13,8 +14,12 @@ output layer is a dense dot product with the last hidden layer, taken while it i
 
 The sums run in another order than PyTorch's matrix products (and with fused multiply-adds), so results
 agree with the reference ``decoder(multigrid_features_reference(...))`` to float32 rounding, not bit for
-bit; tests compare them. Inference only: no gradients. The C source extends
-:data:`apmgsrn.ops.multigrid_cpu.C_SOURCE` (its tile encoder), built and cached as a library of its own.
+bit; tests compare them. Inference only: no gradients. The MLP's C source (:data:`MLP_SOURCE`) follows a tile
+encoder: :data:`apmgsrn.ops.multigrid_cpu.C_SOURCE`'s in :data:`LIBRARY`, :data:`apmgsrn.ops.level_grids_cpu.C_SOURCE`'s
+in :data:`LEVEL_LIBRARY`, each built and cached as a library of its own. A hybrid small model's pass over every
+voxel of a 64^3 volume (what ``eval`` and the training's error guide run; a model of a viscous-finger step)
+took 76 ms against 103 through the level kernel and PyTorch's matrix products in chunks of 8,192 points, and
+223 in one batch (1 thread; random points on c60 models: docs/benchmarks_decode.md).
 """
 
 from __future__ import annotations
@@ -24,15 +29,20 @@ import ctypes
 import torch
 
 from apmgsrn.ops.kernel_cache import CompiledLibrary
+from apmgsrn.ops.level_grids_cpu import C_SOURCE as LEVEL_SOURCE
+from apmgsrn.ops.level_grids_cpu import kernel_layout
+from apmgsrn.ops.level_layout import LevelLayout
 from apmgsrn.ops.multigrid_cpu import C_SOURCE as MULTIGRID_SOURCE
+from apmgsrn.ops.multigrid_cpu import LANE_LUT_SOURCE
 from apmgsrn.ops.multigrid_cpu import _sampling_layout, index_space_affine
 
 #: Largest encoder output (``M * C``) and decoder width the fused kernel takes; larger models use the
 #: reference (their per-thread buffers would not fit in cache anyway).
 MAX_FEATURES, MAX_WIDTH = 4096, 4096
 
-DECODE_SOURCE = r"""
+MLP_SOURCE = r"""
 #include <stdlib.h>
+#include <string.h>
 
 #if defined(__AVX512F__)
 #define VL 16
@@ -119,6 +129,50 @@ static float hidden_layer(const float *x, const int *idx, int nnz, const float *
     return sum;
 }
 
+/* One thread's decoder: the MLP (f inputs, then `layers` hidden widths padded to pad[l], weights as
+   field_decode's) and its buffers: a tile's features feature-major (feat[j * TILE + k]), two of the widest
+   layer and the non-zero list (room for it plus 8). */
+typedef struct { i64 f; int layers; const i64 *pad; const float *weights; float *feat, *x, *y; int *idx; } Mlp;
+
+static Mlp mlp_open(i64 f, int layers, const i64 *pad, const float *weights) {
+    i64 widest = f;
+    for (int l = 0; l < layers; ++l) widest = pad[l] > widest ? pad[l] : widest;
+    Mlp m = {f, layers, pad, weights, malloc(sizeof(float) * (size_t)(TILE * f)),
+             malloc(sizeof(float) * (size_t)widest), malloc(sizeof(float) * (size_t)widest),
+             malloc(sizeof(int) * (size_t)(widest + 8))};
+    return m;
+}
+
+static void mlp_close(Mlp *m) { free(m->feat); free(m->x); free(m->y); free(m->idx); }
+
+/* out[k] = decoder(features of point k) for the nt points of the tile in m->feat. */
+static void decode_tile(Mlp *m, int nt, float *out) {
+    float *x = m->x, *y = m->y;
+    for (int k = 0; k < nt; ++k) {
+        for (i64 j = 0; j < m->f; ++j) x[j] = m->feat[j * TILE + k];  /* the point's features */
+        const float *in = x;
+        i64 width = m->f;
+        const float *wt = m->weights;
+        float value = 0.0f;
+        for (int l = 0; l < m->layers; ++l) {
+            const int nnz = nonzero(in, (int)width, m->idx);
+            const float *next = wt + width * m->pad[l];
+            if (l == m->layers - 1) {
+                value = hidden_layer(in, m->idx, nnz, wt, m->pad[l], NULL, next);
+            } else {
+                float *h = in == x ? y : x;
+                hidden_layer(in, m->idx, nnz, wt, m->pad[l], h, NULL);
+                in = h;
+            }
+            width = m->pad[l];
+            wt = next;
+        }
+        out[k] = value;
+    }
+}
+"""
+
+MULTIGRID_DECODE_SOURCE = r"""
 /* The features of the tile's nt points starting at i0, feature-major: ft[(g * C + c) * TILE + k], so
    each grid's samples land in one contiguous row (written straight there when the grid covers the whole
    tile). */
@@ -148,46 +202,51 @@ static void encode_tile_t(Scratch *s, const float *points, i64 i0, int nt, const
 void field_decode(const float *points, i64 n, const float *aff, i64 m, const float *grids,
                   i64 c, i64 d, i64 h, i64 w, i64 sm, i64 sc, i64 sz, i64 sy, i64 sx,
                   int layers, const i64 *pad, const float *weights, float *out, int nthreads) {
-    const i64 f = m * c;
     const i64 ntiles = (n + TILE - 1) / TILE;
     const Shape shape = {(int)d, (int)h, (int)w, (int)sz, (int)sy, (int)sx};
-    i64 widest = f;
-    for (int l = 0; l < layers; ++l) widest = pad[l] > widest ? pad[l] : widest;
     #pragma omp parallel num_threads(nthreads)
     {
         Scratch s;
-        float *feat = malloc(sizeof(float) * (size_t)(TILE * f));
-        float *x = malloc(sizeof(float) * (size_t)widest), *y = malloc(sizeof(float) * (size_t)widest);
-        int *idx = malloc(sizeof(int) * (size_t)(widest + 8));
+        Mlp mlp = mlp_open(m * c, layers, pad, weights);
         #pragma omp for schedule(dynamic, 4)
         for (i64 t = 0; t < ntiles; ++t) {
             const i64 i0 = t * TILE;
             const int nt = (int)(n - i0 < TILE ? n - i0 : TILE);
-            encode_tile_t(&s, points, i0, nt, aff, m, grids, c, sm, sc, shape, feat);
-            for (int k = 0; k < nt; ++k) {
-                for (i64 j = 0; j < f; ++j) y[j] = feat[j * TILE + k];  /* the point's features */
-                float *swap = x; x = y; y = swap;
-                const float *in = x;
-                i64 width = f;
-                const float *wt = weights;
-                float value = 0.0f;
-                for (int l = 0; l < layers; ++l) {
-                    const int nnz = nonzero(in, (int)width, idx);
-                    const float *next = wt + width * pad[l];
-                    if (l == layers - 1) {
-                        value = hidden_layer(in, idx, nnz, wt, pad[l], NULL, next);
-                    } else {
-                        hidden_layer(in, idx, nnz, wt, pad[l], y, NULL);
-                        float *swap = x; x = y; y = swap;
-                        in = x;
-                    }
-                    width = pad[l];
-                    wt = next;
-                }
-                out[i0 + k] = value;
-            }
+            encode_tile_t(&s, points, i0, nt, aff, m, grids, c, sm, sc, shape, mlp.feat);
+            decode_tile(&mlp, nt, out + i0);
         }
-        free(feat); free(x); free(y); free(idx);
+        mlp_close(&mlp);
+    }
+}
+"""
+
+LEVEL_DECODE_SOURCE = r"""
+/* out[i] = decoder(level-grid features(points[i])): lg_forward's levels (same arguments) into a tile buffer,
+   then field_decode's MLP (layers, pad, weights) on it. */
+void level_decode(const float *points, i64 n, i64 levels, const float *maps, const int *meta, const i64 *rows,
+                  const i64 *offsets, const float *table, i64 f, int layers, const i64 *pad, const float *weights,
+                  float *out, int nthreads) {
+    const i64 ntiles = (n + TILE - 1) / TILE;
+    #pragma omp parallel num_threads(nthreads)
+    {
+        Scratch s;
+        Mlp mlp = mlp_open(f, layers, pad, weights);
+        #pragma omp for schedule(dynamic, 4)
+        for (i64 t = 0; t < ntiles; ++t) {
+            const i64 i0 = t * TILE;
+            const int nt = (int)(n - i0 < TILE ? n - i0 : TILE);
+            load_tile(&s, points, i0, nt);
+            for (i64 l = 0; l < levels; ++l) {
+                const Level lv = level_at(l, maps, meta, rows);
+                corners(&s, lv, nt);
+                for (int c = 0; c < lv.features; ++c) {
+                    gather(table + offsets[l] + c, &s, nt);
+                    memcpy(mlp.feat + (meta[6 * l + 5] + c) * TILE, s.res, sizeof(float) * (size_t)nt);
+                }
+            }
+            decode_tile(&mlp, nt, out + i0);
+        }
+        mlp_close(&mlp);
     }
 }
 """
@@ -201,17 +260,28 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.field_vector_width.restype = i32
 
 
-LIBRARY = CompiledLibrary("field_cpu", MULTIGRID_SOURCE + DECODE_SOURCE, _declare)
+def _declare_levels(lib: ctypes.CDLL) -> None:
+    p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+    lib.level_decode.argtypes = [p, i64, i64, p, p, p, p, p, i64, i32, p, p, p, i32]
+    lib.level_decode.restype = None
+    lib.field_vector_width.argtypes = []
+    lib.field_vector_width.restype = i32
 
 
-def fusable(features: int, widths: list[int]) -> bool:
-    """Whether the fused kernel takes an encoder of ``features`` outputs and hidden layers of ``widths``
-    (and builds here)."""
+LIBRARY = CompiledLibrary("field_cpu", MULTIGRID_SOURCE + MLP_SOURCE + MULTIGRID_DECODE_SOURCE, _declare)
+#: The fused decoder of level-grid encoders (the hybrid's): the level kernel's tile encoder, then the same MLP.
+LEVEL_LIBRARY = CompiledLibrary("field_levels_cpu", LEVEL_SOURCE + LANE_LUT_SOURCE + MLP_SOURCE + LEVEL_DECODE_SOURCE,
+                                _declare_levels)
+
+
+def fusable(features: int, widths: list[int], library: CompiledLibrary = LIBRARY) -> bool:
+    """Whether the fused kernel (``library``: :data:`LIBRARY` for the multi-grid encoder, :data:`LEVEL_LIBRARY`
+    for level grids) takes an encoder of ``features`` outputs and hidden layers of ``widths`` (and builds here)."""
     return (
         0 < features <= MAX_FEATURES
         and len(widths) >= 1
         and all(0 < w <= MAX_WIDTH for w in widths)
-        and LIBRARY.available()
+        and library.available()
     )
 
 
@@ -270,5 +340,37 @@ def multigrid_decoder_cpu(
     lib.field_decode(
         pts.data_ptr(), n, aff.data_ptr(), m, g.data_ptr(), c, d, h, w, *g.stride(),
         len(padded), padded.data_ptr(), packed.data_ptr(), out.data_ptr(), torch.get_num_threads(),
+    )
+    return out
+
+
+def level_grid_decoder_cpu(
+    points: torch.Tensor, maps: torch.Tensor, table: torch.Tensor, layout: LevelLayout, weights: list[torch.Tensor]
+) -> torch.Tensor:
+    """``decoder(level_grid_features(points, ...))`` in one fused pass, without gradients (float32 CPU).
+
+    Args:
+        points: ``[N, 3]``.
+        maps: ``[L, 3, 4]`` index-space maps.
+        table: ``[T]`` flat parameters.
+        layout: the levels.
+        weights: the decoder's bias-free linear layers ``[out, in]``, ReLU between them, the last ``[1, in]``.
+
+    Returns:
+        ``[N]`` decoder outputs.
+    """
+    lib = LEVEL_LIBRARY.load_or_raise()
+    kernel = kernel_layout(layout)
+    pts = points.detach().to(torch.float32).contiguous()
+    n = pts.shape[0]
+    m = maps.detach().to(torch.float32)
+    flat_maps = torch.cat([m[:, :, :3].reshape(-1, 9), m[:, :, 3]], dim=1).contiguous()  # [L, 12]: A', t
+    tab = table.detach().to(torch.float32).contiguous()
+    packed, padded = pack_decoder(weights, lib.field_vector_width())
+    out = torch.empty(n, dtype=torch.float32)
+    lib.level_decode(
+        pts.data_ptr(), n, layout.levels, flat_maps.data_ptr(), kernel.meta.data_ptr(), kernel.rows.data_ptr(),
+        kernel.offsets.data_ptr(), tab.data_ptr(), layout.out_features, len(padded), padded.data_ptr(),
+        packed.data_ptr(), out.data_ptr(), torch.get_num_threads(),
     )
     return out

@@ -183,3 +183,36 @@ def level_grid_features(
         raise RuntimeError(f"level-grid backend {backend!r} needs float32 {'CUDA' if backend == 'triton' else 'CPU'} "
                            "tensors and no gradient for points or maps")
     return level_grid_features_reference(points, maps, table, layout)
+
+
+def level_grid_decoded(
+    points: torch.Tensor, maps: torch.Tensor, table: torch.Tensor, layout: LevelLayout, weights: list[torch.Tensor],
+    backend: str = "auto",
+) -> torch.Tensor | None:
+    """``decoder(level_grid_features(points, ...))`` fused in one pass where a kernel can (inference only).
+
+    The fused CPU kernel (:func:`apmgsrn.ops.field_cpu.level_grid_decoder_cpu`) runs when ``backend`` is
+    ``"auto"`` or ``"cpu"``, the points are on the CPU, no gradient is wanted, every tensor is float32 and the
+    sizes fit; elsewhere this returns ``None`` and the caller runs encoder and decoder as usual (the reference).
+
+    Args:
+        points: ``[N, 3]``.
+        maps: ``[L, 3, 4]`` index-space maps.
+        table: ``[T]`` flat parameters.
+        layout: the levels.
+        weights: the decoder's bias-free linear layers ``[out, in]`` in order, ReLU between them, the last
+            ``[1, in]``.
+        backend: as :func:`level_grid_features`.
+
+    Returns:
+        ``[N]`` decoder outputs, or ``None``.
+    """
+    if torch.is_grad_enabled() or backend not in ("auto", "cpu") or points.device.type != "cpu":
+        return None
+    if any(t.dtype != torch.float32 for t in (points, maps, table, *weights)):
+        return None
+    from apmgsrn.ops import field_cpu
+
+    if not field_cpu.fusable(layout.out_features, [w.shape[0] for w in weights[:-1]], field_cpu.LEVEL_LIBRARY):
+        return None
+    return field_cpu.level_grid_decoder_cpu(points, maps, table, layout, weights)

@@ -33,6 +33,22 @@ import torch
 
 from apmgsrn.ops.kernel_cache import CompiledLibrary
 
+#: AVX2 compaction table, shared by every kernel that lists the non-zero lanes of a mask (here, and the fused
+#: decoders of :mod:`apmgsrn.ops.field_cpu`).
+LANE_LUT_SOURCE = r"""
+#if defined(__AVX2__)
+#include <immintrin.h>
+/* lane_lut[mask]: positions of the set bits of an 8-bit mask, in order (zero-filled), for compaction. */
+static unsigned char lane_lut[256][8];
+__attribute__((constructor)) static void init_lane_lut(void) {
+    for (int mask = 0; mask < 256; ++mask) {
+        int n = 0;
+        for (int b = 0; b < 8; ++b) if (mask >> b & 1) lane_lut[mask][n++] = (unsigned char)b;
+        for (; n < 8; ++n) lane_lut[mask][n] = 0;
+    }
+}
+#endif
+"""
 # The C source. Coordinates are folded into index space once per grid: ``f = A' p + t'`` with
 # ``A' = A (size - 1) / 2`` and ``t' = (t + 1) (size - 1) / 2`` (corner-aligned unnormalisation), so a
 # point costs 9 multiply-adds per grid before the bounds test.
@@ -48,20 +64,7 @@ static int omp_get_num_threads(void) { return 1; }
 #endif
 
 typedef int64_t i64;
-
-#if defined(__AVX2__)
-#include <immintrin.h>
-/* lane_lut[mask]: positions of the set bits of an 8-bit mask, in order (zero-filled), for compaction. */
-static unsigned char lane_lut[256][8];
-__attribute__((constructor)) static void init_lane_lut(void) {
-    for (int mask = 0; mask < 256; ++mask) {
-        int n = 0;
-        for (int b = 0; b < 8; ++b) if (mask >> b & 1) lane_lut[mask][n++] = (unsigned char)b;
-        for (; n < 8; ++n) lane_lut[mask][n] = 0;
-    }
-}
-#endif
-
+""" + LANE_LUT_SOURCE + r"""
 /* Points are processed in tiles: every loop below runs over the points of one tile for one grid, so
    the compiler vectorises it (8 points per AVX2 instruction), and the tile's scratch stays in L1. */
 #define TILE 128

@@ -35,7 +35,7 @@ from torch import nn
 from apmgsrn.arguments import check_choice
 from apmgsrn.models.encoders.adaptive_multigrid import AdaptiveMultiGridEncoder
 from apmgsrn.models.encoders.base import STORAGE_DTYPES, Encoder
-from apmgsrn.ops.level_grids import LEVEL_GRID_BACKENDS, index_space_maps, level_grid_features
+from apmgsrn.ops.level_grids import LEVEL_GRID_BACKENDS, index_space_maps, level_grid_decoded, level_grid_features
 from apmgsrn.ops.level_layout import LevelLayout
 
 GRID_INITS = ("volume", "default")
@@ -272,6 +272,12 @@ class HybridGridEncoder(Encoder):
         """
         return self.features_of(points, self.level_table, self.grids, self.matrices, self.translations,
                                 detach_placement)
+
+    def decoded(self, points: torch.Tensor, weights: list[torch.Tensor]) -> torch.Tensor | None:
+        """Encoder and decoder in one pass on the CPU when no gradient is wanted (see
+        :func:`~apmgsrn.ops.level_grids.level_grid_decoded`); None elsewhere."""
+        table = torch.cat([self.level_table, self.grids.reshape(-1)])
+        return level_grid_decoded(points, self.maps(), table, self.layout, weights, self.config.backend)
 
     def features_of(self, points: torch.Tensor, level_table: torch.Tensor, grids: torch.Tensor,
                     matrices: torch.Tensor, translations: torch.Tensor, detach_placement: bool = False) -> torch.Tensor:
