@@ -6,7 +6,8 @@ Rows, each in its own fresh process (what ``import apmgsrn`` sets, nothing more)
 - ``default``: ``apmgsrn.load(FILE)`` then ``model(points)``: the library's own path (float32, as ``decode``
   and ``eval`` run by default; on CPUs the fused encoder + decoder kernel).
 - ``auto``: ``apmgsrn.load(FILE, precision="auto")``: bfloat16 hidden layers where the CPU multiplies them
-  natively (AVX512-BF16 or AMX), else the same as ``default``.
+  natively (AVX512-BF16 or AMX) and the model has no fused float32 kernel, else the same as ``default`` (until
+  2026-11-27 it chose bfloat16 on such CPUs for every model: the ``bfloat16`` row).
 - ``float32 unfused``: the path before the fused kernels (issue 18 for APMGSRN, 2026-11-27 for the hybrid):
   the encoder's CPU kernel, then the decoder's matrix products in PyTorch
   (``field.decoder(field.encoder(points))``).

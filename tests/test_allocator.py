@@ -14,8 +14,8 @@ pytestmark = pytest.mark.skipif(platform.system() != "Linux" or platform.libc_ve
                                 reason="glibc's mallopt only")
 
 # Minor page faults of one pass of a hybrid model's encoder and decoder (PyTorch's matrix products, as a training
-# step runs them) over every voxel of a 64^3 lattice in chunks of 8,192 points, after a first pass; SETUP chooses
-# the allocator.
+# step runs them) over every voxel of a 64^3 lattice in chunks of 8,192 points, after a first pass (the fewest of
+# three); SETUP chooses the allocator.
 FAULTS = """
 SETUP
 import json, resource, torch
@@ -30,9 +30,12 @@ def one_pass():
     with torch.no_grad():
         return [field.decoder(field.encoder(part)) for part in points.split(8192)]
 one_pass()
-before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-one_pass()
-print(json.dumps({"faults": resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before}))
+counts = []
+for _ in range(3):  # the fewest of three passes: a one-off fault elsewhere in the process does not count
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    one_pass()
+    counts.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+print(json.dumps({"faults": min(counts)}))
 """
 
 

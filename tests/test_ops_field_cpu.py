@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -134,7 +135,8 @@ def test_fused_kernel_runs_only_where_no_gradient_is_wanted_and_inputs_are_float
 
 def test_bfloat16_inference_is_close_to_float32_and_auto_follows_the_cpu(test_data, monkeypatch):
     """load(precision=...) on a real trained model: bfloat16 hidden layers agree with float32 to bfloat16's
-    precision; "auto" picks bfloat16 only on CPUs that multiply it natively."""
+    precision; "auto" picks bfloat16 only on CPUs that multiply it natively, and only for a field that has no
+    fused float32 kernel (which decodes faster there: docs/benchmarks_decode.md)."""
     from apmgsrn import device
     from apmgsrn.arguments import InvalidArgument
 
@@ -150,9 +152,14 @@ def test_bfloat16_inference_is_close_to_float32_and_auto_follows_the_cpu(test_da
     assert 0 < error < 0.02  # really rounded, and only to bfloat16's 8-bit mantissa
     assert apmgsrn.load(path).field.inference_dtype is None  # float32 unless asked: a bound holds
     monkeypatch.setattr(device, "cpu_has_native_bfloat16", lambda: True)
-    assert apmgsrn.load(path, precision="auto").field.inference_dtype is torch.bfloat16
+    assert apmgsrn.load(path, precision="auto").field.inference_dtype is None  # the fused kernel runs
+    unfused = apmgsrn.load(path)
+    unfused.field.encoder.config = replace(unfused.field.encoder.config, backend="torch")
+    assert not unfused.field.fused_inference()
+    assert unfused.set_precision("auto").field.inference_dtype is torch.bfloat16
     monkeypatch.setattr(device, "cpu_has_native_bfloat16", lambda: False)
     assert apmgsrn.load(path, precision="auto").field.inference_dtype is None
+    assert unfused.set_precision("auto").field.inference_dtype is None
     with pytest.raises(InvalidArgument, match="precision"):
         apmgsrn.load(path, precision="int4")
 

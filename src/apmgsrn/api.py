@@ -87,7 +87,9 @@ class Model(nn.Module):
             precision: ``"float32"`` (the fused float32 kernel on CPUs, exact to float32 rounding),
                 ``"bfloat16"`` (the decoder's hidden layers in bfloat16: fast where the CPU multiplies it
                 natively, a PSNR cost that docs/benchmarks.md measures), or ``"auto"`` (bfloat16 on such
-                CPUs, float32 elsewhere).
+                CPUs for a field without a fused float32 kernel, float32 elsewhere: on an AVX512-BF16 CPU the
+                fused kernels of APMGSRN and the hybrid decoded 2.1-3.2x faster than bfloat16 matrix products,
+                docs/benchmarks_decode.md).
 
         Returns:
             The model.
@@ -98,7 +100,7 @@ class Model(nn.Module):
         dtype = inference_dtype(precision, self.device)
         for module in self.modules():
             if isinstance(module, NeuralField):
-                module.inference_dtype = dtype
+                module.inference_dtype = None if precision == "auto" and module.fused_inference() else dtype
         return self
 
     def predict(self, points, batch_size: int = QUERY_BATCH) -> np.ndarray:

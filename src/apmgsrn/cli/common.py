@@ -70,10 +70,11 @@ def add_precision_argument(parser: argparse.ArgumentParser, default: str, purpos
     """``--precision``: the arithmetic of inference (``apmgsrn.load(precision=...)``)."""
     parser.add_argument(
         "--precision", choices=DECODER_PRECISIONS, default=default,
-        help=f"arithmetic of the network (default {default}{purpose}): float32; bfloat16 hidden layers (fast "
-             "where the CPU multiplies bfloat16 natively, emulated and slow elsewhere; values move by up to about "
-             "0.5 %% of the range, and a --max-error bound is not kept); auto = bfloat16 on such CPUs, float32 "
-             "elsewhere")
+        help=f"arithmetic of the network (default {default}{purpose}): float32; bfloat16 hidden layers (faster "
+             "than float32 matrix products where the CPU multiplies bfloat16 natively, emulated and slow elsewhere, "
+             "slower than the fused float32 kernels of APMGSRN and the hybrid everywhere measured; values move by "
+             "up to about 0.5 %% of the range, and a --max-error bound is not kept); auto = bfloat16 on such CPUs "
+             "for a model without a fused float32 kernel, float32 elsewhere")
 
 
 def parse_triple(text: str, option: str) -> tuple[int, int, int]:

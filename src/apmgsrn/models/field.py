@@ -68,6 +68,13 @@ class NeuralField(nn.Module):
                 return fused.view(-1, 1)
         return self.decoder(self.encoder(points, detach_placement=detach_placement), hidden_dtype)
 
+    @torch.no_grad()
+    def fused_inference(self) -> bool:
+        """Whether float32 inference without gradients runs an encoder's fused kernel where this field lives
+        (asked of the encoder on no points)."""
+        points = torch.empty(0, 3, device=self.decoder.weights()[0].device)
+        return self.encoder.decoded(points, self.decoder.weights()) is not None
+
     def forward(self, points: torch.Tensor) -> torch.Tensor:
         """Values in data units ``[N, 1]`` at ``points`` ``[N, 3]``."""
         if self.value_min == self.value_max:
