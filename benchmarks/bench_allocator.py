@@ -1,8 +1,8 @@
 """Training and decoding speed under three settings of glibc's allocator (apmgsrn.allocator).
 
 Each run is a fresh process (the allocator's settings are per process): glibc's own defaults; what apmgsrn set
-before (a 1 GB mmap threshold, which glibc refuses, and the trim threshold, which freezes the mmap threshold at
-its 128 KB start); and what it sets now (``keep_freed_memory``). Work: a hybrid small model's iterations on a
+before, and only where ``train_prepared`` ran (a 1 GB mmap threshold and a 2 GB trim threshold, which this glibc
+accepts: the same effect as now); and what it sets now, on ``import apmgsrn`` (``keep_freed_memory``). Work: a hybrid small model's iterations on a
 viscous-finger step (as a time series' step fine-tunes them: half the batch, voxel points drawn where it is
 wrong; and as a single model: the CPU protocol's batch, uniform draws), an APMGSRN small model's, and one
 measurement of the error at every voxel (what guides the draws; also what ``eval`` does: since the hybrid's fused
