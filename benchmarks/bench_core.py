@@ -26,13 +26,11 @@ SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 def measure(preset: str, device_name: str, batch: int, steps: int, decode_batch: int, data: Path) -> dict:
     """Time training steps and decoding for one preset on one device (run in its own process)."""
     from apmgsrn.data import open_volume
-    from apmgsrn.allocator import keep_freed_memory
     from apmgsrn.models.field import NeuralField
     from apmgsrn.models.registry import preset_config
     from apmgsrn.training.trainer import Trainer, TrainConfig
 
     device = torch.device(device_name)
-    keep_freed_memory()
     if data.exists():
         values = torch.from_numpy(open_volume(data).to_numpy())
         values = (values - values.min()) / (values.max() - values.min())

@@ -17,7 +17,6 @@ import h5py
 import numpy as np
 import torch
 
-from apmgsrn.allocator import keep_freed_memory
 from apmgsrn.inference.evaluate import evaluate
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config
@@ -56,7 +55,6 @@ def main() -> None:
     parser.add_argument("--iterations", type=int, default=2000)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     args = parser.parse_args()
-    keep_freed_memory()
     variants = {**VARIANTS, **json.loads(args.extra)}
     names = args.variants + [k for k in json.loads(args.extra) if k not in args.variants]
     device = torch.device(args.device)

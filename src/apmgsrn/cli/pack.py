@@ -24,6 +24,11 @@ from apmgsrn.errors import ApmgsrnError
 PACK_OPTIONS = ("bits", "psnr_loss", "size", "ratio", "max_error", "qat_iterations")
 
 
+#: Why ``--qat-iterations`` is refused for a joint series (``train`` and ``pack``).
+JOINT_SERIES_QAT = ("--qat-iterations: fine-tunes every step of a stepwise series; a joint series has no grids of "
+                    "its own per step")
+
+
 def add_pack_arguments(parser: argparse.ArgumentParser, title: str = "packing") -> None:
     """``--bits``, ``--psnr-loss``, ``--size``, ``--ratio``, ``--max-error``, ``--qat-iterations``."""
     group = parser.add_argument_group(title, "quantise and entropy-code the model (docs/packing.md); "
@@ -232,8 +237,7 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
     if packing.qat_iterations:  # refused before any work: no settings, or no grids per step
         config = stored_train_config(model.description.training, str(args.model))
         if not field.config.series.per_step_grids:
-            raise ApmgsrnError("--qat-iterations: fine-tunes every step of a stepwise series; a joint series "
-                               "has no grids of its own per step")
+            raise ApmgsrnError(JOINT_SERIES_QAT)
     packed = packing.pack(field)
     options = dict(trained_shape=model.description.volume_shape, progress=not args.json)
     log(f"measuring the float32 model on {len(series)} steps")

@@ -199,7 +199,7 @@ def series_training(args: argparse.Namespace, config, raw_bytes: int, shape: tup
     Raises:
         ApmgsrnError: a packing option a series does not take, packing with --storage, or a bad --start-step.
     """
-    from apmgsrn.cli.pack import series_packing
+    from apmgsrn.cli.pack import JOINT_SERIES_QAT, series_packing
     from apmgsrn.training.series_packing import default_series_packing
     from apmgsrn.training.series_steps import StepwiseConfig
 
@@ -210,8 +210,7 @@ def series_training(args: argparse.Namespace, config, raw_bytes: int, shape: tup
                            "unpacked: give one")
     if args.series_training == "joint":
         if qat:
-            raise ApmgsrnError("--qat-iterations: fine-tunes every step of a stepwise series; a joint series "
-                               "has no grids of its own per step")
+            raise ApmgsrnError(JOINT_SERIES_QAT)
         return None, packing
     start = args.start_step or "auto"
     if start not in ("auto", "first", "last"):
