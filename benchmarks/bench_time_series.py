@@ -99,7 +99,8 @@ def run_baseline(args: argparse.Namespace) -> None:
     files = list(enumerate(_series_files(args.data)))
     if args.steps:
         files = [files[int(step)] for step in args.steps.split(",")]  # a subset, in the order given
-    config = _train_config(args, **({} if args.error_sampling is None else {"error_sampling": args.error_sampling}))
+    config = _train_config(args, seed=args.seed,
+                           **({} if args.error_sampling is None else {"error_sampling": args.error_sampling}))
     with tempfile.TemporaryDirectory() as tmp:
         for step, path in reversed(files) if args.reverse else files:
             # Read again before every step: a second process may share the table (one from each end).
@@ -144,9 +145,12 @@ def run_series(args: argparse.Namespace) -> None:
         if joint:
             raise SystemExit(f"--{joint[0].replace('_', '-')} shapes a joint model: add --series-training joint")
         iterations, config = args.iterations, stepwise_config(small, len(series))
-        stepwise = StepwiseConfig(start=args.start, step_iterations=args.step_iterations)
-        packing = replace(default_series_packing(config, series.shape) if args.bits is None
-                          else SeriesPacking(args.bits, min_bits=args.bits), qat_iterations=args.qat_iterations)
+        start = int(args.start) if args.start.isdigit() else args.start
+        stepwise = StepwiseConfig(start=start, step_iterations=args.step_iterations)
+        packing = (default_series_packing(config, series.shape, iterations) if args.bits is None
+                   else SeriesPacking(args.bits, min_bits=args.bits))
+        if args.qat_iterations is not None:
+            packing = replace(packing, qat_iterations=args.qat_iterations)
         voxel_fraction = STEPWISE_VOXEL_FRACTION if args.voxel_fraction is None else args.voxel_fraction
         anchored = args.anchored_grids
         if anchored is None:  # the hybrid's domain levels cover the domain: nothing to anchor
@@ -172,7 +176,7 @@ def run_series(args: argparse.Namespace) -> None:
                      f"voxel_fraction={voxel_fraction:g} anchored_grids={anchored}"
                      + (f" step_sparsity={stepwise.sparsity(args.kind):g}" if stepwise.sparsity(args.kind) else "")
                      + (f" error_sampling={train_config.error_sampling:g}" if train_config.error_sampling else "")
-                     + (f" qat_iterations={args.qat_iterations}" if args.qat_iterations else "")
+                     + (f" qat_iterations={packing.qat_iterations}" if packing.qat_iterations else "")
                      + (f" step_iterations={args.step_iterations}" if args.step_iterations else "")
                      + (f" seed={args.seed}" if args.seed else ""))
     else:
@@ -396,6 +400,7 @@ def main() -> None:
     base.add_argument("--csv", type=Path)
     base.add_argument("--reverse", action="store_true", help="last step first (a second process shares the work)")
     base.add_argument("--steps", help="only these steps, e.g. 10,15,20,25 (default: all)")
+    base.add_argument("--seed", type=int, default=0, help="the models' seed (the protocol's is 0)")
     base.add_argument("--error-sampling", type=float,
                       help="share of the voxel points drawn where the model is wrong (default: the kind's own)")
     series = sub.add_parser("series", help="one model for the whole series")
@@ -414,8 +419,9 @@ def main() -> None:
                              "five single-step models)")
     series.add_argument("--step-iterations", type=int,
                         help="stepwise: a step's base fine-tune iterations (default: a tenth of --iterations)")
-    series.add_argument("--qat-iterations", type=int, default=0,
-                        help="stepwise: every step's quantisation-aware fine-tune before packing (train's option)")
+    series.add_argument("--qat-iterations", type=int,
+                        help="stepwise: every step's quantisation-aware fine-tune before packing (train's option; "
+                             "default: train's)")
     series.add_argument("--seed", type=int, default=0)
     series.add_argument("--voxel-fraction", type=float,
                         help="share of every batch on voxels (default: stepwise 0.5, joint 0)")

@@ -19,6 +19,7 @@ from apmgsrn.ops import field_cpu
 from apmgsrn.ops.level_grids import level_grid_decoded, level_grid_features_reference
 from apmgsrn.ops.multigrid import multigrid_decoded, multigrid_features_reference
 from apmgsrn.training.trainer import Trainer, TrainConfig
+from level_fields import ODD_SIZES, odd_level_field
 
 HAS_COMPILER = bool(os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc"))
 pytestmark = pytest.mark.skipif(not HAS_COMPILER, reason="no C compiler: decoding runs the reference")
@@ -258,23 +259,10 @@ def test_a_hybrid_field_decodes_fused_for_users_and_the_reference_where_asked(tr
         assert level_grid_decoded(torch.empty(0, 3), maps, table, layout, weights).shape == (0,)
 
 
-@pytest.mark.parametrize("levels,features,log2_table_size,grids,grid_features,widths", [
-    (12, 2, 11, 8, 1, [64, 64]),  # the small preset's shapes
-    (3, 3, 6, 0, 1, [20]),        # no adaptive grids, every fine level hashed
-    (5, 1, 14, 2, 3, [3, 9, 40]),  # dense levels only, odd widths
-    (4, 2, 8, 1, 2, [130, 17]),   # a hidden layer wider than a register block
-])
+@pytest.mark.parametrize("levels,features,log2_table_size,grids,grid_features,widths", ODD_SIZES)
 def test_fused_level_decoding_of_odd_sizes_matches_the_reference(levels, features, log2_table_size, grids,
                                                                   grid_features, widths):
-    config = preset_config("hybrid", "small", levels=levels, features=features, log2_table_size=log2_table_size,
-                           grids=grids, grid_features=grid_features, hidden_layers=len(widths), width=widths[0])
-    field = NeuralField(config, volume_shape=(40, 24, 32), generator=torch.Generator().manual_seed(levels))
-    g = torch.Generator().manual_seed(1)
-    with torch.no_grad():  # features and weights away from their tiny start, odd widths in every layer
-        field.encoder.level_table.copy_(torch.randn(field.encoder.level_table.shape, generator=g))
-        field.encoder.grids.copy_(torch.randn(field.encoder.grids.shape, generator=g))
-    sizes = [field.encoder.out_features, *widths, 1]
-    weights = [torch.randn(o, i, generator=g) / i**0.5 for i, o in zip(sizes[:-1], sizes[1:])]
+    field, weights = odd_level_field(levels, features, log2_table_size, grids, grid_features, widths)
     maps, table, _ = level_parts(field)
     pts = points(3000, seed=1)
     with torch.no_grad():

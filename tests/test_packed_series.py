@@ -469,10 +469,12 @@ def test_the_default_packing_is_sized_by_the_stored_single_step_file_and_keeps_a
     shape = (64, 64, 64)
     for kind, lowest in (("apmgsrn", 6), ("hybrid", 7)):
         single = preset_config(kind, "small")
-        packing = default_series_packing(stepwise_config(single, 30), shape)
+        packing = default_series_packing(stepwise_config(single, 30), shape, 2000)
         fitted = single.fitted_to(shape)
         assert packing.target_bytes == 5 * stored_bytes(fitted) and packing.bits == 10
         assert packing.min_bits == lowest and not packing.strict
+        # fine-tuned towards the packing first: the hybrid's steps, 50 iterations after the start model's 2,000
+        assert packing.qat_iterations == (50 if kind == "hybrid" else 0)
     hybrid = preset_config("hybrid", "small").fitted_to(shape)
     values = sum(math.prod(s) for s in hybrid.parameter_shapes().values())
     assert 2 * values < stored_bytes(hybrid) < 3 * values  # float16 tables, float32 decoder and placement

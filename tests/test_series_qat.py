@@ -19,8 +19,10 @@ from apmgsrn.inference.evaluate import evaluate_series
 from apmgsrn.models.registry import preset_config
 from apmgsrn.training.fit import prepare_values
 from apmgsrn.training.series_packing import (
+    DEFAULT_SERIES_QAT_SHARE_OF,
     TUNED_BYTES_MARGIN,
     SeriesPacking,
+    default_series_qat,
     pack_series,
     packed_series_field,
     parameter_budget,
@@ -146,12 +148,19 @@ def test_the_packing_to_tune_towards_leaves_room_for_the_fine_tuned_values(hybri
 
 def test_train_with_qat_iterations_records_them_and_counts_them(pattern, tmp_path, capsys):
     """``train --qat-iterations N`` on a series: the file's packing entry and ``info`` name them, and the training
-    counts them (iterations and seconds)."""
+    counts them (iterations and seconds); without the option a hybrid series gets its default share of the
+    iterations, and 0 turns the fine-tune off."""
     common = [pattern, "--model", "hybrid", "--levels", "6", "--log2-table-size", "10", "--grids", "4",
               "--resolution", "8", "--width", "16", "--iterations", "100", "--batch-size", "2048", "--device", "cpu",
               "--bits", "6", "--json"]
-    assert main(["train", *common, "--out", str(tmp_path / "plain.apmgsrn")]) == 0
+    assert main(["train", *common, "--qat-iterations", "0", "--out", str(tmp_path / "plain.apmgsrn")]) == 0
     plain = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert apmgsrn.load(tmp_path / "plain.apmgsrn").description.packing.report["qat_iterations"] == 0
+    assert main(["train", *common, "--out", str(tmp_path / "default.apmgsrn")]) == 0
+    capsys.readouterr()
+    default = default_series_qat("hybrid", 100)
+    assert default == round(100 * DEFAULT_SERIES_QAT_SHARE_OF["hybrid"]) > 0
+    assert apmgsrn.load(tmp_path / "default.apmgsrn").description.packing.report["qat_iterations"] == default
     assert main(["train", *common, "--qat-iterations", "30", "--out", str(tmp_path / "qat.apmgsrn")]) == 0
     tuned = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     model = apmgsrn.load(tmp_path / "qat.apmgsrn")

@@ -364,9 +364,10 @@ def _fit_series(data, preset, model, iterations, batch_size, device, transform, 
         config = stepwise_config(field_config, len(series))
     except ValueError as exc:  # a model kind a series cannot extend
         raise ApmgsrnError(f"invalid time-series options: {exc}") from None
+    packing = default_series_packing(config, series.shape, train_config.iterations)
     return _fitted(lambda out: fit_series(series, config, train_config, out, device, transform=transform,
                                           log_offset=log_offset, progress=progress, stepwise=stepwise,
-                                          packing=default_series_packing(config, series.shape)), device)
+                                          packing=packing), device)
 
 
 def render(

@@ -115,7 +115,7 @@ def run_series_train(args: argparse.Namespace, series, field_config, train_confi
 
     device = resolve_device(args.device)  # the same device build_configs sized the budget for
     config = build_series_config(args, field_config, len(series))
-    stepwise, packing = series_training(args, config, series.raw_bytes, series.shape)
+    stepwise, packing = series_training(args, config, series.raw_bytes, series.shape, train_config.iterations)
     out = Path(args.out)
     try:
         result = fit_series(series, config, train_config, out, device, transform=args.transform,
@@ -187,7 +187,8 @@ def drifted_steps(evaluation, start: int) -> list[int]:
     return [t for t, e in enumerate(evaluation.steps) if reference - e.psnr > DRIFT_DB]
 
 
-def series_training(args: argparse.Namespace, config, raw_bytes: int, shape: tuple[int, int, int]):
+def series_training(args: argparse.Namespace, config, raw_bytes: int, shape: tuple[int, int, int],
+                    iterations: int):
     """(StepwiseConfig or None for a joint model, SeriesPacking or None for a float file) of the command line.
 
     Args:
@@ -195,16 +196,17 @@ def series_training(args: argparse.Namespace, config, raw_bytes: int, shape: tup
         config: the series model (sizes the default packing).
         raw_bytes: the series' bytes as float32 (``--ratio`` divides them).
         shape: ``(D, H, W)`` of every step (sizes a hybrid's tables, hence the default packing).
+        iterations: the start model's (the default quantisation-aware fine-tune is a share of them).
 
     Raises:
         ApmgsrnError: a packing option a series does not take, packing with --storage, or a bad --start-step.
     """
     from apmgsrn.cli.pack import JOINT_SERIES_QAT, series_packing
-    from apmgsrn.training.series_packing import default_series_packing
+    from apmgsrn.training.series_packing import default_series_packing, default_series_qat
     from apmgsrn.training.series_steps import StepwiseConfig
 
     packing = series_packing(args, raw_bytes)
-    qat = args.qat_iterations or 0
+    qat = args.qat_iterations  # None: the model kind's default
     if (packing is not None or qat) and args.storage is not None:
         raise ApmgsrnError("--bits, --size, --ratio and --qat-iterations pack the grids, --storage keeps them "
                            "unpacked: give one")
@@ -219,9 +221,11 @@ def series_training(args: argparse.Namespace, config, raw_bytes: int, shape: tup
         except ValueError:
             raise ApmgsrnError(f"--start-step {start}: must be auto, first, last or a step index") from None
     stepwise = StepwiseConfig(start=start, step_iterations=args.step_iterations, step_sparsity=args.step_sparsity)
+    if qat is None:
+        qat = default_series_qat(config.field.model, iterations)
     if packing is None and args.storage is None:
-        packing = replace(default_series_packing(config, shape), qat_iterations=qat)
-    return stepwise, packing
+        packing = default_series_packing(config, shape, iterations)
+    return stepwise, packing if packing is None else replace(packing, qat_iterations=qat)
 
 
 def build_series_config(args: argparse.Namespace, field_config, steps: int):

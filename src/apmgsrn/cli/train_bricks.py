@@ -115,7 +115,7 @@ def run_series_bricks(args: argparse.Namespace) -> int:
     # Each group trains with the budget of its own number of steps.
     field_config, train_config = build_configs(args, resolve_device(args.device), steps=len(groups[0]))
     config = build_series_config(args, field_config, len(series))
-    stepwise, packing = series_training(args, config, series.raw_bytes, series.shape)
+    stepwise, packing = series_training(args, config, series.raw_bytes, series.shape, train_config.iterations)
     out = Path(args.out)
     executor = ExecutorConfig(scheduler=args.scheduler, workers=args.workers, retries=args.retries)
     with open_job_queue(executor) as queue:

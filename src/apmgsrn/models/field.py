@@ -68,6 +68,16 @@ class NeuralField(nn.Module):
                 return fused.view(-1, 1)
         return self.decoder(self.encoder(points, detach_placement=detach_placement), hidden_dtype)
 
+    def fused_mse_step(self, points: torch.Tensor, target: torch.Tensor) -> torch.Tensor | None:
+        """One reconstruction step by the encoder's fused training kernel, where it has one and the decoder is
+        frozen (float32): the decoder output ``[N]`` at ``points``, with the gradient of its mean squared error
+        to ``target`` ``[N]`` stored as the encoder's learning features' ``.grad`` (replacing it)
+        (:meth:`~apmgsrn.models.encoders.base.Encoder.fused_mse_step`). None elsewhere: nothing changed."""
+        weights = self.decoder.weights()
+        if any(w.requires_grad for w in weights):
+            return None
+        return self.encoder.fused_mse_step(points, target, weights)
+
     @torch.no_grad()
     def fused_inference(self) -> bool:
         """Whether float32 inference without gradients runs an encoder's fused kernel where this field lives

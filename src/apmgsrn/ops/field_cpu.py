@@ -30,7 +30,7 @@ import torch
 
 from apmgsrn.ops.kernel_cache import CompiledLibrary
 from apmgsrn.ops.level_grids_cpu import C_SOURCE as LEVEL_SOURCE
-from apmgsrn.ops.level_grids_cpu import kernel_layout
+from apmgsrn.ops.level_grids_cpu import kernel_inputs, kernel_layout
 from apmgsrn.ops.level_layout import LevelLayout
 from apmgsrn.ops.multigrid_cpu import C_SOURCE as MULTIGRID_SOURCE
 from apmgsrn.ops.multigrid_cpu import LANE_LUT_SOURCE
@@ -97,6 +97,23 @@ static inline __attribute__((always_inline)) void weighted_rows(
     for (int v = 0; v < nv; ++v) acc[v] = a[v] + b[v];
 }
 
+/* weighted_rows for the block of nv = min(8, (wp - ob) / VL) vectors starting at column ob; returns nv. */
+static inline __attribute__((always_inline)) int row_block(
+        const float *x, const int *idx, int nnz, const float *wt, long wp, long ob, vec *acc) {
+    const int nv = (int)((wp - ob) / VL < 8 ? (wp - ob) / VL : 8);
+    switch (nv) {  /* constant vector counts, so the accumulators live in registers */
+        case 8: weighted_rows(x, idx, nnz, wt + ob, wp, 8, acc); break;
+        case 7: weighted_rows(x, idx, nnz, wt + ob, wp, 7, acc); break;
+        case 6: weighted_rows(x, idx, nnz, wt + ob, wp, 6, acc); break;
+        case 5: weighted_rows(x, idx, nnz, wt + ob, wp, 5, acc); break;
+        case 4: weighted_rows(x, idx, nnz, wt + ob, wp, 4, acc); break;
+        case 3: weighted_rows(x, idx, nnz, wt + ob, wp, 3, acc); break;
+        case 2: weighted_rows(x, idx, nnz, wt + ob, wp, 2, acc); break;
+        default: weighted_rows(x, idx, nnz, wt + ob, wp, 1, acc); break;
+    }
+    return nv;
+}
+
 /* relu keeping NaN, as torch.relu does */
 static inline vec relu(vec a) { return (vec)((veci)a & ~(veci)(a < (vec){0})); }
 
@@ -106,18 +123,8 @@ static float hidden_layer(const float *x, const int *idx, int nnz, const float *
                           const float *last) {
     vec total = (vec){0};
     for (long ob = 0; ob < wp; ob += 8 * VL) {
-        const int nv = (int)((wp - ob) / VL < 8 ? (wp - ob) / VL : 8);
         vec acc[8];
-        switch (nv) {  /* constant vector counts, so the accumulators live in registers */
-            case 8: weighted_rows(x, idx, nnz, wt + ob, wp, 8, acc); break;
-            case 7: weighted_rows(x, idx, nnz, wt + ob, wp, 7, acc); break;
-            case 6: weighted_rows(x, idx, nnz, wt + ob, wp, 6, acc); break;
-            case 5: weighted_rows(x, idx, nnz, wt + ob, wp, 5, acc); break;
-            case 4: weighted_rows(x, idx, nnz, wt + ob, wp, 4, acc); break;
-            case 3: weighted_rows(x, idx, nnz, wt + ob, wp, 3, acc); break;
-            case 2: weighted_rows(x, idx, nnz, wt + ob, wp, 2, acc); break;
-            default: weighted_rows(x, idx, nnz, wt + ob, wp, 1, acc); break;
-        }
+        const int nv = row_block(x, idx, nnz, wt, wp, ob, acc);
         if (last != NULL) {
             for (int v = 0; v < nv; ++v) total += relu(acc[v]) * *(const vec *)(last + ob + v * VL);
         } else {
@@ -221,8 +228,8 @@ void field_decode(const float *points, i64 n, const float *aff, i64 m, const flo
 """
 
 LEVEL_DECODE_SOURCE = r"""
-/* out[i] = decoder(level-grid features(points[i])): lg_forward's levels (same arguments) into a tile buffer,
-   then field_decode's MLP (layers, pad, weights) on it. */
+/* out[i] = decoder(level-grid features(points[i])): lg_forward's levels (same arguments) into a tile buffer
+   (encode_tile), then field_decode's MLP (layers, pad, weights) on it. */
 void level_decode(const float *points, i64 n, i64 levels, const float *maps, const int *meta, const i64 *rows,
                   const i64 *offsets, const float *table, i64 f, int layers, const i64 *pad, const float *weights,
                   float *out, int nthreads) {
@@ -235,15 +242,7 @@ void level_decode(const float *points, i64 n, i64 levels, const float *maps, con
         for (i64 t = 0; t < ntiles; ++t) {
             const i64 i0 = t * TILE;
             const int nt = (int)(n - i0 < TILE ? n - i0 : TILE);
-            load_tile(&s, points, i0, nt);
-            for (i64 l = 0; l < levels; ++l) {
-                const Level lv = level_at(l, maps, meta, rows);
-                corners(&s, lv, nt);
-                for (int c = 0; c < lv.features; ++c) {
-                    gather(table + offsets[l] + c, &s, nt);
-                    memcpy(mlp.feat + (meta[6 * l + 5] + c) * TILE, s.res, sizeof(float) * (size_t)nt);
-                }
-            }
+            encode_tile(&s, points, i0, nt, levels, maps, meta, rows, offsets, table, mlp.feat, 1, TILE);
             decode_tile(&mlp, nt, out + i0);
         }
         mlp_close(&mlp);
@@ -361,11 +360,8 @@ def level_grid_decoder_cpu(
     """
     lib = LEVEL_LIBRARY.load_or_raise()
     kernel = kernel_layout(layout)
-    pts = points.detach().to(torch.float32).contiguous()
+    pts, flat_maps, tab = kernel_inputs(points, maps, table)
     n = pts.shape[0]
-    m = maps.detach().to(torch.float32)
-    flat_maps = torch.cat([m[:, :, :3].reshape(-1, 9), m[:, :, 3]], dim=1).contiguous()  # [L, 12]: A', t
-    tab = table.detach().to(torch.float32).contiguous()
     packed, padded = pack_decoder(weights, lib.field_vector_width())
     out = torch.empty(n, dtype=torch.float32)
     lib.level_decode(

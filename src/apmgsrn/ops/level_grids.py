@@ -216,3 +216,52 @@ def level_grid_decoded(
     if not field_cpu.fusable(layout.out_features, [w.shape[0] for w in weights[:-1]], field_cpu.LEVEL_LIBRARY):
         return None
     return field_cpu.level_grid_decoder_cpu(points, maps, table, layout, weights)
+
+
+def level_grid_mse_step_reference(
+    points: torch.Tensor, maps: torch.Tensor, table: torch.Tensor, layout: LevelLayout, weights: list[torch.Tensor],
+    target: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The prediction ``[N]`` of ``decoder(level_grid_features(points))`` and the gradient ``[T]`` of its mean
+    squared error to ``target`` ``[N]`` with respect to ``table`` alone, by autograd through the reference
+    (what :func:`level_grid_mse_step`'s fused kernel must match)."""
+    with torch.enable_grad():
+        leaf = table.detach().requires_grad_(True)
+        x = level_grid_features_reference(points.detach(), maps.detach(), leaf, layout)
+        for weight in weights[:-1]:
+            x = torch.relu(x @ weight.detach().t())
+        prediction = (x @ weights[-1].detach().t()).view(-1)
+        (grad,) = torch.autograd.grad((prediction - target.detach().view(-1)).square().mean(), leaf)
+    return prediction.detach(), grad
+
+
+def level_grid_mse_step(
+    points: torch.Tensor, maps: torch.Tensor, table: torch.Tensor, layout: LevelLayout, weights: list[torch.Tensor],
+    target: torch.Tensor, backend: str = "auto",
+) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """One training step's numbers for a table under a frozen decoder, fused in one pass where a kernel can:
+    the prediction ``[N]`` and the gradient ``[T]`` of its mean squared error to ``target`` with respect to
+    ``table`` (as :func:`level_grid_mse_step_reference`).
+
+    The fused CPU kernel (:func:`apmgsrn.ops.field_train_cpu.level_grid_mse_step_cpu`) runs when ``backend`` is
+    ``"auto"`` or ``"cpu"``, the points are on the CPU and every tensor is float32; elsewhere this returns
+    ``None`` and the caller runs the step through autograd.
+
+    Args:
+        points: ``[N, 3]``.
+        maps: ``[L, 3, 4]`` index-space maps (constants here).
+        table: ``[T]`` flat parameters.
+        layout: the levels.
+        weights: the decoder's bias-free linear layers ``[out, in]`` in order (constants here).
+        target: ``[N]`` the values to fit.
+        backend: as :func:`level_grid_features`.
+    """
+    if backend not in ("auto", "cpu") or points.device.type != "cpu":
+        return None
+    if any(t.dtype != torch.float32 for t in (points, maps, table, target, *weights)):
+        return None
+    from apmgsrn.ops import field_train_cpu
+
+    if not field_train_cpu.trainable(layout.out_features, [w.shape[0] for w in weights[:-1]]):
+        return None
+    return field_train_cpu.level_grid_mse_step_cpu(points, maps, table, layout, weights, target)

@@ -131,6 +131,40 @@ static inline Level level_at(i64 l, const float *maps, const int *meta, const i6
     return lv;
 }
 
+/* The features of the tile's nt points from i0, every level: point k, column c into out[k * sn + c * sc]. */
+static void encode_tile(Scratch *s, const float *points, i64 i0, int nt, i64 levels, const float *maps,
+                        const int *meta, const i64 *rows, const i64 *offsets, const float *table, float *out,
+                        i64 sn, i64 sc) {
+    load_tile(s, points, i0, nt);
+    for (i64 l = 0; l < levels; ++l) {
+        const Level lv = level_at(l, maps, meta, rows);
+        corners(s, lv, nt);
+        for (int f = 0; f < lv.features; ++f) {
+            gather(table + offsets[l] + f, s, nt);
+            float *oc = out + (meta[6 * l + 5] + f) * sc;
+            for (int k = 0; k < nt; ++k) oc[(i64)k * sn] = s->res[k];
+        }
+    }
+}
+
+/* dst += the trilinear scatter of the gradients of the features of the tile's nt points (loaded): point k,
+   column c at g[k * sn + c * sc]. */
+static void scatter_tile(Scratch *s, int nt, i64 levels, const float *maps, const int *meta, const i64 *rows,
+                         const i64 *offsets, const float *g, i64 sn, i64 sc, float *dst) {
+    for (i64 l = 0; l < levels; ++l) {
+        const Level lv = level_at(l, maps, meta, rows);
+        corners(s, lv, nt);
+        for (int f = 0; f < lv.features; ++f) {
+            float *b = dst + offsets[l] + f;
+            const float *gc = g + (meta[6 * l + 5] + f) * sc;
+            for (int k = 0; k < nt; ++k) {
+                const float v = gc[(i64)k * sn];
+                for (int j = 0; j < 8; ++j) b[s->off[j][k]] += s->wt[j][k] * v;
+            }
+        }
+    }
+}
+
 /* out[n, col_l + f] = feature f of level l at point n, for every level; element (n, c) of out lives at
    n * sn + c * sc (the caller allocates it column-major, sn = 1: each feature's values are written in order).
    meta: [L, 6] int (R_x, R_y, R_z, hashed, F, first column); rows: [L] table rows;
@@ -146,17 +180,7 @@ void lg_forward(const float *points, i64 n, i64 levels, const float *maps, const
         for (i64 t = 0; t < ntiles; ++t) {
             const i64 i0 = t * TILE;
             const int nt = (int)(n - i0 < TILE ? n - i0 : TILE);
-            load_tile(&s, points, i0, nt);
-            float *o = out + i0 * sn;
-            for (i64 l = 0; l < levels; ++l) {
-                const Level lv = level_at(l, maps, meta, rows);
-                corners(&s, lv, nt);
-                for (int f = 0; f < lv.features; ++f) {
-                    gather(table + offsets[l] + f, &s, nt);
-                    float *oc = o + (meta[6 * l + 5] + f) * sc;
-                    for (int k = 0; k < nt; ++k) oc[(i64)k * sn] = s.res[k];
-                }
-            }
+            encode_tile(&s, points, i0, nt, levels, maps, meta, rows, offsets, table, out + i0 * sn, sn, sc);
         }
     }
 }
@@ -176,19 +200,7 @@ void lg_backward(const float *points, i64 n, i64 levels, const float *maps, cons
         for (i64 i0 = lo; i0 < hi; i0 += TILE) {
             const int nt = (int)(hi - i0 < TILE ? hi - i0 : TILE);
             load_tile(&s, points, i0, nt);
-            const float *g = grad_out + i0 * sn;
-            for (i64 l = 0; l < levels; ++l) {
-                const Level lv = level_at(l, maps, meta, rows);
-                corners(&s, lv, nt);
-                for (int f = 0; f < lv.features; ++f) {
-                    float *b = dst + offsets[l] + f;
-                    const float *gc = g + (meta[6 * l + 5] + f) * sc;
-                    for (int k = 0; k < nt; ++k) {
-                        const float v = gc[(i64)k * sn];
-                        for (int j = 0; j < 8; ++j) b[s.off[j][k]] += s.wt[j][k] * v;
-                    }
-                }
-            }
+            scatter_tile(&s, nt, levels, maps, meta, rows, offsets, grad_out + i0 * sn, sn, sc, dst);
         }
         #pragma omp barrier
         for (int b = 0; b < nth - 1; ++b) {
@@ -243,6 +255,15 @@ def kernel_layout(layout: LevelLayout) -> KernelLayout:
     return KernelLayout(layout)
 
 
+def kernel_inputs(points: torch.Tensor, maps: torch.Tensor,
+                  table: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Points ``[N, 3]``, maps ``[L, 12]`` (``A'`` row-major, then ``t'``) and table as the level kernels read
+    them: detached, float32, contiguous."""
+    m = maps.detach().to(torch.float32)
+    flat_maps = torch.cat([m[:, :, :3].reshape(-1, 9), m[:, :, 3]], dim=1).contiguous()
+    return points.detach().to(torch.float32).contiguous(), flat_maps, table.detach().to(torch.float32).contiguous()
+
+
 class _LevelGridFunction(torch.autograd.Function):
     """Autograd wrapper: gradients for the table only."""
 
@@ -250,10 +271,7 @@ class _LevelGridFunction(torch.autograd.Function):
     def forward(ctx, points, maps, table, kernel_layout):  # type: ignore[override]
         lib = LIBRARY.load_or_raise()
         layout = kernel_layout.layout
-        pts = points.detach().to(torch.float32).contiguous()
-        m = maps.detach().to(torch.float32)
-        flat_maps = torch.cat([m[:, :, :3].reshape(-1, 9), m[:, :, 3]], dim=1).contiguous()  # [L, 12]: A', t
-        tab = table.detach().contiguous()
+        pts, flat_maps, tab = kernel_inputs(points, maps, table)
         n = pts.shape[0]
         # Column-major [N, C] (a transposed [C, N]): each feature's values are stored in order, and the
         # decoder's first matrix product reads a transposed operand at no cost. Every element is written.

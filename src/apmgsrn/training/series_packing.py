@@ -355,16 +355,33 @@ DEFAULT_SERIES_MODELS, DEFAULT_SERIES_MIN_BITS = 5, 6
 #: 7.6 at 6), and the 30 viscous-finger steps fit within five files at 7 (docs/time_series.md). So a hybrid
 #: series stays at 7 bits at least, above the cap if need be.
 DEFAULT_SERIES_MIN_BITS_OF = {"hybrid": 7}
+#: Quantisation-aware fine-tune iterations per step (:attr:`SeriesPacking.qat_iterations`) with which ``train``
+#: packs a stepwise series of a model kind by default, as a share of the start model's iterations (elsewhere
+#: none): 50 after 2,000 lift every step of a hybrid series of the 30 viscous-finger steps by 0.5-0.8 dB in the
+#: same bytes, and since a frozen-decoder step runs as one fused CPU pass (:mod:`apmgsrn.ops.field_train_cpu`)
+#: the whole series trains with them in 393 s, 4.7 times one step's model (docs/time_series.md).
+DEFAULT_SERIES_QAT_SHARE_OF = {"hybrid": 0.025}
 
 
-def default_series_packing(field_config, volume_shape: tuple[int, int, int]) -> SeriesPacking:
+def default_series_qat(model: str, iterations: int) -> int:
+    """Quantisation-aware fine-tune iterations per step of a stepwise ``model`` series whose start model trains
+    ``iterations`` (:data:`DEFAULT_SERIES_QAT_SHARE_OF`; at least one where the kind has a share)."""
+    share = DEFAULT_SERIES_QAT_SHARE_OF.get(model, 0.0)
+    return max(1, round(share * iterations)) if share > 0 else 0
+
+
+def default_series_packing(field_config, volume_shape: tuple[int, int, int], iterations: int) -> SeriesPacking:
     """How ``train`` packs a stepwise series of ``field_config`` (a :class:`SeriesFieldConfig`) of
     ``(D, H, W)`` steps by default: within :data:`DEFAULT_SERIES_MODELS` single-step files of its preset, each
     counted at the bytes its parameters are stored in (float16 tables of the hybrid presets), lowering the bit
-    width to fit down to :data:`DEFAULT_SERIES_MIN_BITS` (a hybrid series: :data:`DEFAULT_SERIES_MIN_BITS_OF`)."""
+    width to fit down to :data:`DEFAULT_SERIES_MIN_BITS` (a hybrid series: :data:`DEFAULT_SERIES_MIN_BITS_OF`),
+    every step fine-tuned towards its packing first where the kind does so (:func:`default_series_qat` of the
+    start model's ``iterations``)."""
     single = stored_bytes(field_config.field.fitted_to(volume_shape))
-    lowest = DEFAULT_SERIES_MIN_BITS_OF.get(field_config.field.model, DEFAULT_SERIES_MIN_BITS)
-    return SeriesPacking(DEFAULT_SERIES_BITS, DEFAULT_SERIES_MODELS * single, lowest, strict=False)
+    model = field_config.field.model
+    lowest = DEFAULT_SERIES_MIN_BITS_OF.get(model, DEFAULT_SERIES_MIN_BITS)
+    return SeriesPacking(DEFAULT_SERIES_BITS, DEFAULT_SERIES_MODELS * single, lowest, strict=False,
+                         qat_iterations=default_series_qat(model, iterations))
 
 
 def parameter_budget(file_bytes: int, steps: int) -> int:

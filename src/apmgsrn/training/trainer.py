@@ -436,8 +436,13 @@ class Trainer:
                                         guide, cfg.error_sampling)
             if self.order_batches:
                 points, target = spatially_ordered(points, target)
-            prediction = self.field.normalized(points, detach_placement=not tracking, hidden_dtype=self.hidden_dtype)
+            # A frozen decoder (a series' step fine-tunes): one fused pass gives the prediction and the features'
+            # gradients, where the encoder has such a kernel.
+            fused = None if tracking or self.hidden_dtype is not None else self.field.fused_mse_step(points, target)
+            prediction = fused if fused is not None else self.field.normalized(
+                points, detach_placement=not tracking, hidden_dtype=self.hidden_dtype)
         else:
+            fused = None
             # A series: the batch is cut into groups of equal size, each at one step.
             steps = self.batch_steps(st.iteration)  # [G]
             points, target = self._draw_series_batch(steps)
@@ -452,10 +457,11 @@ class Trainer:
             previous = self.step_losses[steps]
             self.step_losses[steps] = torch.where(previous.isnan(), group_losses,
                                                   torch.lerp(previous, group_losses, STEP_LOSS_WEIGHT))
-        self.network_optimizer.zero_grad(set_to_none=True)
-        if tracking:
-            self.placement_optimizer.zero_grad(set_to_none=True)
-        reconstruction.backward()
+        if fused is None:
+            self.network_optimizer.zero_grad(set_to_none=True)
+            if tracking:
+                self.placement_optimizer.zero_grad(set_to_none=True)
+            reconstruction.backward()
         self.network_optimizer.step()
         if tracking:
             self._placement_step(cfg.placement_lr * self.learning_rate(st.iteration) / max(cfg.lr, 1e-30))

@@ -56,6 +56,21 @@ class Encoder(nn.Module):
         """
         return None
 
+    def fused_mse_step(self, points: torch.Tensor, target: torch.Tensor,
+                       weights: list[torch.Tensor]) -> torch.Tensor | None:
+        """One reconstruction step under a frozen decoder by a fused training kernel: the prediction
+        ``decoder(self(points))`` ``[N]``, with the gradient of its mean squared error to ``target`` ``[N]``
+        stored as ``.grad`` of the feature parameters that require one, replacing what was there (the placement
+        gets none: the reconstruction path detaches it). None where there is no such kernel (nothing is changed
+        then; the trainer runs autograd).
+
+        Args:
+            points: ``[N, 3]``.
+            target: ``[N]`` the values to fit.
+            weights: the decoder's linear layers, none of them learning.
+        """
+        return None
+
     def check_parameters(self) -> str | None:
         """Why these parameters cannot be a trained model (NaN/Inf, ...), or None when they can."""
         for name, tensor in self.named_parameters():

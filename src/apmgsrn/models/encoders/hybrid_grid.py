@@ -35,7 +35,13 @@ from torch import nn
 from apmgsrn.arguments import check_choice
 from apmgsrn.models.encoders.adaptive_multigrid import AdaptiveMultiGridEncoder
 from apmgsrn.models.encoders.base import STORAGE_DTYPES, Encoder
-from apmgsrn.ops.level_grids import LEVEL_GRID_BACKENDS, index_space_maps, level_grid_decoded, level_grid_features
+from apmgsrn.ops.level_grids import (
+    LEVEL_GRID_BACKENDS,
+    index_space_maps,
+    level_grid_decoded,
+    level_grid_features,
+    level_grid_mse_step,
+)
 from apmgsrn.ops.level_layout import LevelLayout
 
 GRID_INITS = ("volume", "default")
@@ -278,6 +284,25 @@ class HybridGridEncoder(Encoder):
         :func:`~apmgsrn.ops.level_grids.level_grid_decoded`); None elsewhere."""
         table = torch.cat([self.level_table, self.grids.reshape(-1)])
         return level_grid_decoded(points, self.maps(), table, self.layout, weights, self.config.backend)
+
+    def fused_mse_step(self, points: torch.Tensor, target: torch.Tensor,
+                       weights: list[torch.Tensor]) -> torch.Tensor | None:
+        """The fused CPU training step (:func:`~apmgsrn.ops.level_grids.level_grid_mse_step`) where it runs and
+        the table or the grids learn; None elsewhere."""
+        learning = self.level_table.requires_grad or self.grids.requires_grad
+        if not learning or any(w.requires_grad for w in weights):
+            return None
+        with torch.no_grad():
+            table = torch.cat([self.level_table, self.grids.reshape(-1)])
+            step = level_grid_mse_step(points, self.maps(), table, self.layout, weights, target, self.config.backend)
+        if step is None:
+            return None
+        prediction, grad = step
+        split = self.level_table.numel()
+        for parameter, part in ((self.level_table, grad[:split]), (self.grids, grad[split:])):
+            if parameter.requires_grad:
+                parameter.grad = part.view_as(parameter)
+        return prediction
 
     def features_of(self, points: torch.Tensor, level_table: torch.Tensor, grids: torch.Tensor,
                     matrices: torch.Tensor, translations: torch.Tensor, detach_placement: bool = False) -> torch.Tensor:
