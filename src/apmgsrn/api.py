@@ -265,7 +265,7 @@ def fit(
             ``"all"`` or ``"A:B[:S]"``), trained stepwise and packed as ``apmgsrn train`` does.
         preset: size preset, ``small``, ``medium`` or ``large``.
         model: model kind: ``hybrid`` (docs/models.md), ``apmgsrn`` (the paper's), ``fvsrn`` or ``ngp``; None:
-            ``hybrid`` for a volume, ``apmgsrn`` for a time series (:func:`apmgsrn.choices.default_model`).
+            ``hybrid`` (:func:`apmgsrn.choices.default_model`; a time series is trained step by step).
         iterations: training iterations (default: 3000 on a CPU, 50000 on a GPU).
         batch_size: points per iteration (default: 32768 on a CPU, 100000 on a GPU).
         device: ``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:I"`` or a torch device.

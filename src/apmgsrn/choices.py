@@ -13,11 +13,14 @@ MODEL_KINDS = ("apmgsrn", "fvsrn", "ngp", "hybrid")
 DEFAULT_MODEL = "hybrid"
 
 
-def default_model(series: bool = False, byte_target: bool = False) -> str:
-    """The model kind to build when none is named: :data:`DEFAULT_MODEL` for a volume (or its bricks); the
-    paper's ``apmgsrn`` for a time series and for a byte target (``--ratio``/``--size``), whose models
-    extend and resize APMGSRN's grids (docs/time_series.md, docs/packing.md)."""
-    return "apmgsrn" if series or byte_target else DEFAULT_MODEL
+def default_model(series: bool = False, byte_target: bool = False, joint: bool = False) -> str:
+    """The model kind to build when none is named: :data:`DEFAULT_MODEL` for a volume (or its bricks) and for a
+    time series trained step by step (packed to its size by the series' own packing); the paper's ``apmgsrn``
+    for a joint time series (its basis grids extend APMGSRN's) and for a volume's byte target
+    (``--ratio``/``--size``, whose models resize APMGSRN's grids; docs/time_series.md, docs/packing.md)."""
+    if series:
+        return "apmgsrn" if joint else DEFAULT_MODEL
+    return "apmgsrn" if byte_target else DEFAULT_MODEL
 
 
 #: The paper's model and its two baselines: what ``bench compress`` runs unless given ``--models`` (the

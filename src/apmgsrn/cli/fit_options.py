@@ -24,8 +24,8 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     backends = tuple(dict.fromkeys(name for names in BACKENDS.values() for name in names))
     model = parser.add_argument_group("model")
     model.add_argument("--model", choices=MODEL_KINDS,
-                       help=f"default {DEFAULT_MODEL} (docs/models.md); apmgsrn for a time series or --ratio/--size; "
-                            "apmgsrn is the paper's model")
+                       help=f"default {DEFAULT_MODEL} (docs/models.md); apmgsrn for a joint time series or "
+                            "--ratio/--size; apmgsrn is the paper's model")
     model.add_argument("--preset", choices=SIZE_PRESETS, default="small")
     model.add_argument("--grids", type=int, help="number of grids M")
     model.add_argument("--features", type=int, help="features per grid C (per level for ngp and hybrid)")
@@ -107,7 +107,8 @@ def build_configs(args: argparse.Namespace, device, steps: int | None = None):
     if args.model is None:  # resolved once: the rest of the command reads args.model
         args.model = default_model(series=steps is not None,
                                    byte_target=getattr(args, "size", None) is not None
-                                   or getattr(args, "ratio", None) is not None)
+                                   or getattr(args, "ratio", None) is not None,
+                                   joint=not stepwise)
     overrides = {
         "grids": args.grids,
         "features": args.features,
