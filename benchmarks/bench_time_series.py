@@ -194,6 +194,18 @@ def run_series(args: argparse.Namespace) -> None:
             "cpu": _cpu()})
     print(f"series model: {model_bytes:,} bytes, {result.seconds:.1f} s, lowest step PSNR "
           f"{min(e.psnr for e in result.evaluation.steps):.2f} dB", flush=True)
+    _report_kernels()
+
+
+def _report_kernels() -> None:
+    """Which fused CPU kernels this run used: one that could not be built falls back to the reference silently,
+    which changes the timings (and the numbers, by float32 rounding)."""
+    from apmgsrn.ops import field_cpu, field_train_cpu
+
+    for name, library in (("fused inference", field_cpu.LEVEL_LIBRARY), ("fused training", field_train_cpu.LIBRARY)):
+        state = ("not used" if not library.tried else "used" if library.error is None
+                 else f"FAILED, the reference ran: {library.error}")
+        print(f"{name} kernel: {state}", flush=True)
 
 
 def write_moving(args: argparse.Namespace) -> None:
