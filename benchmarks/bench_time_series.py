@@ -33,9 +33,9 @@ RESULTS = ROOT / "benchmarks" / "results"
 BASELINE_CSV = RESULTS / "time_series_baseline.csv"
 BASELINE_FIELDS = ["step", "file", "psnr", "max_abs_error", "seconds", "iterations", "model_bytes", "parameters",
                    "threads", "load_average", "cpu"]
+#: A kind's series CSV; ``_seedN`` beside it (``series --seed N --csv ...``) and beside the baseline CSV: lines of
+#: the chart, and the criterion on the means over seeds, when present (:func:`seed_rows`).
 SERIES_CSV = RESULTS / "time_series_model.csv"
-#: The same series model trained with seed 1 (``series --seed 1 --csv ...``): a line of the chart when present.
-SERIES_SEED1_CSV = RESULTS / "time_series_model_seed1.csv"
 SERIES_FIELDS = ["step", "file", "psnr", "max_abs_error", "model_bytes", "train_seconds", "iterations", "config",
                  "threads", "load_average", "cpu"]
 TIMING_CSV = RESULTS / "time_series_timing.csv"
@@ -50,15 +50,24 @@ KINDS = ("apmgsrn", "hybrid")
 COMPARED = {"hybrid": {
     "hybrid small per step, uniform voxel points (the default until 2026-11-25)":
         RESULTS / "time_series_baseline_hybrid_uniform.csv",
-    "hybrid series, uniform voxel points (2026-11-24, 4.27 files)": RESULTS / "time_series_model_hybrid_uniform.csv",
-    "hybrid series, pull 0.01 at 7 bits (2026-11-25, 4.43 files)": RESULTS / "time_series_model_hybrid_7bits.csv",
-    "hybrid series, pull 0.02, refined bits (2026-11-25, 4.70 files)": RESULTS / "time_series_model_hybrid_pull002.csv",
+    "hybrid series before the fine-tune towards the packing (2026-11-25, 4.73 files)":
+        RESULTS / "time_series_model_hybrid_20261125.csv",
     "APMGSRN series (4.6 files)": SERIES_CSV}}
 
 
 def for_kind(path: Path, kind: str) -> Path:
     """The CSV, report or chart of model kind ``kind``."""
     return path if kind == "apmgsrn" else path.with_name(f"{path.stem}_{kind}{path.suffix}")
+
+
+def seed_rows(path: Path, kind: str) -> dict[int, dict[int, float]]:
+    """Seed -> step -> PSNR of a kind's CSV (seed 0) and its ``_seedN`` siblings (``baseline``/``series --seed N
+    --csv ...``), where they exist."""
+    first = for_kind(path, kind)
+    found = {0: first} | {int(p.stem.rsplit("_seed", 1)[1]): p for p in first.parent.glob(f"{first.stem}_seed*.csv")
+                          if p.stem.rsplit("_seed", 1)[1].isdigit()}
+    rows = {seed: {int(r["step"]): float(r["psnr"]) for r in _done_rows(p)} for seed, p in sorted(found.items())}
+    return {seed: steps for seed, steps in rows.items() if steps}
 
 
 def _train_config(args: argparse.Namespace, **given):
@@ -305,6 +314,28 @@ def run_speed(args: argparse.Namespace) -> None:
             print(f"{what}: series {min(times['series']):.3f} s, single {min(times['single']):.3f} s", flush=True)
 
 
+def _seeds_section(own: dict[int, dict[int, float]], series: dict[int, dict[int, float]]) -> str:
+    """The criterion on the means over seeds, and the per-step means, when more than one seed of both sides was
+    run (on the steps every seed of both has)."""
+    if len(own) < 2 or len(series) < 2:
+        return ""
+    steps = sorted(set.intersection(*(set(p) for p in [*own.values(), *series.values()])))
+    if not steps:
+        return ""
+    mean = {name: {t: sum(p[t] for p in rows.values()) / len(rows) for t in steps}
+            for name, rows in (("own", own), ("series", series))}
+    differences = [mean["series"][t] - mean["own"][t] for t in steps]
+    above = sum(d >= 0 for d in differences)
+    table = "\n".join(f"| {t} | {mean['own'][t]:.2f} | {mean['series'][t]:.2f} | {differences[i]:+.2f} |"
+                       for i, t in enumerate(steps))
+    return (f"| PSNR on every step, means of seeds {', '.join(map(str, own))} (own) and "
+            f"{', '.join(map(str, series))} (series) | >= the step's own small models | {above} of {len(steps)} "
+            f"steps; difference {min(differences):+.2f} .. {max(differences):+.2f} dB |\n\n"
+            "Means over the seeds (one seed's models of the same step differ by up to a dB or more):\n\n"
+            "| step | own small models, mean | series, mean | difference dB |\n|---|---|---|---|\n"
+            f"{table}\n")
+
+
 def write_report(out: Path, timing_steps: list[int] | None = None, kind: str = "apmgsrn") -> None:
     """The per-step table (both methods side by side), the criteria, and the chart.
 
@@ -363,6 +394,7 @@ def write_report(out: Path, timing_steps: list[int] | None = None, kind: str = "
         f"{min(float(baseline[t]['seconds']) for t in steps):.0f} to "
         f"{max(float(baseline[t]['seconds']) for t in steps):.0f} s on this shared machine).")
     loads = ", ".join(sorted({r["load_average"] for r in series.values()}))
+    seeds_text = _seeds_section(seed_rows(BASELINE_CSV, kind), seed_rows(SERIES_CSV, kind))
     text = f"""# One model for a whole run: measured (issue 16)
 
 Written by `python benchmarks/bench_time_series.py report` from `benchmarks/results/time_series_*.csv`.
@@ -376,7 +408,7 @@ CPU: {series[steps[0]]['cpu']}, {series[steps[0]]['threads']} thread(s); the mac
 | PSNR on every step | >= the step's own small model | {at_least} of {len(steps)} steps; difference {min(differences):+.2f} .. {max(differences):+.2f} dB (mean {sum(differences) / len(differences):+.2f}) |
 | model file | <= 5 small models ({5 * single_bytes:,} bytes) | {series_bytes:,} bytes ({series_bytes / single_bytes:.2f} small models) |
 | training time | <= 5 x one step ({5 * step_seconds:.0f} s) | {series_seconds:.0f} s ({series_seconds / step_seconds:.2f} x {step_source}) |
-
+{seeds_text}
 Decoding or rendering one step, the series file against the same step saved as a single-step model file
 (identical network shape and values). With the model open a step costs what a single-step model costs (the
 series materialises the step's features); opening the series file is a one-off cost for all its steps (a
@@ -392,11 +424,12 @@ packed series decodes every step's grids once). Fastest of several interleaved r
 """
     atomic_write_text(out, text, "report")
     every = sorted(series)
-    lines = {"one small model per step": [float(baseline[t]["psnr"]) if t in baseline else math.nan for t in every],
-             "one model for the series": [float(series[t]["psnr"]) for t in every]}
-    second = {int(r["step"]): float(r["psnr"]) for r in _done_rows(for_kind(SERIES_SEED1_CSV, kind))}
-    if second:
-        lines["one model for the series, seed 1"] = [second.get(t, math.nan) for t in every]
+    lines = {}
+    for name, path in (("one small model per step", BASELINE_CSV), ("one model for the series", SERIES_CSV)):
+        seeds = seed_rows(path, kind)  # seed -> step -> PSNR; their mean where a step has every seed
+        label = name if len(seeds) == 1 else f"{name}, mean of seeds {', '.join(map(str, seeds))}"
+        lines[label] = [sum(p[t] for p in seeds.values()) / len(seeds) if all(t in p for p in seeds.values())
+                        else math.nan for t in every]
     for label, path in COMPARED.get(kind, {}).items():
         other = {int(r["step"]): float(r["psnr"]) for r in _done_rows(path)}
         if other:
