@@ -23,7 +23,7 @@ import ctypes
 
 import torch
 
-from apmgsrn.ops.field_cpu import MAX_FEATURES, MAX_WIDTH, MLP_SOURCE, pack_decoder
+from apmgsrn.ops.field_cpu import MLP_SOURCE, fusable, pack_decoder
 from apmgsrn.ops.kernel_cache import CompiledLibrary
 from apmgsrn.ops.level_grids_cpu import C_SOURCE as LEVEL_SOURCE
 from apmgsrn.ops.level_grids_cpu import kernel_inputs, kernel_layout
@@ -182,13 +182,8 @@ def pack_decoder_rows(weights: list[torch.Tensor], vector_width: int) -> torch.T
 
 def trainable(features: int, widths: list[int]) -> bool:
     """Whether the kernel takes an encoder of ``features`` outputs and hidden layers of ``widths`` (the fused
-    inference kernel's limits) and builds here."""
-    return (
-        0 < features <= MAX_FEATURES
-        and 1 <= len(widths) <= MAX_LAYERS
-        and all(0 < w <= MAX_WIDTH for w in widths)
-        and LIBRARY.available()
-    )
+    inference kernel's limits, at most :data:`MAX_LAYERS` layers) and builds here."""
+    return len(widths) <= MAX_LAYERS and fusable(features, widths, LIBRARY)
 
 
 def level_grid_mse_step_cpu(

@@ -185,6 +185,13 @@ def level_grid_features(
     return level_grid_features_reference(points, maps, table, layout)
 
 
+def _float32_on_cpu(backend: str, points: torch.Tensor, *tensors: torch.Tensor) -> bool:
+    """Whether a fused CPU kernel may take these tensors: ``backend`` allows it (``"auto"`` or ``"cpu"``), the
+    points are on the CPU, and they and every other tensor are float32."""
+    return (backend in ("auto", "cpu") and points.device.type == "cpu"
+            and all(t.dtype == torch.float32 for t in (points, *tensors)))
+
+
 def level_grid_decoded(
     points: torch.Tensor, maps: torch.Tensor, table: torch.Tensor, layout: LevelLayout, weights: list[torch.Tensor],
     backend: str = "auto",
@@ -207,9 +214,7 @@ def level_grid_decoded(
     Returns:
         ``[N]`` decoder outputs, or ``None``.
     """
-    if torch.is_grad_enabled() or backend not in ("auto", "cpu") or points.device.type != "cpu":
-        return None
-    if any(t.dtype != torch.float32 for t in (points, maps, table, *weights)):
+    if torch.is_grad_enabled() or not _float32_on_cpu(backend, points, maps, table, *weights):
         return None
     from apmgsrn.ops import field_cpu
 
@@ -256,9 +261,7 @@ def level_grid_mse_step(
         target: ``[N]`` the values to fit.
         backend: as :func:`level_grid_features`.
     """
-    if backend not in ("auto", "cpu") or points.device.type != "cpu":
-        return None
-    if any(t.dtype != torch.float32 for t in (points, maps, table, target, *weights)):
+    if not _float32_on_cpu(backend, points, maps, table, target, *weights):
         return None
     from apmgsrn.ops import field_train_cpu
 
