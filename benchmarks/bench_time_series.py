@@ -52,6 +52,8 @@ COMPARED = {"hybrid": {
         RESULTS / "time_series_baseline_hybrid_uniform.csv",
     "hybrid series before the fine-tune towards the packing (2026-11-25, 4.73 files)":
         RESULTS / "time_series_model_hybrid_20261125.csv",
+    "hybrid series with 50 fine-tune iterations towards the packing (2026-11-27 morning, 4.65 files)":
+        RESULTS / "time_series_model_hybrid_20261127.csv",
     "APMGSRN series (4.6 files)": SERIES_CSV}}
 
 

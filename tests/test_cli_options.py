@@ -133,6 +133,8 @@ LIBRARY_ONLY = {
     "finer",  # the fraction of a bit a series' size target refines its bit width by (the packer chooses it)
     "placement",  # a series' placement per step: what stepwise training fills, not a choice on the command line
     "placement_loss",  # the reconstruction error moves a drifting step's placement (stepwise training decides)
+    "error_measurements", "error_parts",  # how often the error guide measures, and in how many parts (training
+    # sets them per kind of run: one volume, a series' step, its quantisation-aware fine-tune)
 }
 CHECKS = {"check_int", "check_optional_int", "check_number", "check_choice"}
 

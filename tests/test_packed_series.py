@@ -449,6 +449,46 @@ def test_steps_that_follow_the_output_lose_less_than_uniform_ones_in_about_the_s
     assert abs(weight) < 0.01  # one tensor: the same mean log2 step (float16 rounding aside)
 
 
+def test_the_sensitivity_of_some_parameters_is_theirs_among_all(hybrid_series):
+    """Asked for the per-step tensors only, the sensitivity is what it is among every parameter's: the grid
+    placement then takes no gradient, so the level tables' backward runs through the fused kernel where it can,
+    and its sums match the autograd reference's."""
+    from apmgsrn.training.packing import parameter_sensitivity
+    from apmgsrn.training.series_packing import SHARED_STEP_TENSORS
+
+    step = hybrid_series.step_field(2)
+    before = [p.requires_grad for p in step.parameters()]
+    every = parameter_sensitivity(step, 1 << 14)
+    some = parameter_sensitivity(step, 1 << 14, names=SHARED_STEP_TENSORS)
+    assert set(some) == set(SHARED_STEP_TENSORS) and len(every) > len(some)
+    for name in SHARED_STEP_TENSORS:
+        assert some[name].max() > 0
+        np.testing.assert_allclose(some[name], every[name], rtol=1e-3, atol=1e-6 * every[name].max())
+    assert [p.requires_grad for p in step.parameters()] == before  # left as they were
+
+
+def test_a_size_search_codes_its_trials_with_the_first_ones_predictors_and_keeps_the_smallest(hybrid_series):
+    """``pack_series(predictors=...)`` codes a tensor with those predictors only (never smaller than the best of
+    all); a size target's search takes its trials that way and codes the width it keeps with every predictor
+    again: the packing kept is the unrestricted one of its width, and fits."""
+    from apmgsrn.training.series_packing import SeriesPacking, chosen_predictors, parameter_budget
+
+    field = hybrid_series
+    sensitivity = series_sensitivity(field)
+    free = pack_series(field, 6, sensitivity)
+    assert chosen_predictors(free)["encoder.level_table"] == ("time",)
+    forced = pack_series(field, 6, sensitivity, predictors={"encoder.level_table": ("none",)})
+    table = {t.name: t for t in forced.tensors}["encoder.level_table"]
+    assert table.predictor == "none" and forced.parameter_bytes > free.parameter_bytes
+    target = (pack_series(field, 6, sensitivity).parameter_bytes + pack_series(field, 7, sensitivity).parameter_bytes
+              ) // 2 + 1024 + 64 * field.steps
+    kept = SeriesPacking(8, target, 4).pack(field)
+    assert kept.bits == 6 and 0 < kept.finer < 1
+    again = pack_series(field, kept.bits, sensitivity, kept.finer)
+    assert kept.parameter_bytes == again.parameter_bytes <= parameter_budget(target, field.steps)
+    assert [t.predictor for t in kept.tensors] == [t.predictor for t in again.tensors]
+
+
 def shared_steps_of(field, name):
     from apmgsrn.training.series_packing import slice_group
 
@@ -473,8 +513,8 @@ def test_the_default_packing_is_sized_by_the_stored_single_step_file_and_keeps_a
         fitted = single.fitted_to(shape)
         assert packing.target_bytes == 5 * stored_bytes(fitted) and packing.bits == 10
         assert packing.min_bits == lowest and not packing.strict
-        # fine-tuned towards the packing first: the hybrid's steps, 50 iterations after the start model's 2,000
-        assert packing.qat_iterations == (50 if kind == "hybrid" else 0)
+        # fine-tuned towards the packing first: the hybrid's steps, 200 iterations after the start model's 2,000
+        assert packing.qat_iterations == (200 if kind == "hybrid" else 0)
     hybrid = preset_config("hybrid", "small").fitted_to(shape)
     values = sum(math.prod(s) for s in hybrid.parameter_shapes().values())
     assert 2 * values < stored_bytes(hybrid) < 3 * values  # float16 tables, float32 decoder and placement

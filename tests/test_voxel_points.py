@@ -322,6 +322,26 @@ def test_error_sampling_guides_only_voxel_points_of_a_single_volume(channel):
                 TrainConfig(iterations=1, voxel_fraction=0.5, error_sampling=1.0))
 
 
+@pytest.mark.parametrize("iterations, measurements, expected", [(40, 20, 20), (40, 5, 5), (50, 25, 25), (10, 25, 10)])
+def test_a_guided_run_measures_the_error_as_often_as_it_is_told(channel, monkeypatch, iterations, measurements,
+                                                               expected):
+    """``error_measurements`` evenly spaced measurements, the first before the first iteration (at most one per
+    iteration); 0 is refused."""
+    from apmgsrn.training.points import ErrorGuide
+
+    calls = []
+    measure = ErrorGuide.measure
+    monkeypatch.setattr(ErrorGuide, "measure", lambda self, *a: (calls.append(1), measure(self, *a))[1])
+    field = NeuralField(preset_config("hybrid", "small", levels=4, log2_table_size=8, grids=2, resolution=4, width=8),
+                        volume_shape=tuple(channel.shape), generator=torch.Generator().manual_seed(0))
+    config = TrainConfig(iterations=iterations, batch_size=256, voxel_fraction=0.5, error_sampling=1.0,
+                         error_measurements=measurements)
+    Trainer(field, channel, config).run()
+    assert len(calls) == expected
+    with pytest.raises(InvalidArgument, match="error_measurements"):
+        TrainConfig(error_measurements=0)
+
+
 def test_error_guided_fine_tune_of_a_neighbour_fits_a_real_step_better(test_data):
     """A model of one viscous-finger step fine-tuned on the next step: drawing its voxel points where it is wrong
     fits the next step better in the same iterations than drawing them uniformly (the series' step fine-tune):
@@ -349,30 +369,34 @@ def test_error_guided_fine_tune_of_a_neighbour_fits_a_real_step_better(test_data
     assert results[1.0] > results[0.0] + 0.3
 
 
-def _guided_run(volume, checkpoint, iterations=40):
+def _guided_run(volume, checkpoint, iterations=40, parts=1):
     field = NeuralField(preset_config("hybrid", "small", levels=4, log2_table_size=9, grids=2, resolution=4, width=16),
                         volume_shape=tuple(volume.shape), generator=torch.Generator().manual_seed(0))
     config = TrainConfig(iterations=iterations, batch_size=512, voxel_fraction=0.5, error_sampling=1.0,
-                         checkpoint_every=25)
+                         checkpoint_every=25, error_parts=parts)
     return Trainer(field, volume, config, checkpoint, {"run": "guided"})
 
 
+@pytest.mark.parametrize("parts", [1, 2])
 def test_a_checkpoint_keeps_the_error_measurement_so_a_resumed_run_repeats_the_uninterrupted_one(test_data,
-                                                                                                  tmp_path):
+                                                                                                  tmp_path, parts):
     """Checkpointed at iteration 25 with the error last measured at 24 (every 2 of 40): the resumed run draws
-    from the saved measurement, not a new one at 25, and ends with exactly the uninterrupted run's weights."""
+    from the saved measurement, not a new one at 25, and ends with exactly the uninterrupted run's weights
+    (measured in two parts, the errors of both parts are kept too)."""
     from apmgsrn.errors import ApmgsrnError
     from apmgsrn.io.container import load_tensors, read_header, save_tensors
 
     values = np.load(test_data / "neghip_32x32x32_uint8.npy").astype(np.float32) / 255
     volume = torch.from_numpy(values)
     checkpoint = tmp_path / "run.ckpt"
-    whole = _guided_run(volume, checkpoint)
+    whole = _guided_run(volume, checkpoint, parts=parts)
     whole.run()  # leaves the checkpoint of iteration 25
-    resumed = _guided_run(volume, checkpoint)
+    resumed = _guided_run(volume, checkpoint, parts=parts)
     resumed.load_checkpoint(checkpoint)
     assert resumed.state.iteration == 25
-    assert torch.equal(resumed.error_guide.cumulative, load_tensors(checkpoint)["error_guide"])
+    saved = load_tensors(checkpoint)
+    assert torch.equal(resumed.error_guide.cumulative, saved["error_guide"])
+    assert ("error_guide_errors" in saved) == (parts > 1)
     resumed.run()
     assert all(torch.equal(a, b) for a, b in zip(whole.field.state_dict().values(), resumed.field.state_dict().values()))
 
@@ -380,4 +404,34 @@ def test_a_checkpoint_keeps_the_error_measurement_so_a_resumed_run_repeats_the_u
     tensors["error_guide"] = tensors["error_guide"].flip(0)  # not a running sum any more
     save_tensors(tmp_path / "tampered.ckpt", tensors, header.kind, header.description)
     with pytest.raises(ApmgsrnError, match="damaged.*error_guide"):
-        _guided_run(volume, tmp_path / "tampered.ckpt").load_checkpoint(tmp_path / "tampered.ckpt")
+        _guided_run(volume, tmp_path / "tampered.ckpt", parts=parts).load_checkpoint(tmp_path / "tampered.ckpt")
+    if parts > 1:
+        tensors = load_tensors(checkpoint)
+        tensors["error_guide_errors"][3] = -1.0  # an error below 0
+        save_tensors(tmp_path / "negative.ckpt", tensors, header.kind, header.description)
+        with pytest.raises(ApmgsrnError, match="damaged.*error_guide_errors"):
+            _guided_run(volume, tmp_path / "negative.ckpt", parts=parts).load_checkpoint(tmp_path / "negative.ckpt")
+
+
+def test_a_guide_measured_in_parts_refreshes_one_part_at_a_time(channel):
+    """With two parts the first measurement takes every voxel, each later one every second voxel in turn
+    (even, then odd, ...), the other half keeping its errors; the draws follow the merged errors."""
+    from apmgsrn.training.points import ErrorGuide
+
+    volume = channel[:64, :64, :64].contiguous()  # at most ERROR_POOL voxels: measured one by one, not by blocks
+    guide = ErrorGuide(volume, parts=2)
+    assert guide.block == 1
+    count = volume.numel()
+    flat = volume.reshape(-1)
+    guide.measure(lambda p: torch.zeros(len(p)), torch.Generator())  # error = the value itself
+    assert torch.equal(guide.errors, flat.double())
+    guide.measure(lambda p: torch.ones(len(p)) * 2, torch.Generator(), turn=3)  # odd voxels: |2 - value|
+    odd = torch.arange(count) % 2 == 1
+    assert torch.equal(guide.errors[odd], (2 - flat[odd]).double())
+    assert torch.equal(guide.errors[~odd], flat[~odd].double())
+    expected = guide.errors.cumsum(0)
+    assert torch.allclose(guide.cumulative, expected / expected[-1])
+    whole = ErrorGuide(volume)
+    whole.measure(lambda p: torch.zeros(len(p)), torch.Generator())
+    whole.measure(lambda p: torch.ones(len(p)) * 2, torch.Generator(), turn=3)  # one part: every voxel
+    assert torch.equal(whole.errors, (2 - flat).double())

@@ -48,7 +48,7 @@ def add_pack_arguments(parser: argparse.ArgumentParser, title: str = "packing") 
     group.add_argument("--qat-iterations", type=int, metavar="N",
                        help="quantisation-aware fine-tune iterations before coding (default 0); for a "
                             "stepwise time series, iterations per step (train of a hybrid series: by default "
-                            "--iterations / 40, 0 turns it off; docs/time_series.md)")
+                            "--iterations / 10, 0 turns it off; docs/time_series.md)")
 
 
 def packing_requested(args: argparse.Namespace) -> bool:

@@ -260,7 +260,7 @@ class Quantizer:
 
 
 def parameter_sensitivity(field: NeuralField, points: int = 1 << 18, batch: int = 1 << 15,
-                          seed: int = 0) -> dict[str, np.ndarray]:
+                          seed: int = 0, names: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
     """Mean squared derivative of the fitted output with respect to every parameter, over the domain.
 
     Args:
@@ -268,17 +268,20 @@ def parameter_sensitivity(field: NeuralField, points: int = 1 << 18, batch: int 
         points: random points in ``[-1, 1]^3`` (uniform, as the voxels of a PSNR are).
         batch: points per backward pass.
         seed: seeds the points and signs.
+        names: only these parameters (None: all). The others then take no gradient, so that the encoder's
+            fused kernels can run where they give gradients for features only (the grid placement fixed).
 
     Returns:
         name -> ``[numel]`` float64 ``mean_p (d m(p) / d theta)^2`` (``m``: the decoder output in ``[0, 1]``).
     """
     generator = torch.Generator().manual_seed(seed)
     device = next(field.parameters()).device
-    named = dict(field.named_parameters())
+    every = dict(field.named_parameters())
+    named = {name: p for name, p in every.items() if names is None or name in names}
     sums = {name: torch.zeros_like(p, dtype=torch.float64) for name, p in named.items()}
-    requires = {name: p.requires_grad for name, p in named.items()}
-    for p in named.values():
-        p.requires_grad_(True)
+    requires = {name: p.requires_grad for name, p in every.items()}
+    for name, p in every.items():
+        p.requires_grad_(name in named)
     done = 0
     try:
         while done < points:
@@ -293,7 +296,7 @@ def parameter_sensitivity(field: NeuralField, points: int = 1 << 18, batch: int 
             done += n
     finally:
         field.zero_grad(set_to_none=True)
-        for name, p in named.items():
+        for name, p in every.items():
             p.requires_grad_(requires[name])
     return {name: (total / points).cpu().numpy().reshape(-1) for name, total in sums.items()}
 

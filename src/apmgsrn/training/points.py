@@ -42,16 +42,18 @@ class ErrorGuide:
 
     :meth:`measure` evaluates the model at every voxel of a volume of at most :data:`ERROR_POOL` voxels, else at
     one random voxel of every block of ``b^3`` (the smallest ``b`` that leaves at most that many blocks), and
-    keeps the errors; :meth:`draw` then gives voxel indices, each voxel (or block) about
-    ``count * error / total error`` times (systematic sampling: one random offset, the voxels in memory order, so
-    the batch is spread over the volume and a voxel of large error is drawn at every draw), a block's draws
-    each at a voxel drawn at random inside it, so that every voxel of a block that is wrong is fitted, not only
-    the one measured. Voxels the model already fits exactly are not drawn; the trainer's uniform points keep
-    the whole domain in every batch.
+    keeps the errors (with ``parts`` > 1, after the first time, at one of ``parts`` interleaved parts of them
+    in turn: ``parts`` times cheaper, the rest as last measured); :meth:`draw` then gives voxel indices, each
+    voxel (or block) about ``count * error / total error`` times (systematic sampling: one random offset, the
+    voxels in memory order, so the batch is spread over the volume and a voxel of large error is drawn at every
+    draw), a block's draws each at a voxel drawn at random inside it, so that every voxel of a block that is
+    wrong is fitted, not only the one measured. Voxels the model already fits exactly are not drawn; the
+    trainer's uniform points keep the whole domain in every batch.
     """
 
-    def __init__(self, volume: torch.Tensor):
+    def __init__(self, volume: torch.Tensor, parts: int = 1):
         self.volume = volume
+        self.parts = parts
         d, h, w = volume.shape
         self.block = 1
         while math.ceil(d / self.block) * math.ceil(h / self.block) * math.ceil(w / self.block) > ERROR_POOL:
@@ -59,6 +61,7 @@ class ErrorGuide:
         self.blocks = tuple(math.ceil(n / self.block) for n in (d, h, w))
         self.block_count = math.prod(self.blocks)
         self.cumulative: torch.Tensor | None = None  # [P] the blocks' errors' running sum, normalised to end at 1
+        self.errors: torch.Tensor | None = None  # [P] float64 the blocks' errors as last measured
         self._every_voxel: tuple[torch.Tensor, torch.Tensor] | None = None  # (index, points) when block == 1
 
     def _voxels(self, block_index: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
@@ -75,8 +78,11 @@ class ErrorGuide:
         return (z * h + y) * w + x
 
     @torch.no_grad()
-    def measure(self, predict: Callable[[torch.Tensor], torch.Tensor], generator: torch.Generator) -> None:
-        """The errors of ``predict`` (``[N, 3]`` points to ``[N]`` values in the volume's units) at the voxels."""
+    def measure(self, predict: Callable[[torch.Tensor], torch.Tensor], generator: torch.Generator,
+                turn: int = 0) -> None:
+        """The errors of ``predict`` (``[N, 3]`` points to ``[N]`` values in the volume's units) at the voxels:
+        at every one the first time, then, with ``parts`` > 1, at part ``turn % parts`` of them only (every
+        ``parts``-th voxel or block in memory order), the others keeping the errors they were last measured at."""
         device = self.volume.device
         if self.block == 1 and self._every_voxel is not None:  # every voxel, in memory order: always the same
             index, points = self._every_voxel
@@ -85,24 +91,34 @@ class ErrorGuide:
             points = voxel_points(index, self.volume.shape)
             if self.block == 1:
                 self._every_voxel = index, points
+        part = slice(None) if self.errors is None or self.parts == 1 else slice(turn % self.parts, None, self.parts)
+        index, points = index[part], points[part]
         chunk = MEASURE_CHUNK.get(device.type, 1 << 16)
-        error = torch.cat([(predict(part_points).view(-1) - self.volume.reshape(-1)[part]).abs()
-                           for part_points, part in zip(points.split(chunk), index.split(chunk))])
-        cumulative = error.double().cumsum(0)
+        error = torch.cat([(predict(chunk_points).view(-1) - self.volume.reshape(-1)[chunk_index]).abs()
+                           for chunk_points, chunk_index in zip(points.split(chunk), index.split(chunk))]).double()
+        if part == slice(None):
+            self.errors = error
+        else:
+            self.errors[part] = error
+        cumulative = self.errors.cumsum(0)
         if not float(cumulative[-1]) > 0:  # fitted exactly everywhere measured: draw uniformly
-            cumulative = torch.arange(1, len(index) + 1, device=device, dtype=torch.float64)
+            cumulative = torch.arange(1, self.block_count + 1, device=device, dtype=torch.float64)
         self.cumulative = cumulative / cumulative[-1]
 
-    def restore(self, cumulative: torch.Tensor) -> None:
-        """Take a measurement saved with a training checkpoint (``cumulative``, as :meth:`measure` leaves it).
+    def restore(self, cumulative: torch.Tensor, errors: torch.Tensor | None = None) -> None:
+        """Take a measurement saved with a training checkpoint (``cumulative`` and, measured in parts,
+        ``errors``, as :meth:`measure` leaves them).
 
         Raises:
-            DescriptionError: values that are not a running sum from 0 to 1 (a damaged checkpoint).
+            DescriptionError: values that are not a running sum from 0 to 1, or errors that are not finite and
+                at least 0 (a damaged checkpoint).
         """
         if not (bool(torch.isfinite(cumulative).all()) and bool((cumulative.diff() >= 0).all())
                 and float(cumulative[0]) >= 0 and float(cumulative[-1]) == 1.0):
             raise DescriptionError("error_guide is not a running sum of errors from 0 to 1")
-        self.cumulative = cumulative
+        if errors is not None and not (bool(torch.isfinite(errors).all()) and bool((errors >= 0).all())):
+            raise DescriptionError("error_guide_errors are not finite errors of at least 0")
+        self.cumulative, self.errors = cumulative, errors
 
     def draw(self, count: int, generator: torch.Generator) -> torch.Tensor:
         """``[count]`` voxel indices (flat) drawn in proportion to the measured errors."""

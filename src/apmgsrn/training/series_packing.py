@@ -162,7 +162,7 @@ def series_sensitivity(field: SeriesField, points: int = 1 << 18) -> dict[str, n
     probed = sorted({0, field.steps // 2, field.steps - 1})
     total: dict[str, np.ndarray] = {}
     for t in probed:
-        for name, values in parameter_sensitivity(field.step_field(t), points).items():
+        for name, values in parameter_sensitivity(field.step_field(t), points, names=SHARED_STEP_TENSORS).items():
             if name in SHARED_STEP_TENSORS:
                 total[name] = total.get(name, 0.0) + values / len(probed)
     return total
@@ -208,7 +208,8 @@ def sensitivity_steps(uniform: dict[str, tuple[np.ndarray, int]],
 
 def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS,
                 sensitivity: dict[str, np.ndarray] | None = None, finer: float = 0.0,
-                steps: dict[str, np.ndarray] | None = None) -> PackedSeries:
+                steps: dict[str, np.ndarray] | None = None,
+                predictors: dict[str, tuple[str, ...]] | None = None) -> PackedSeries:
     """Quantise and code a series field's parameters at ``bits`` (see the module docstring); nothing written.
 
     Args:
@@ -221,6 +222,8 @@ def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS,
         steps: the steps of :data:`SHARED_STEP_TENSORS` as :attr:`PackedSeries.steps` gave them (``bits``,
             ``sensitivity`` and ``finer`` then only label them): a field fine-tuned towards those steps is
             packed on exactly them.
+        predictors: name -> the predictors a quantised tensor may be coded with (None, or a name not there:
+            every one that applies, the smallest kept; :func:`chosen_predictors`).
 
     Returns:
         The packed tensors and the values a loader restores (load them into a copy of ``field``, see
@@ -259,9 +262,15 @@ def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS,
             state[name] = values.clone()
             continue
         quantized = quantize(values, group_steps, group)
-        tensors.append(encode_quantized(name, quantized, series_predictors(name, quantized.shape)))
+        allowed = (predictors or {}).get(name) or series_predictors(name, quantized.shape)
+        tensors.append(encode_quantized(name, quantized, allowed))
         state[name] = quantized.dequantize()
     return PackedSeries(tensors, state, bits, finer, {name: allocated[name] for name in shared})
+
+
+def chosen_predictors(packed: PackedSeries) -> dict[str, tuple[str, ...]]:
+    """The predictor each quantised tensor of ``packed`` was coded with (the ``predictors`` of :func:`pack_series`)."""
+    return {t.name: (t.predictor,) for t in packed.tensors if t.encoding == "quantized"}
 
 
 @dataclass(frozen=True)
@@ -309,15 +318,22 @@ class SeriesPacking:
                 pass
         budget = None if self.target_bytes is None else parameter_budget(self.target_bytes, field.steps)
         sensitivity = series_sensitivity(field)
-        for bits in range(self.bits, self.min_bits - 1, -1):
-            packed = pack_series(field, bits, sensitivity)
-            if budget is None or packed.parameter_bytes <= budget:
-                return packed if bits == self.bits else self._refine(field, packed, sensitivity, budget)
+        packed = pack_series(field, self.bits, sensitivity)
+        if budget is None or packed.parameter_bytes <= budget:
+            return packed
+        # The trials below code every tensor with the predictor this first one chose (LZMA, one predictor
+        # instead of each: most of a trial's time); the width kept is coded with each again, never larger.
+        chosen = chosen_predictors(packed)
+        for bits in range(self.bits - 1, self.min_bits - 1, -1):
+            packed = pack_series(field, bits, sensitivity, predictors=chosen)
+            if packed.parameter_bytes <= budget:
+                best = self._refine(field, packed, sensitivity, budget, chosen)
+                return pack_series(field, best.bits, sensitivity, best.finer)
         if self.strict:
             raise InvalidArgument(f"target_bytes={self.target_bytes}: the series' parameters alone take "
                                   f"{packed.parameter_bytes:,} bytes even at {self.min_bits} bits; allow more bytes "
                                   "or train a smaller model", arguments=("target_bytes",))
-        return packed
+        return pack_series(field, self.min_bits, sensitivity)
 
     def repack(self, field: SeriesField, packed: PackedSeries) -> PackedSeries:
         """``field`` packed on the steps of ``packed`` (an earlier packing of it, which a quantisation-aware
@@ -330,14 +346,15 @@ class SeriesPacking:
 
     @staticmethod
     def _refine(field: SeriesField, packed: PackedSeries, sensitivity: dict[str, np.ndarray],
-                budget: int) -> PackedSeries:
+                budget: int, predictors: dict[str, tuple[str, ...]] | None = None) -> PackedSeries:
         """The finest steps between ``packed``'s bit width (which fits the ``budget``) and the next (which did
-        not) that still fit: bisection on :attr:`PackedSeries.finer` to :data:`FINER_RESOLUTION` of a bit.
+        not) that still fit: bisection on :attr:`PackedSeries.finer` to :data:`FINER_RESOLUTION` of a bit,
+        every trial coded with ``predictors`` (:func:`pack_series`).
         A whole bit is about a fifth of the bytes; without this a target lands up to that far below itself."""
         low, high, best = 0.0, 1.0, packed
         while high - low > FINER_RESOLUTION:
             middle = (low + high) / 2
-            tried = pack_series(field, packed.bits, sensitivity, middle)
+            tried = pack_series(field, packed.bits, sensitivity, middle, predictors=predictors)
             if tried.parameter_bytes <= budget:
                 low, best = middle, tried
             else:
@@ -358,9 +375,12 @@ DEFAULT_SERIES_MIN_BITS_OF = {"hybrid": 7}
 #: Quantisation-aware fine-tune iterations per step (:attr:`SeriesPacking.qat_iterations`) with which ``train``
 #: packs a stepwise series of a model kind by default, as a share of the start model's iterations (elsewhere
 #: none): 50 after 2,000 lift every step of a hybrid series of the 30 viscous-finger steps by 0.5-0.8 dB in the
-#: same bytes, and since a frozen-decoder step runs as one fused CPU pass (:mod:`apmgsrn.ops.field_train_cpu`)
-#: the whole series trains with them in 393 s, 4.7 times one step's model (docs/time_series.md).
-DEFAULT_SERIES_QAT_SHARE_OF = {"hybrid": 0.025}
+#: same bytes (393 s, 4.7 times one step's model, since a frozen-decoder step runs as one fused CPU pass,
+#: :mod:`apmgsrn.ops.field_train_cpu`); 200, measured as often but on half of the voxels each time
+#: (:data:`~apmgsrn.training.series_qat.QAT_MEASUREMENTS`), another 0.16-0.25 dB on every step of seed 0 in
+#: the same time, the steps' fine-tunes measuring half of the voxels too
+#: (:data:`~apmgsrn.training.series_steps.STEP_ERROR_PARTS`; docs/time_series.md).
+DEFAULT_SERIES_QAT_SHARE_OF = {"hybrid": 0.1}
 
 
 def default_series_qat(model: str, iterations: int) -> int:

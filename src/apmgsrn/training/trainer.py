@@ -111,12 +111,17 @@ class TrainConfig:
             iteration time on CPU (the fused kernel gives the placement's gradient; elsewhere the reference
             multi-grid path runs, about 2.4 times).
         error_sampling: share of the voxel points (``voxel_fraction``) drawn in proportion to the model's
-            absolute error at the voxels, measured :data:`ERROR_MEASUREMENTS` times in the run
+            absolute error at the voxels, measured ``error_measurements`` times in the run
             (:class:`~apmgsrn.training.points.ErrorGuide`); the rest of them uniformly. 0 (and what older
             checkpoints ran with): uniformly; nothing changes without voxel points. A single volume (or a
             series' step) only. The model kinds' own defaults are in
             :func:`apmgsrn.models.registry.training_defaults`; docs/models.md has the measurements. A
             checkpoint keeps the last measurement, so a resumed run draws what the uninterrupted one would.
+        error_measurements: how many times a run with ``error_sampling`` measures the error, evenly spaced (the
+            first before its first iteration; :data:`ERROR_MEASUREMENTS` by default).
+        error_parts: each measurement after the first re-measures one of this many interleaved parts of the
+            voxels in turn, the others keeping their last errors (:class:`~apmgsrn.training.points.ErrorGuide`):
+            this many times cheaper. 1 (and what older checkpoints ran with): every voxel every time.
     """
 
     iterations: int = 2000
@@ -142,6 +147,8 @@ class TrainConfig:
     anchored_grids: int = 0
     placement_loss: str = "density"
     error_sampling: float = 0.0
+    error_measurements: int = ERROR_MEASUREMENTS
+    error_parts: int = 1
 
     def __post_init__(self) -> None:
         """Refuse every value the loop cannot run with (:class:`~apmgsrn.errors.InvalidArgument`)."""
@@ -175,6 +182,8 @@ class TrainConfig:
         check_choice("decoder_precision", self.decoder_precision, DECODER_PRECISIONS)
         object.__setattr__(self, "voxel_fraction", check_number("voxel_fraction", self.voxel_fraction, 0.0, 1.0))
         object.__setattr__(self, "error_sampling", check_number("error_sampling", self.error_sampling, 0.0, 1.0))
+        check_int("error_measurements", self.error_measurements, 1)
+        check_int("error_parts", self.error_parts, 1)
 
     @property
     def error_guided(self) -> bool:
@@ -185,7 +194,8 @@ class TrainConfig:
 #: Names older versions stored for today's :class:`TrainConfig` fields.
 RENAMED = {"transform_lr": "placement_lr"}
 #: :class:`TrainConfig` fields added since, with the value the versions without them ran with.
-ADDED = {"voxel_fraction": 0.0, "anchored_grids": 0, "placement_loss": "density", "error_sampling": 0.0}
+ADDED = {"voxel_fraction": 0.0, "anchored_grids": 0, "placement_loss": "density", "error_sampling": 0.0,
+         "error_measurements": ERROR_MEASUREMENTS, "error_parts": 1}
 
 
 def current_names(stored: dict) -> dict:
@@ -336,7 +346,7 @@ class Trainer:
         self._pending_density: list[torch.Tensor] = []
         #: A series: each step's recent reconstruction loss ``[T]`` (for progress; NaN until it is drawn).
         self.step_losses = torch.full((volume.shape[0],), math.nan, device=self.device) if volume.dim() == 4 else None
-        self.error_guide = ErrorGuide(volume) if config.error_guided else None
+        self.error_guide = ErrorGuide(volume, config.error_parts) if config.error_guided else None
         if self.placement_optimizer is None:
             self.state.frozen_at = 0
         # Encoders that start from the data (hybrid: adaptive grids on the volume's detail) do it here, the
@@ -429,9 +439,10 @@ class Trainer:
         tracking = cfg.placement_loss == "reconstruction" and st.frozen_at is None
         if self.volume.dim() == 3:
             guide = self.error_guide
-            if guide is not None and (guide.cumulative is None
-                                      or st.iteration % max(1, cfg.iterations // ERROR_MEASUREMENTS) == 0):
-                guide.measure(self.field.normalized, self.generator)  # float32, the fused kernel where it runs
+            every = max(1, cfg.iterations // cfg.error_measurements)
+            if guide is not None and (guide.cumulative is None or st.iteration % every == 0):
+                # float32, the fused kernel where it runs
+                guide.measure(self.field.normalized, self.generator, st.iteration // every)
             points, target = draw_batch(self.volume, cfg.batch_size, cfg.voxel_fraction, self.generator,  # [B, 3], [B]
                                         guide, cfg.error_sampling)
             if self.order_batches:
@@ -646,6 +657,8 @@ class Trainer:
         tensors["generator"] = self.generator.get_state()
         if self.error_guide is not None and self.error_guide.cumulative is not None:
             tensors["error_guide"] = self.error_guide.cumulative  # the last measurement: a resume draws as before
+            if self.config.error_parts > 1:  # and the errors the next part's measurement is merged into
+                tensors["error_guide_errors"] = self.error_guide.errors
         description = {
             "fingerprint": self.fingerprint,
             "config": asdict(self.config),
@@ -684,13 +697,17 @@ class Trainer:
             expected["generator"] = (tuple(self.generator.get_state().shape), torch.uint8)
             if self.error_guide is not None and state.iteration > 0:  # measured before the first iteration
                 expected["error_guide"] = ((self.error_guide.block_count,), torch.float64)
+                if self.config.error_parts > 1:
+                    expected["error_guide_errors"] = ((self.error_guide.block_count,), torch.float64)
             for name, optimizer in optimizers.items():
                 if optimizer is not None:
                     expected |= optimizer_layout(name, optimizer, stepped[name])
             tensors = {_current_tensor_name(k): v for k, v in load_tensors(path).items()}
             check_tensors(tensors, expected)
             if "error_guide" in expected:
-                self.error_guide.restore(tensors["error_guide"].to(self.device))
+                errors = tensors.get("error_guide_errors")
+                self.error_guide.restore(tensors["error_guide"].to(self.device),
+                                         None if errors is None else errors.to(self.device))
         except DescriptionError as exc:
             raise ApmgsrnError(f"{path}: training checkpoint is damaged ({exc}); delete it to start over") from None
         self.field.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
