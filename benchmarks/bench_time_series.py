@@ -72,6 +72,13 @@ def seed_rows(path: Path, kind: str) -> dict[int, dict[int, float]]:
     return {seed: steps for seed, steps in rows.items() if steps}
 
 
+def seed_mean(seeds: dict[int, dict[int, float]], step: int) -> float:
+    """The mean PSNR of ``step`` over the seeds of :func:`seed_rows`; NaN where a seed lacks the step."""
+    if not all(step in rows for rows in seeds.values()):
+        return math.nan
+    return sum(rows[step] for rows in seeds.values()) / len(seeds)
+
+
 def _train_config(args: argparse.Namespace, **given):
     """The protocol's training config for ``args.kind`` (its own training defaults, then ``given``)."""
     from apmgsrn.models.registry import training_defaults
@@ -324,8 +331,7 @@ def _seeds_section(own: dict[int, dict[int, float]], series: dict[int, dict[int,
     steps = sorted(set.intersection(*(set(p) for p in [*own.values(), *series.values()])))
     if not steps:
         return ""
-    mean = {name: {t: sum(p[t] for p in rows.values()) / len(rows) for t in steps}
-            for name, rows in (("own", own), ("series", series))}
+    mean = {name: {t: seed_mean(rows, t) for t in steps} for name, rows in (("own", own), ("series", series))}
     differences = [mean["series"][t] - mean["own"][t] for t in steps]
     above = sum(d >= 0 for d in differences)
     table = "\n".join(f"| {t} | {mean['own'][t]:.2f} | {mean['series'][t]:.2f} | {differences[i]:+.2f} |"
@@ -430,8 +436,7 @@ packed series decodes every step's grids once). Fastest of several interleaved r
     for name, path in (("one small model per step", BASELINE_CSV), ("one model for the series", SERIES_CSV)):
         seeds = seed_rows(path, kind)  # seed -> step -> PSNR; their mean where a step has every seed
         label = name if len(seeds) == 1 else f"{name}, mean of seeds {', '.join(map(str, seeds))}"
-        lines[label] = [sum(p[t] for p in seeds.values()) / len(seeds) if all(t in p for p in seeds.values())
-                        else math.nan for t in every]
+        lines[label] = [seed_mean(seeds, t) for t in every]
     for label, path in COMPARED.get(kind, {}).items():
         other = {int(r["step"]): float(r["psnr"]) for r in _done_rows(path)}
         if other:

@@ -72,11 +72,9 @@ class NeuralField(nn.Module):
         """One reconstruction step by the encoder's fused training kernel, where it has one and the decoder is
         frozen (float32): the decoder output ``[N]`` at ``points``, with the gradient of its mean squared error
         to ``target`` ``[N]`` stored as the encoder's learning features' ``.grad`` (replacing it)
-        (:meth:`~apmgsrn.models.encoders.base.Encoder.fused_mse_step`). None elsewhere: nothing changed."""
-        weights = self.decoder.weights()
-        if any(w.requires_grad for w in weights):
-            return None
-        return self.encoder.fused_mse_step(points, target, weights)
+        (:meth:`~apmgsrn.models.encoders.base.Encoder.fused_mse_step`, which declines a decoder that learns).
+        None elsewhere: nothing changed."""
+        return self.encoder.fused_mse_step(points, target, self.decoder.weights())
 
     @torch.no_grad()
     def fused_inference(self) -> bool:

@@ -61,13 +61,13 @@ class Encoder(nn.Module):
         """One reconstruction step under a frozen decoder by a fused training kernel: the prediction
         ``decoder(self(points))`` ``[N]``, with the gradient of its mean squared error to ``target`` ``[N]``
         stored as ``.grad`` of the feature parameters that require one, replacing what was there (the placement
-        gets none: the reconstruction path detaches it). None where there is no such kernel (nothing is changed
-        then; the trainer runs autograd).
+        gets none: the reconstruction path detaches it). None where there is no such kernel, or where a decoder
+        weight learns (the kernel gives no gradient for it): nothing is changed then; the trainer runs autograd.
 
         Args:
             points: ``[N, 3]``.
             target: ``[N]`` the values to fit.
-            weights: the decoder's linear layers, none of them learning.
+            weights: the decoder's linear layers.
         """
         return None
 
