@@ -174,6 +174,30 @@ def test_header_claims_that_disagree_with_the_bytes_are_refused(good_model, tmp_
             apmgsrn.load(path)
 
 
+def test_a_header_read_while_a_writer_replaces_the_file_sees_one_whole_file(good_model, tmp_path, monkeypatch):
+    """A checkpoint is replaced atomically while another process may read it (a watcher, a resumed run): the
+    reader must take the size from the file it opened, never from the path, which may already be the next file.
+    Here the writer's replacement lands exactly between the reader's checks of the path and its open."""
+    import builtins
+    import os
+
+    from apmgsrn.io import container
+
+    larger = rewrite(good_model, tmp_path / "larger.apmgsrn", description=lambda d: d.__setitem__("note", "x" * 20_000))
+    target = tmp_path / "watched.apmgsrn"
+    target.write_bytes(good_model.read_bytes())
+
+    def replaced_then_opened(path, *args, **kwargs):
+        if Path(path) == target:
+            os.replace(larger, target)
+        return builtins.open(path, *args, **kwargs)
+
+    monkeypatch.setattr(container, "open", replaced_then_opened, raising=False)
+    header = container.read_header(target)
+    assert header.description["note"] == "x" * 20_000
+    assert header.tensors == container.read_header(good_model).tensors
+
+
 def test_the_container_format_constants_are_what_files_carry(good_model):
     with open(good_model, "rb") as f:
         length = int.from_bytes(f.read(8), "little")

@@ -92,8 +92,9 @@ def read_header(path: str | os.PathLike) -> Header:
         raise ApmgsrnError(f"{path}: is not a model file (a folder?); pass the file written by 'apmgsrn train'")
     not_ours = f"{path}: not an apmgsrn model file (corrupt, truncated or another format)"
     try:
-        size = path.stat().st_size
         with open(path, "rb") as f:
+            # The size of the file opened, not of the path: a writer may atomically replace the path meanwhile.
+            size = os.fstat(f.fileno()).st_size
             prefix = f.read(8)
             if len(prefix) < 8:
                 raise ApmgsrnError(not_ours)
