@@ -54,6 +54,8 @@ COMPARED = {"hybrid": {
         RESULTS / "time_series_model_hybrid_20261125.csv",
     "hybrid series with 50 fine-tune iterations towards the packing (2026-11-27 morning, 4.65 files)":
         RESULTS / "time_series_model_hybrid_20261127.csv",
+    "hybrid series with 200 at half the batch (2026-11-27 third session, seed 0, 4.76 files, 5.33x with its packing)":
+        RESULTS / "time_series_model_hybrid_20261127b.csv",
     "APMGSRN series (4.6 files)": SERIES_CSV}}
 
 

@@ -489,6 +489,45 @@ def test_a_size_search_codes_its_trials_with_the_first_ones_predictors_and_keeps
     assert [t.predictor for t in kept.tensors] == [t.predictor for t in again.tensors]
 
 
+@pytest.mark.parametrize("between", [(5, 6, 0.5), (6, 7, 0.1), (6, 7, 0.9), (8, 9, 0.3)])
+def test_a_size_search_takes_the_finest_sixteenth_of_a_bit_that_fits_in_few_trials(hybrid_series, monkeypatch,
+                                                                                     between):
+    """Targets between two whole widths (near either end or the middle, far below the top): the width kept
+    fits, the next sixteenth of a bit does not, and the search coded no more trials than a bisection of the
+    lattice from ``min_bits`` to the top would (six for 64 sixteenths, besides the top and the width kept)."""
+    from apmgsrn.training import series_packing
+    from apmgsrn.training.series_packing import SeriesPacking, parameter_budget
+
+    field = hybrid_series
+    sensitivity = series_sensitivity(field)
+    lower, upper, share = between
+    sizes = [pack_series(field, bits, sensitivity).parameter_bytes for bits in (lower, upper)]
+    target = round(sizes[0] + share * (sizes[1] - sizes[0])) + 1024 + 64 * field.steps
+    budget = parameter_budget(target, field.steps)
+    trials = []
+    original = series_packing.pack_series
+    monkeypatch.setattr(series_packing, "pack_series",
+                        lambda *a, **k: trials.append(k.get("predictors")) or original(*a, **k))
+    kept = SeriesPacking(10, target, 4).pack(field)
+    monkeypatch.setattr(series_packing, "pack_series", original)
+    assert lower <= kept.bit_width < upper and kept.parameter_bytes <= budget
+    finer = kept.bit_width + 1 / 16
+    assert pack_series(field, int(finer), sensitivity, finer - int(finer)).parameter_bytes > budget
+    assert len([t for t in trials if t is not None]) <= 6
+
+
+def test_a_size_search_where_not_even_the_fewest_bits_fit(hybrid_series):
+    """Strict: one line naming what the fewest bits take; otherwise packed at the fewest bits anyway."""
+    from apmgsrn.training.series_packing import SeriesPacking
+
+    field = hybrid_series
+    fewest = pack_series(field, 5, series_sensitivity(field))
+    with pytest.raises(InvalidArgument, match=f"take {fewest.parameter_bytes:,} bytes even at 5 bits"):
+        SeriesPacking(10, 1000, 5).pack(field)
+    loose = SeriesPacking(10, 1000, 5, strict=False).pack(field)
+    assert loose.bit_width == 5 and loose.parameter_bytes == fewest.parameter_bytes
+
+
 def shared_steps_of(field, name):
     from apmgsrn.training.series_packing import slice_group
 
@@ -513,8 +552,8 @@ def test_the_default_packing_is_sized_by_the_stored_single_step_file_and_keeps_a
         fitted = single.fitted_to(shape)
         assert packing.target_bytes == 5 * stored_bytes(fitted) and packing.bits == 10
         assert packing.min_bits == lowest and not packing.strict
-        # fine-tuned towards the packing first: the hybrid's steps, 200 iterations after the start model's 2,000
-        assert packing.qat_iterations == (200 if kind == "hybrid" else 0)
+        # fine-tuned towards the packing first: the hybrid's steps, 250 iterations after the start model's 2,000
+        assert packing.qat_iterations == (250 if kind == "hybrid" else 0)
     hybrid = preset_config("hybrid", "small").fitted_to(shape)
     values = sum(math.prod(s) for s in hybrid.parameter_shapes().values())
     assert 2 * values < stored_bytes(hybrid) < 3 * values  # float16 tables, float32 decoder and placement

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import json
+import types
 from dataclasses import replace
 
 import numpy as np
@@ -128,6 +129,45 @@ def test_repack_packs_anew_when_the_fine_tuned_field_no_longer_fits(hybrid_serie
         packing.repack(hybrid_series, packed)
 
 
+def test_repack_undoes_the_fine_tune_of_as_few_steps_as_make_the_file_fit(hybrid_series):
+    """Where the fine-tuned values code larger than the target allows, the steps whose integers moved most get
+    their values from before the fine-tune back until the file fits: here a "fine-tune" that moved the table
+    entries of steps 1 and 3 by one or two quantisation steps each (decorrelating them along time), so those are
+    the ones restored, not all of them; on the same quantisation steps, the field left holding what was packed."""
+    from apmgsrn.training.series_packing import step_tensors
+
+    to_tune = SeriesPacking(6, min_bits=6).pack(hybrid_series)
+    tuned = copy.deepcopy(hybrid_series)
+    before = step_tensors(tuned)
+    table = tuned.encoder.level_table
+    element = element_steps(tuned, to_tune)["level_table"]
+    generator = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for t in (1, 3):
+            table[t] += element * torch.randint(-2, 3, element.shape, generator=generator)
+    moved = step_tensors(tuned)
+    grown = pack_series(tuned, 6, finer=to_tune.finer, steps=to_tune.steps).parameter_bytes
+    assert grown > to_tune.parameter_bytes
+    budget = (grown + to_tune.parameter_bytes) // 2
+    packing = SeriesPacking(6, target_bytes=budget + 1024 + 64 * 4, min_bits=4)
+    repacked = packing.repack(tuned, to_tune, before)
+    assert repacked.parameter_bytes <= budget
+    assert repacked.restored and set(repacked.restored) <= {1, 3} and repacked.bit_width == to_tune.bit_width
+    assert all(np.array_equal(repacked.steps[k], to_tune.steps[k]) for k in to_tune.steps)
+    held = step_tensors(tuned)
+    for name in held:
+        for t in range(4):
+            assert torch.equal(held[name][t], (before if t in repacked.restored else moved)[name][t])
+    again = pack_series(tuned, 6, finer=to_tune.finer, steps=to_tune.steps)
+    assert all(torch.equal(again.state[k], repacked.state[k]) for k in again.state)
+    # Without the values from before, the field is packed anew instead (a width that fits, other steps).
+    anew = copy.deepcopy(tuned)
+    with torch.no_grad():
+        anew.encoder.level_table.copy_(moved["encoder.level_table"])
+    packed_anew = packing.repack(anew, to_tune)
+    assert packed_anew.restored == () and packed_anew.bit_width < 6 and packed_anew.parameter_bytes <= budget
+
+
 def test_the_packing_to_tune_towards_leaves_room_for_the_fine_tuned_values(hybrid_series, prepared):
     """With a size target the packing a fine-tune trains towards keeps TUNED_BYTES_MARGIN of the target free, so
     the fine-tuned field, packed on the same steps, still fits (without the margin, a target the bisection
@@ -168,6 +208,22 @@ def test_train_with_qat_iterations_records_them_and_counts_them(pattern, tmp_pat
     assert model.description.training["iterations"] == apmgsrn.load(tmp_path / "plain.apmgsrn").description.training[
         "iterations"] + 30 * 4
     assert tuned["psnr"] > plain["psnr"]
+
+
+def test_a_packed_series_counts_its_packing_and_fine_tune_in_its_training_time(pattern, tmp_path, capsys, monkeypatch):
+    """``train`` waits for the packing search and the fine-tune towards it, so the time it reports counts them:
+    here a clock that jumps 1,000 s between their start and end."""
+    from apmgsrn.training import fit as fit_module
+
+    clock = iter([0.0, 1000.0])
+    monkeypatch.setattr(fit_module, "time", types.SimpleNamespace(perf_counter=lambda: next(clock)))
+    assert main(["train", pattern, "--model", "hybrid", "--levels", "6", "--log2-table-size", "10", "--grids", "4",
+                 "--resolution", "8", "--width", "16", "--iterations", "60", "--batch-size", "2048", "--device",
+                 "cpu", "--size", "40000", "--qat-iterations", "5", "--json",
+                 "--out", str(tmp_path / "s.apmgsrn")]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert 1000 < summary["seconds"] < 1000 + 600
+    assert next(clock, None) is None  # read once before the search and once after the repacking
 
 
 def test_pack_with_qat_iterations_fine_tunes_a_float_series_file(pattern, tmp_path, capsys):

@@ -115,6 +115,10 @@ def test_the_step_config_fine_tunes_grids_only_longer_the_more_a_step_changes():
     # A smaller step batch (the hybrid's) runs proportionally more iterations: the same points in all.
     half = StepwiseConfig().step_config(replace(start, batch_size=32768), 0.016, 0.001, batch_share=0.5)
     assert (half.iterations, half.batch_size) == (800, 16384) and half.density_start > half.iterations
+    # A share of the points (the hybrid's on a CPU): that share of those iterations, at the smaller batch.
+    fewer = StepwiseConfig().step_config(replace(start, batch_size=32768), 0.016, 0.001, batch_share=0.375,
+                                         point_share=0.9)
+    assert (fewer.iterations, fewer.batch_size) == (960, 12288) and fewer.density_start > fewer.iterations
 
 
 def test_a_long_series_shortens_every_step_to_stay_within_the_budget():

@@ -264,6 +264,22 @@ def test_error_guided_voxels_land_where_the_model_is_wrong_in_proportion_to_the_
     assert int(near.max()) - int(near.min()) <= 1
 
 
+def test_the_draws_search_finds_what_torch_searchsorted_finds(channel):
+    """The guide's search (NumPy's on a CPU) against ``torch.searchsorted``: a real volume's absolute
+    values as errors (zeros among them, so runs of equal sums), queries as a draw makes them, and ties at
+    exactly a running sum's value."""
+    from apmgsrn.training.points import search_sorted
+
+    errors = channel.reshape(-1).double().abs()
+    errors[::7] = 0.0
+    cumulative = errors.cumsum(0) / errors.sum()
+    for count, offset in ((8192, 0.3), (100, 0.999), (30000, 0.0)):
+        queries = (torch.arange(1, count + 1, dtype=torch.float64) - offset) / count
+        queries = torch.cat([queries, cumulative[::997]])  # exact ties too
+        found = search_sorted(cumulative, queries)
+        assert found.dtype == torch.int64 and torch.equal(found, torch.searchsorted(cumulative, queries))
+
+
 def test_error_guided_points_sit_on_voxels_with_their_values_and_keep_the_uniform_share(channel):
     from apmgsrn.training.points import ErrorGuide
 

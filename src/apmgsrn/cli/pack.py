@@ -48,7 +48,7 @@ def add_pack_arguments(parser: argparse.ArgumentParser, title: str = "packing") 
     group.add_argument("--qat-iterations", type=int, metavar="N",
                        help="quantisation-aware fine-tune iterations before coding (default 0); for a "
                             "stepwise time series, iterations per step (train of a hybrid series: by default "
-                            "--iterations / 10, 0 turns it off; docs/time_series.md)")
+                            "--iterations / 8, 0 turns it off; docs/time_series.md)")
 
 
 def packing_requested(args: argparse.Namespace) -> bool:
@@ -222,6 +222,7 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
         SeriesPacking,
         packed_series_field,
         series_packing_report,
+        step_tensors,
         write_packed_series,
     )
     from apmgsrn.training.packing import fitted_values
@@ -245,13 +246,14 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
     before = evaluate_series(field.step_field, series, **options)
     if packing.qat_iterations:
         log(f"fine-tuning every step towards its packed grids, {packing.qat_iterations} iterations each")
+        before_tune = step_tensors(field)
         fine_tune_rounded(field, fitted_values(field, series.to_numpy()), packed, config, packing.qat_iterations,
                           show_progress=not args.json)
-        packed = packing.repack(field, packed)
+        packed = packing.repack(field, packed, before_tune)
     log(f"measuring the packed model on {len(series)} steps")
     after = evaluate_series(packed_series_field(field, packed).step_field, series, **options)
     report = series_packing_report(field, packed.bit_width, before, after, packing.target_bytes,
-                                   packing.qat_iterations)
+                                   packing.qat_iterations, len(packed.restored))
     training = {**model.description.training,
                 "steps": [{"psnr": e.psnr, "max_abs_error": e.max_abs_error} for e in after.steps]}
     out = Path(args.out)

@@ -15,6 +15,7 @@ object, so data that is not one volume (a time series) can be prepared its own w
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from dataclasses import field as dataclass_field
@@ -36,7 +37,7 @@ from apmgsrn.models.series_field import SeriesField, SeriesFieldConfig
 from apmgsrn.models.value_transform import ValueTransform, fit_value_transform
 from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.checkpoint import checkpoint_path_for
-from apmgsrn.training.series_packing import SeriesPacking, series_packing_report, write_packed_series
+from apmgsrn.training.series_packing import SeriesPacking, series_packing_report, step_tensors, write_packed_series
 from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, TrainingState
 
 
@@ -197,7 +198,8 @@ class FitResult:
         field: the trained field.
         model_path: its model file.
         model_bytes: the file's size.
-        seconds: training time (a resumed run counts its earlier part too).
+        seconds: training time (a resumed run counts its earlier part too; a packed series' packing search and
+            quantisation-aware fine-tune too).
         iterations: iterations run (fewer than the budget after an early stop; 0 for a constant volume).
         frozen_at: iteration where the grids stopped moving.
         stopped_early: training ended before the budget (early stop, or a constant volume).
@@ -280,20 +282,23 @@ def fit(
     if series:
         if packing is not None:
             before = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
+            # The packing search and the fine-tune towards it are part of making the model: they count in its
+            # training time (the evaluations, as for one volume, do not).
+            started = time.perf_counter()
             packed = packing.pack(trained.field)
             if packing.qat_iterations:  # trained towards the packing's steps, then packed on them
                 if tune_packed is None:
                     raise ValueError("packing.qat_iterations needs tune_packed")
-                ran, seconds = tune_packed(trained.field, prepared.values, packed, train_config,
-                                           packing.qat_iterations)
+                before_tune = step_tensors(trained.field)
+                ran, _ = tune_packed(trained.field, prepared.values, packed, train_config, packing.qat_iterations)
                 trained.state.iteration += ran
-                trained.state.elapsed += seconds
-                packed = packing.repack(trained.field, packed)
+                packed = packing.repack(trained.field, packed, before_tune)
+            trained.state.elapsed += time.perf_counter() - started
             trained.field.load_state_dict(packed.state)  # measure what the file will give back
         evaluation = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
         if packed is not None:
             report = series_packing_report(trained.field, packed.bit_width, before, evaluation, packing.target_bytes,
-                                           packing.qat_iterations)
+                                           packing.qat_iterations, len(packed.restored))
         summary_extra = {"steps": [{"psnr": e.psnr, "max_abs_error": e.max_abs_error} for e in evaluation.steps],
                          **(summary_extra or {})}
     else:

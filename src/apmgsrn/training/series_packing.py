@@ -22,10 +22,10 @@ the same bytes). Uniform steps spend as many bits on a fine level's hash entry a
 entries each reach far more voxels: the 30 viscous-finger steps' default hybrid series lost 0.52 dB to
 uniform steps at 8 bits and loses 0.10 dB to these, in 2 % fewer bytes (APMGSRN's at 10 bits: no change).
 
-A size target (:class:`SeriesPacking`) takes the largest whole bit width that fits, then makes every step finer
-by a fraction of a bit as far as the target allows (:meth:`SeriesPacking._refine`): a whole bit is about a fifth
-of the bytes, and the default hybrid series of the viscous-finger steps landed at 4.4 of its five files at 7
-bits, 1.1 dB below float32; refined, at 7.25 bits, 4.7 files, 0.79 dB (docs/time_series.md).
+A size target (:class:`SeriesPacking`) takes the finest bit width that fits on a lattice of sixteenths of a bit
+(every step of a whole width made finer by ``2^-k/16``, :meth:`SeriesPacking._search`): a whole bit is about a
+fifth of the bytes, and the default hybrid series of the viscous-finger steps landed at 4.4 of its five files at 7
+bits, 1.1 dB below float32; at 7.25 bits, 4.7 files, 0.79 dB (docs/time_series.md).
 
 Each quantised tensor is coded with whichever predictor codes it smallest (``time`` and the spatial ones).
 On the 30 viscous-fingering steps at 64^3 (per-step grids) the grids take about 0.81 MB at 8 bits and 1.24 MB
@@ -73,14 +73,14 @@ SHARED_STEP_TENSORS = ("encoder.grids", "encoder.level_table")
 LEVEL_TABLE_GROUP = 1024
 #: A sensitivity-allocated step is at most this many bits finer than the uniform one (:func:`sensitivity_steps`).
 FINEST_SHARE_BITS = 8
-#: The bisection of :meth:`SeriesPacking._refine` stops within this share of a bit (4 more packings).
+#: The lattice of bit widths a size target's search (:meth:`SeriesPacking._search`) takes the finest fitting one of.
 FINER_RESOLUTION = 1 / 16
 #: Share of a size target left free by the packing a quantisation-aware fine-tune trains towards
 #: (:meth:`SeriesPacking.pack` with ``qat_iterations``): the fine-tuned steps of the default hybrid series of the
-#: 30 viscous-finger steps coded 1.0 % larger, and a target the bisection had filled to within a sixteenth of a
-#: bit then no longer held them, so the field was packed anew on other steps, losing what the fine-tune gained
-#: (and 0.1-0.4 dB more).
-TUNED_BYTES_MARGIN = 0.02
+#: 30 viscous-finger steps coded 1.0 % larger after 50 iterations, 2.1 % after 200 and 2.5 % after the 250 of
+#: today's default (docs/time_series.md); a target filled to within a sixteenth of a bit then no longer holds
+#: them. Where they still do not fit, :meth:`SeriesPacking.repack` undoes the fine-tune of as few steps as it must.
+TUNED_BYTES_MARGIN = 0.03
 
 
 @dataclass(frozen=True)
@@ -95,6 +95,8 @@ class PackedSeries:
             :meth:`SeriesPacking.pack` refines a size target's bit width this way).
         steps: name -> ``[K * G]`` float16 steps of each of :data:`SHARED_STEP_TENSORS` as quantised (what a
             quantisation-aware fine-tune, :mod:`apmgsrn.training.series_qat`, trains towards).
+        restored: the steps whose values from before a quantisation-aware fine-tune were packed instead, so that
+            the file fits its target (:meth:`SeriesPacking.repack`).
     """
 
     tensors: list[PackedTensor]
@@ -102,6 +104,7 @@ class PackedSeries:
     bits: int
     finer: float = 0.0
     steps: dict[str, np.ndarray] = dataclass_field(default_factory=dict)
+    restored: tuple[int, ...] = ()
 
     @property
     def bit_width(self) -> float:
@@ -268,6 +271,12 @@ def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS,
     return PackedSeries(tensors, state, bits, finer, {name: allocated[name] for name in shared})
 
 
+def step_tensors(field: SeriesField) -> dict[str, torch.Tensor]:
+    """Copies of a series field's per-step tensors that packing quantises with shared steps
+    (:data:`SHARED_STEP_TENSORS`): what :meth:`SeriesPacking.repack` may restore steps from."""
+    return {name: p.detach().clone() for name, p in field.named_parameters() if name in SHARED_STEP_TENSORS}
+
+
 def chosen_predictors(packed: PackedSeries) -> dict[str, tuple[str, ...]]:
     """The predictor each quantised tensor of ``packed`` was coded with (the ``predictors`` of :func:`pack_series`)."""
     return {t.name: (t.predictor,) for t in packed.tensors if t.encoding == "quantized"}
@@ -304,62 +313,136 @@ class SeriesPacking:
             check_int("target_bytes", self.target_bytes, 1)
 
     def pack(self, field: SeriesField) -> PackedSeries:
-        """The packed field (with a target: each bit width from the largest down, until one fits; then, if the
-        next larger width did not fit, the finest steps between the two that still fit, :meth:`_refine`).
+        """The packed field (with a target the finest bit width from ``bits`` down to ``min_bits``, in
+        :data:`FINER_RESOLUTION` of a bit, whose coded parameters fit: :meth:`_search`).
 
         With :attr:`qat_iterations` the field is to be fine-tuned towards these steps and packed on them again
         (:meth:`repack`): a target is then met within :data:`TUNED_BYTES_MARGIN` less, where it can be, so that
-        the fine-tuned values, which code a little larger, still fit."""
+        the fine-tuned values, which code a little larger, still fit; and the width kept is not coded with every
+        predictor again, since only its steps are used."""
         if self.qat_iterations and self.target_bytes is not None:
             try:
-                return replace(self, target_bytes=max(1, round(self.target_bytes * (1 - TUNED_BYTES_MARGIN))),
-                               qat_iterations=0).pack(field)
+                return self._pack(field, max(1, round(self.target_bytes * (1 - TUNED_BYTES_MARGIN))), final=False)
             except InvalidArgument:  # fits the target only without the margin
                 pass
+        return self._pack(field, self.target_bytes, final=not self.qat_iterations)
+
+    def repack(self, field: SeriesField, packed: PackedSeries,
+               before: dict[str, torch.Tensor] | None = None) -> PackedSeries:
+        """``field`` packed on the steps of ``packed`` (an earlier packing of it, which a quantisation-aware
+        fine-tune then trained it towards), every tensor coded with the predictor ``packed`` chose (the
+        fine-tune moves the integers by a step or so; on the viscous-finger series the ``time`` predictor codes
+        them 20-30 % smaller than any other).
+
+        Should the result no longer fit the target: with ``before`` (:func:`step_tensors` of the field before
+        the fine-tune, which ``packed`` held) the steps whose integers the fine-tune moved most get their values
+        from before it back, as few as fit (a bisection on their number; all of them are ``packed`` itself),
+        and the field keeps what was packed (:attr:`PackedSeries.restored` names them); without, the field is
+        packed anew (:meth:`pack`, the fine-tune lost)."""
+        predictors = chosen_predictors(packed)
+        again = pack_series(field, packed.bits, finer=packed.finer, steps=packed.steps, predictors=predictors)
         budget = None if self.target_bytes is None else parameter_budget(self.target_bytes, field.steps)
+        if budget is None or again.parameter_bytes <= budget:
+            return again
+        if before is None:
+            return replace(self, qat_iterations=0).pack(field)
+        tuned = step_tensors(field)
+        moved = np.zeros(field.steps)
+        for name, values in tuned.items():
+            group = shared_steps(values.cpu().numpy(), packed.bits,
+                                 slice_group(field.config.field.model, name, tuple(values.shape)))[1]
+            levels = [quantize(v.cpu(), packed.steps[name], group).levels.reshape(field.steps, -1)
+                      for v in (values, before[name])]
+            moved += (levels[0] != levels[1]).sum(axis=1)
+        order = [int(t) for t in np.argsort(-moved, kind="stable")]
+        parameters = dict(field.named_parameters())
+
+        @torch.no_grad()
+        def restore(count: int) -> None:
+            for name, values in tuned.items():
+                parameters[name].copy_(values)
+                parameters[name][order[:count]] = before[name][order[:count]].to(values.device)
+
+        def restoring(count: int) -> PackedSeries:
+            restore(count)
+            return replace(pack_series(field, packed.bits, finer=packed.finer, steps=packed.steps,
+                                       predictors=predictors), restored=tuple(sorted(order[:count])))
+
+        low, high = 0, field.steps  # restoring `high` steps fits (all of them: `packed`), `low` does not
+        best = replace(packed, restored=tuple(range(field.steps)))
+        while high - low > 1:
+            middle = (low + high) // 2
+            tried = restoring(middle)
+            if tried.parameter_bytes <= budget:
+                high, best = middle, tried
+            else:
+                low = middle
+        restore(high)  # the field holds what was packed
+        return best
+
+    def _pack(self, field: SeriesField, target_bytes: int | None, final: bool) -> PackedSeries:
+        """:meth:`pack` to ``target_bytes``; ``final``: the width a search kept coded with every predictor
+        (else with those of its trials)."""
+        budget = None if target_bytes is None else parameter_budget(target_bytes, field.steps)
         sensitivity = series_sensitivity(field)
         packed = pack_series(field, self.bits, sensitivity)
         if budget is None or packed.parameter_bytes <= budget:
             return packed
         # The trials below code every tensor with the predictor this first one chose (LZMA, one predictor
         # instead of each: most of a trial's time); the width kept is coded with each again, never larger.
-        chosen = chosen_predictors(packed)
-        for bits in range(self.bits - 1, self.min_bits - 1, -1):
-            packed = pack_series(field, bits, sensitivity, predictors=chosen)
-            if packed.parameter_bytes <= budget:
-                best = self._refine(field, packed, sensitivity, budget, chosen)
-                return pack_series(field, best.bits, sensitivity, best.finer)
+        best = self._search(field, packed, sensitivity, budget, self.min_bits)
+        if best is not None:
+            return pack_series(field, best.bits, sensitivity, best.finer) if final else best
         if self.strict:
-            raise InvalidArgument(f"target_bytes={self.target_bytes}: the series' parameters alone take "
-                                  f"{packed.parameter_bytes:,} bytes even at {self.min_bits} bits; allow more bytes "
-                                  "or train a smaller model", arguments=("target_bytes",))
+            raise InvalidArgument(f"target_bytes={target_bytes}: the series' parameters alone take "
+                                  f"{pack_series(field, self.min_bits, sensitivity).parameter_bytes:,} bytes even "
+                                  f"at {self.min_bits} bits; allow more bytes or train a smaller model",
+                                  arguments=("target_bytes",))
         return pack_series(field, self.min_bits, sensitivity)
 
-    def repack(self, field: SeriesField, packed: PackedSeries) -> PackedSeries:
-        """``field`` packed on the steps of ``packed`` (an earlier packing of it, which a quantisation-aware
-        fine-tune then trained it towards); should the result no longer fit the target, packed anew
-        (:meth:`pack`)."""
-        again = pack_series(field, packed.bits, finer=packed.finer, steps=packed.steps)
-        if self.target_bytes is None or again.parameter_bytes <= parameter_budget(self.target_bytes, field.steps):
-            return again
-        return self.pack(field)
-
     @staticmethod
-    def _refine(field: SeriesField, packed: PackedSeries, sensitivity: dict[str, np.ndarray],
-                budget: int, predictors: dict[str, tuple[str, ...]] | None = None) -> PackedSeries:
-        """The finest steps between ``packed``'s bit width (which fits the ``budget``) and the next (which did
-        not) that still fit: bisection on :attr:`PackedSeries.finer` to :data:`FINER_RESOLUTION` of a bit,
-        every trial coded with ``predictors`` (:func:`pack_series`).
-        A whole bit is about a fifth of the bytes; without this a target lands up to that far below itself."""
-        low, high, best = 0.0, 1.0, packed
-        while high - low > FINER_RESOLUTION:
-            middle = (low + high) / 2
-            tried = pack_series(field, packed.bits, sensitivity, middle, predictors=predictors)
-            if tried.parameter_bytes <= budget:
-                low, best = middle, tried
+    def _search(field: SeriesField, top: PackedSeries, sensitivity: dict[str, np.ndarray], budget: int,
+                min_bits: int) -> PackedSeries | None:
+        """The finest packing from ``min_bits`` up to below ``top``'s width (which does not fit the ``budget``)
+        on the lattice of :data:`FINER_RESOLUTION` that fits, its trials coded with ``top``'s predictors; None
+        if not even ``min_bits`` fits.
+
+        Bytes grow with the width, nearly linearly over a bit or two, so a trial is taken where the line through
+        the ends of the bracket meets the budget (the first where the line from zero through ``top`` does, then
+        ``min_bits`` if that did not fit), on the lattice, strictly inside the bracket. Where one end moved twice
+        in a row the other's excess over the budget is halved in the line (the Illinois rule), so a curved
+        size never makes the search creep one sixteenth at a time. The viscous-finger series' default target
+        takes 3 trials this way where whole bits down and then a bisection of the last one took 7."""
+        predictors = chosen_predictors(top)
+        unit = round(1 / FINER_RESOLUTION)
+        low_k, high_k = min_bits * unit, round(top.bit_width * unit)
+        if low_k >= high_k:
+            return None
+        high_excess = float(top.parameter_bytes - budget)  # > 0
+        k = min(max(math.floor(high_k * budget / top.parameter_bytes), low_k), high_k - 1)
+        low, low_spare, moved = None, 0.0, None
+        while True:
+            tried = pack_series(field, k // unit, sensitivity, (k % unit) / unit, predictors=predictors)
+            side = "low" if tried.parameter_bytes <= budget else "high"
+            if side == "low":
+                low_k, low, low_spare = k, tried, float(budget - tried.parameter_bytes)
             else:
-                high = middle
-        return best
+                high_k, high_excess = k, float(tried.parameter_bytes - budget)
+            if low is None:  # nothing fits yet: the narrowest width does, or none
+                if k == low_k:
+                    return None
+                k = low_k
+                continue
+            if high_k - low_k <= 1:
+                return low
+            if side == moved:  # the Illinois rule: the end that stayed counts half as far from the budget
+                if side == "low":
+                    high_excess /= 2
+                else:
+                    low_spare /= 2
+            moved = side
+            share = low_spare / (low_spare + high_excess) if low_spare + high_excess > 0 else 0.5
+            k = min(max(low_k + math.floor((high_k - low_k) * share), low_k + 1), high_k - 1)
 
 
 #: A stepwise series is packed within this many single-step models of its preset unless the command
@@ -379,8 +462,9 @@ DEFAULT_SERIES_MIN_BITS_OF = {"hybrid": 7}
 #: :mod:`apmgsrn.ops.field_train_cpu`); 200, measured as often but on half of the voxels each time
 #: (:data:`~apmgsrn.training.series_qat.QAT_MEASUREMENTS`), another 0.16-0.25 dB on every step of seed 0 in
 #: the same time, the steps' fine-tunes measuring half of the voxels too
-#: (:data:`~apmgsrn.training.series_steps.STEP_ERROR_PARTS`; docs/time_series.md).
-DEFAULT_SERIES_QAT_SHARE_OF = {"hybrid": 0.1}
+#: (:data:`~apmgsrn.training.series_steps.STEP_ERROR_PARTS`; docs/time_series.md); 250 at the steps' smaller
+#: batch, measured on quarters, as much in 12-17 % less time (:data:`~apmgsrn.training.series_qat.QAT_ERROR_PARTS`).
+DEFAULT_SERIES_QAT_SHARE_OF = {"hybrid": 0.125}
 
 
 def default_series_qat(model: str, iterations: int) -> int:
@@ -438,7 +522,8 @@ def write_packed_series(path: str | os.PathLike, field: SeriesField, packed: Pac
 
 
 def series_packing_report(field: SeriesField, bits: float, before: SeriesEvaluation, after: SeriesEvaluation,
-                          target_bytes: int | None = None, qat_iterations: int = 0) -> dict:
+                          target_bytes: int | None = None, qat_iterations: int = 0,
+                          qat_restored_steps: int = 0) -> dict:
     """What packing a series at ``bits`` cost, as the file's ``packing`` entry (``info`` shows it).
 
     Args:
@@ -447,11 +532,14 @@ def series_packing_report(field: SeriesField, bits: float, before: SeriesEvaluat
         before, after: the field measured on every step before and after packing.
         target_bytes: the bytes the coded parameters were to fit in, if any.
         qat_iterations: each step's quantisation-aware fine-tune (``before`` is the field before it).
+        qat_restored_steps: steps packed with their values from before that fine-tune, to fit the target
+            (:attr:`PackedSeries.restored`).
     """
     bits = int(bits) if float(bits).is_integer() else bits
     report = {"mode": "bits" if target_bytes is None else "size", "bits": bits, "target_bytes": target_bytes,
               "float32_psnr": before.psnr, "float32_max_abs_error": before.max_abs_error,
               "float32_parameter_bytes": 4 * field.parameter_count(), "qat_iterations": qat_iterations,
+              "qat_restored_steps": qat_restored_steps,
               "psnr": after.psnr, "max_abs_error": after.max_abs_error, "psnr_cost": _cost(before.psnr, after.psnr),
               "worst_step_psnr_cost": max(_cost(b.psnr, a.psnr) for b, a in zip(before.steps, after.steps))}
     return {k: float(f"{v:.6g}") if isinstance(v, float) else v for k, v in report.items()}

@@ -68,9 +68,17 @@ STEP_ITERATION_SHARE, STEP_LR_SHARE = 0.1, 0.3
 #: below the same fine-tune at the start model's rate (30 viscous-finger steps, docs/time_series.md).
 STEP_LR_SHARES = {"hybrid": 1.0}
 #: The batch of a model kind's steps as a share of the start model's, where it differs; the step then runs
-#: proportionally more iterations (the same points). The hybrid's steps at half the batch ended 0.03-0.54 dB
-#: higher in 16 % more time, the file 4 % smaller (30 viscous-finger steps, CPU; docs/time_series.md). CPU only.
-STEP_BATCH_SHARES = {"hybrid": 0.5}
+#: proportionally more iterations (the same points, times :data:`STEP_POINT_SHARES`). The hybrid's steps at half
+#: the batch ended 0.03-0.54 dB higher in 16 % more time, the file 4 % smaller (30 viscous-finger steps, CPU;
+#: docs/time_series.md); at 0.375 of it six steps fine-tuned from their neighbours ended 0.05 dB higher (mean)
+#: than at half, in 3 % more time. CPU only, as is the quantisation-aware fine-tune's, which takes the same batch.
+STEP_BATCH_SHARES = {"hybrid": 0.375}
+#: The points (iterations times batch) a model kind's steps train on as a share of those of
+#: :meth:`StepwiseConfig.step_config`'s iterations at the start model's batch, where it differs (with its
+#: :data:`STEP_BATCH_SHARES`, CPU only). The hybrid's at 0.9 ended those six steps 0.04 dB lower (mean) than all
+#: of them at half the batch, in 6 % less time, which the series needs to train within five times one step
+#: once its packing is counted too (docs/time_series.md).
+STEP_POINT_SHARES = {"hybrid": 0.9}
 #: Share of the start model's voxel points drawn where it is wrong (:attr:`TrainConfig.error_sampling`; the steps'
 #: fine-tunes keep the model kind's own). The start model's decoder is every step's: trained on where the start
 #: step was wrong it fitted that step better and the others worse (a hybrid series of the 30 viscous-finger
@@ -174,8 +182,9 @@ class StepwiseConfig:
         """Fine-tune iterations of a step that differs little from its neighbour."""
         return self.step_iterations or max(1, round(config.iterations * STEP_ITERATION_SHARE))
 
-    def step_config(self, config: TrainConfig, change: float = 0.0, error: float = 1.0,
-                    scale: float = 1.0, lr_share: float = STEP_LR_SHARE, batch_share: float = 1.0) -> TrainConfig:
+    def step_config(self, config: TrainConfig, change: float = 0.0, error: float = 1.0, scale: float = 1.0,
+                    lr_share: float = STEP_LR_SHARE, batch_share: float = 1.0, point_share: float = 1.0
+                    ) -> TrainConfig:
         """How a step after the start is fine-tuned: its grids only (the density loss never starts), for
         :meth:`base_iterations`, more when the step differs from its neighbour by more than
         :data:`STEP_CHANGE_SCALE` times the start model's error.
@@ -188,9 +197,10 @@ class StepwiseConfig:
             lr_share: the learning rate's share of the start model's (:data:`STEP_LR_SHARES`), unless ``step_lr``.
             batch_share: the batch's share of the start model's (:data:`STEP_BATCH_SHARES`); the iterations
                 above are counted at the start model's batch and divided by it.
+            point_share: the iterations above times this (:data:`STEP_POINT_SHARES`).
         """
         factor = min(max(change / (STEP_CHANGE_SCALE * max(error, 1e-12)), 1.0), STEP_ITERATION_CAP)
-        iterations = max(1, round(self.base_iterations(config) * factor * scale / batch_share))
+        iterations = max(1, round(self.base_iterations(config) * factor * scale * point_share / batch_share))
         lr = config.lr * lr_share if self.step_lr is None else self.step_lr
         return replace(config, iterations=iterations, lr=lr, density_start=iterations + 1, history_every=None,
                        stop_after_lr_cuts=None, batch_size=max(1, round(config.batch_size * batch_share)),
@@ -494,6 +504,7 @@ def train_stepwise(
     lr_share = STEP_LR_SHARES.get(field_config.field.model, STEP_LR_SHARE)
     # On a GPU, where a step is bound by kernel launches, half the batch would not take half the time.
     batch_share = STEP_BATCH_SHARES.get(field_config.field.model, 1.0) if values.device.type == "cpu" else 1.0
+    point_share = STEP_POINT_SHARES.get(field_config.field.model, 1.0) if values.device.type == "cpu" else 1.0
     sparsity = stepwise.sparsity(field_config.field.model)
     fingerprint = {**(fingerprint or {}), "stepwise": asdict(stepwise), "train": asdict(train_config)}
     if prepared.constant:
@@ -503,7 +514,7 @@ def train_stepwise(
     if resumed:
         series = build_field(prepared, field_config, volume_shape, train_config.seed)
         most = train_config.iterations + steps * 2 * math.ceil(  # two fine-tunes of a step at most
-            stepwise.base_iterations(train_config) * STEP_ITERATION_CAP / batch_share)
+            stepwise.base_iterations(train_config) * STEP_ITERATION_CAP * point_share / batch_share)
         progress = _load_steps(checkpoint, series, fingerprint, most)
         resumed_from = progress.state.iteration
         worker = step_worker(series)
@@ -528,7 +539,7 @@ def train_stepwise(
             # The start step's own grids fine-tuned like any step's, from themselves, with the model kind's
             # draws where the step is wrong (the shared decoder stays what uniform draws made it).
             began = time.perf_counter()
-            config = stepwise.step_config(train_config, 0.0, error, 1.0, lr_share, batch_share)
+            config = stepwise.step_config(train_config, 0.0, error, 1.0, lr_share, batch_share, point_share)
             _train_step(worker, series, values[start], start, start, config, error, False, sparsity)
             polished = config.iterations
             first.state.iteration += polished
@@ -545,7 +556,7 @@ def train_stepwise(
         for t, neighbour in todo:
             began = time.perf_counter()
             config = stepwise.step_config(train_config, change(values, t, neighbour), progress.error, scale, lr_share,
-                                          batch_share)
+                                          batch_share, point_share)
             moved = dict(zip(progress.done, progress.tracked))
             tracked, runs = _train_step(worker, series, values[t], t, neighbour, config, progress.error,
                                         track_first=moved[neighbour], sparsity=sparsity)
