@@ -493,8 +493,8 @@ def test_a_size_search_codes_its_trials_with_the_first_ones_predictors_and_keeps
 def test_a_size_search_takes_the_finest_sixteenth_of_a_bit_that_fits_in_few_trials(hybrid_series, monkeypatch,
                                                                                      between):
     """Targets between two whole widths (near either end or the middle, far below the top): the width kept
-    fits, the next sixteenth of a bit does not, and the search coded no more trials than a bisection of the
-    lattice from ``min_bits`` to the top would (six for 64 sixteenths, besides the top and the width kept)."""
+    fits, the next sixteenth of a bit does not, and the search coded fewer trials than a bisection of the
+    lattice would (the 96 sixteenths from 4 bits to 10 take it 7; besides the top and the width kept)."""
     from apmgsrn.training import series_packing
     from apmgsrn.training.series_packing import SeriesPacking, parameter_budget
 

@@ -502,7 +502,7 @@ def train_stepwise(
     values = prepared.values
     steps = values.shape[0]
     lr_share = STEP_LR_SHARES.get(field_config.field.model, STEP_LR_SHARE)
-    # On a GPU, where a step is bound by kernel launches, half the batch would not take half the time.
+    # On a GPU, where a step is bound by kernel launches, a smaller batch would not take proportionally less time.
     batch_share = STEP_BATCH_SHARES.get(field_config.field.model, 1.0) if values.device.type == "cpu" else 1.0
     point_share = STEP_POINT_SHARES.get(field_config.field.model, 1.0) if values.device.type == "cpu" else 1.0
     sparsity = stepwise.sparsity(field_config.field.model)
