@@ -166,8 +166,7 @@ def series_sensitivity(field: SeriesField, points: int = 1 << 18) -> dict[str, n
     total: dict[str, np.ndarray] = {}
     for t in probed:
         for name, values in parameter_sensitivity(field.step_field(t), points, names=SHARED_STEP_TENSORS).items():
-            if name in SHARED_STEP_TENSORS:
-                total[name] = total.get(name, 0.0) + values / len(probed)
+            total[name] = total.get(name, 0.0) + values / len(probed)
     return total
 
 
@@ -271,6 +270,13 @@ def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS,
     return PackedSeries(tensors, state, bits, finer, {name: allocated[name] for name in shared})
 
 
+def packed_group(packed: PackedSeries, name: str, shape: tuple[int, ...]) -> int:
+    """Elements per quantisation group of one step's slice of the per-step tensor ``name`` of ``shape``
+    ``[T, ...]`` as ``packed`` quantised it (its :attr:`PackedSeries.steps` hold ``T`` times each group's step)."""
+    per_slice = packed.steps[name].size // shape[0]
+    return math.prod(shape[1:]) // per_slice
+
+
 def step_tensors(field: SeriesField) -> dict[str, torch.Tensor]:
     """Copies of a series field's per-step tensors that packing quantises with shared steps
     (:data:`SHARED_STEP_TENSORS`): what :meth:`SeriesPacking.repack` may restore steps from."""
@@ -349,8 +355,7 @@ class SeriesPacking:
         tuned = step_tensors(field)
         moved = np.zeros(field.steps)
         for name, values in tuned.items():
-            group = shared_steps(values.cpu().numpy(), packed.bits,
-                                 slice_group(field.config.field.model, name, tuple(values.shape)))[1]
+            group = packed_group(packed, name, tuple(values.shape))
             levels = [quantize(v.cpu(), packed.steps[name], group).levels.reshape(field.steps, -1)
                       for v in (values, before[name])]
             moved += (levels[0] != levels[1]).sum(axis=1)

@@ -28,7 +28,7 @@ from apmgsrn.errors import ApmgsrnError, InvalidArgument
 from apmgsrn.io.quantization import group_ids
 from apmgsrn.models.series_field import SeriesField
 from apmgsrn.progress import Progress
-from apmgsrn.training.series_packing import SHARED_STEP_TENSORS, PackedSeries
+from apmgsrn.training.series_packing import SHARED_STEP_TENSORS, PackedSeries, packed_group
 from apmgsrn.training.series_steps import STEP_BATCH_SHARES, load_step, store_step, step_worker
 from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, current_names
 
@@ -88,10 +88,10 @@ def element_steps(series: SeriesField, packed: PackedSeries) -> dict[str, torch.
             continue
         tensor = getattr(series.encoder, name)
         slice_numel = tensor[0].numel()
+        size = packed_group(packed, full, tuple(tensor.shape))
         steps = packed.steps[full].astype(np.float32)
-        per_slice = steps.size // tensor.shape[0]
-        size = slice_numel // per_slice
-        out[name] = torch.from_numpy(steps[:per_slice][group_ids(slice_numel, size)]).reshape(tensor.shape[1:])
+        out[name] = torch.from_numpy(steps[:slice_numel // size][group_ids(slice_numel, size)]).reshape(
+            tensor.shape[1:])
     return out
 
 
