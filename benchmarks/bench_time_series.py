@@ -190,13 +190,14 @@ def run_series(args: argparse.Namespace) -> None:
         model_bytes = out.stat().st_size
         if args.keep:
             args.keep.write_bytes(out.read_bytes())
-        bits = apmgsrn.load(out).description.packing.report["bits"] if packing is not None else None
+        report = apmgsrn.load(out).description.packing.report if packing is not None else {}
+        bits, qat = report.get("bits"), report.get("qat_iterations")  # what ran: a long series shortens the fine-tune
     if stepwise is not None:
         described = (f"{args.kind} stepwise start={args.start} iterations={iterations} bits={bits} "
                      f"voxel_fraction={voxel_fraction:g} anchored_grids={anchored}"
                      + (f" step_sparsity={stepwise.sparsity(args.kind):g}" if stepwise.sparsity(args.kind) else "")
                      + (f" error_sampling={train_config.error_sampling:g}" if train_config.error_sampling else "")
-                     + (f" qat_iterations={packing.qat_iterations}" if packing.qat_iterations else "")
+                     + (f" qat_iterations={qat}" if qat else "")
                      + (f" step_iterations={args.step_iterations}" if args.step_iterations else "")
                      + (f" seed={args.seed}" if args.seed else ""))
     else:

@@ -359,7 +359,7 @@ def test_info_says_when_a_long_series_shortened_its_steps(tmp_path, capsys, patt
     scale = apmgsrn.load(out).description.training["stepwise"]["budget_scale"]
     assert 0 < scale <= 1 / 3
     assert main(["info", str(out)]) == 0
-    assert f"every step's fine-tune shortened to {scale:.2f} of the base share" in capsys.readouterr().out
+    assert f"every step's fine-tunes shortened to {scale:.2f} of their base share" in capsys.readouterr().out
 
 
 def test_a_series_of_hybrid_models_trains_evaluates_decodes_and_fits_in_python(pattern, tmp_path, capsys, truth):

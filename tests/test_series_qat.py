@@ -210,6 +210,38 @@ def test_train_with_qat_iterations_records_them_and_counts_them(pattern, tmp_pat
     assert tuned["psnr"] > plain["psnr"]
 
 
+def test_a_long_series_shortens_its_fine_tune_towards_the_packing_with_its_steps(pattern, tmp_path, capsys,
+                                                                                 monkeypatch):
+    """The quantisation-aware fine-tune shares the steps' budget: where the budget is short, ``train`` shortens
+    both by one share, their measurements of where they are wrong with them, and the file records the iterations
+    that ran."""
+    from apmgsrn.training import series_qat, series_steps
+    from apmgsrn.training.series_qat import QAT_MEASUREMENTS
+
+    seen = {}
+
+    def spy(*args, **kwargs):
+        seen.update(kwargs)
+        return fine_tune_rounded(*args, **kwargs)
+
+    monkeypatch.setattr(series_qat, "fine_tune_rounded", spy)
+
+    # 30 of 100 start iterations' points after the 4 steps' own costs
+    monkeypatch.setattr(series_steps, "STEPS_BUDGET_CAP", (30 + 4 * series_steps.STEP_FIXED_COST) / 100)
+    assert main(["train", pattern, "--model", "hybrid", "--levels", "6", "--log2-table-size", "10", "--grids", "4",
+                 "--resolution", "8", "--width", "16", "--iterations", "100", "--batch-size", "2048", "--device",
+                 "cpu", "--bits", "6", "--qat-iterations", "40", "--json", "--out", str(tmp_path / "s.apmgsrn")]) == 0
+    capsys.readouterr()
+    description = apmgsrn.load(tmp_path / "s.apmgsrn").description
+    stepwise = description.training["stepwise"]
+    # 3 steps x 10 x 0.9 + 4 steps x 40 x 0.375 = 87 points of the start's batch, 30 allowed
+    assert stepwise["budget_scale"] == pytest.approx(30 / 87, abs=1e-6)
+    qat = description.packing.report["qat_iterations"]
+    assert qat == round(40 * 30 / 87) < 40
+    assert description.training["iterations"] == 100 + sum(stepwise["step_iterations"]) + 4 * qat
+    assert seen["measurements"] == round(QAT_MEASUREMENTS * 30 / 87) < QAT_MEASUREMENTS
+
+
 def test_a_packed_series_counts_its_packing_and_fine_tune_in_its_training_time(pattern, tmp_path, capsys, monkeypatch):
     """``train`` waits for the packing search and the fine-tune towards it, so the time it reports counts them:
     here a clock that jumps 1,000 s between their start and end."""

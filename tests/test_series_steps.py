@@ -122,21 +122,46 @@ def test_the_step_config_fine_tunes_grids_only_longer_the_more_a_step_changes():
 
 
 def test_a_long_series_shortens_every_step_to_stay_within_the_budget():
-    """The steps after the start get at most STEPS_BUDGET_CAP times the start model's iterations at the base
-    share: 29 steps at 200 are under it, 99 are shortened in proportion; steps that change much keep their
+    """The steps after the start (at the base share), every step's quantisation-aware fine-tune and every step's
+    own costs together take at most STEPS_BUDGET_CAP times the start model's points: 29 steps at 200 alone are
+    under it, 99 are shortened in proportion; counting the fine-tune towards the packing (250 iterations at 0.375
+    of the batch) leaves 29 steps as they are (the 30-step default) and shortens 39, both fine-tunes and their
+    measurements alike; a series too long for the budget gets the least share; steps that change much keep their
     extra share; iterations a caller set are kept."""
-    start = TrainConfig(iterations=2000)
+    start = TrainConfig(iterations=2000, batch_size=32768)
+    cap = series_steps.STEPS_BUDGET_CAP * 2000
+    fixed = series_steps.STEP_FIXED_COST
     stepwise = StepwiseConfig()
-    assert stepwise.budget_scale(start, 29) == 1.0  # 29 x 200 = 5,800 <= 8,000
+    assert stepwise.budget_scale(start, 29) == 1.0  # 29 x 200 + 30 x 16 = 6,280 <= 8,520
     scale = stepwise.budget_scale(start, 99)
-    assert scale == pytest.approx(8000 / (99 * 200))
-    assert 99 * stepwise.step_config(start, 0.0, 0.001, scale).iterations <= 8000 + 99
+    assert scale == pytest.approx((cap - 100 * fixed) / (99 * 200))
+    assert 99 * stepwise.step_config(start, 0.0, 0.001, scale).iterations + 100 * fixed <= cap + 99
     assert stepwise.step_config(start, 0.5, 0.001, scale).iterations == round(2000 * scale)  # 10 x the base
     assert StepwiseConfig(step_iterations=200).budget_scale(start, 99) == 1.0
+    tuned = StepwiseConfig(qat_iterations=250)
+    assert tuned.budget_scale(start, 29, 0.375, 0.9) == 1.0  # 5,220 + 2,812.5 + 480 <= 8,520: the 30-step default
+    assert tuned.step_config(start, 0.0, 0.001, 1.0, batch_share=0.375, point_share=0.9).error_measurements == \
+        series_steps.STEP_ERROR_MEASUREMENTS
+    for steps in (39, 99):
+        scale = tuned.budget_scale(start, steps, 0.375, 0.9)
+        assert scale == pytest.approx((cap - (steps + 1) * fixed) / (steps * 200 * 0.9 + (steps + 1) * 250 * 0.375))
+        step = tuned.step_config(start, 0.0, 0.001, scale, batch_share=0.375, point_share=0.9)
+        qat = tuned.shortened_qat(start, steps, 0.375, 0.9)
+        assert qat == round(250 * scale)
+        points = steps * step.iterations * step.batch_size + (steps + 1) * qat * step.batch_size
+        assert (cap - (steps + 1) * fixed) * 32768 * 0.99 < points <= (cap - (steps + 1) * fixed) * 32768 * 1.01
+        # measured as often per iteration as the unshortened fine-tune
+        assert step.error_measurements == series_steps.shortened_measurements(
+            series_steps.STEP_ERROR_MEASUREMENTS, scale) == round(series_steps.STEP_ERROR_MEASUREMENTS * scale)
+    assert tuned.budget_scale(start, 999, 0.375, 0.9) == series_steps.LEAST_BUDGET_SCALE
+    assert series_steps.shortened_measurements(20, series_steps.LEAST_BUDGET_SCALE) == 1
+    assert StepwiseConfig(step_iterations=200, qat_iterations=250).shortened_qat(start, 99, 0.375, 0.9) == 250
+    assert StepwiseConfig().shortened_qat(start, 99) == 0
 
 
 def test_stepwise_training_applies_the_budget(prepared, monkeypatch):
-    monkeypatch.setattr(series_steps, "STEPS_BUDGET_CAP", 0.15)  # 18 of the 3 x 12 base iterations
+    # 18 of the 3 x 12 base iterations, after the 4 steps' own costs
+    monkeypatch.setattr(series_steps, "STEPS_BUDGET_CAP", (18 + 4 * series_steps.STEP_FIXED_COST) / 120)
     run = train_stepwise(prepared, stepwise_config(TINY, 4), TRAIN, (32, 32, 32), stepwise=StepwiseConfig(start=1),
                          show_progress=False)
     summary = run.summary["stepwise"]
@@ -157,7 +182,8 @@ def test_a_step_far_from_its_neighbour_gets_more_iterations(prepared, truth):
 
 
 def test_bad_stepwise_options_are_refused():
-    for options in ({"start": "middle"}, {"start": -1}, {"step_iterations": 0}, {"step_lr": -1.0}):
+    for options in ({"start": "middle"}, {"start": -1}, {"step_iterations": 0}, {"step_lr": -1.0},
+                    {"qat_iterations": -1}):
         with pytest.raises(ApmgsrnError):
             StepwiseConfig(**options)
 

@@ -407,7 +407,7 @@ def print_series_info(info: dict) -> None:
               f"{stepwise['start']}, {min(counts)} to {max(counts)} iterations per other step{pulled}")
         scale = stepwise.get("budget_scale")
         if isinstance(scale, (int, float)) and 0 < scale < 1:
-            print(f"            a long series: every step's fine-tune shortened to {scale:.2f} of the base share, "
+            print(f"            a long series: every step's fine-tunes shortened to {scale:.2f} of their base share, "
                   "to stay within the budget")
         moved = [t for t in stepwise.get("tracked_steps") or [] if isinstance(t, int)]
         if moved:

@@ -26,7 +26,7 @@ from apmgsrn.models.series_field import SeriesFieldConfig
 from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.fit import FitResult, check_output, fit, prepare_values
 from apmgsrn.training.series_packing import SeriesPacking
-from apmgsrn.training.series_qat import fine_tune_rounded
+from apmgsrn.training.series_qat import budgeted, fine_tune_rounded
 from apmgsrn.training.series_steps import StepwiseConfig, series_trainer
 from apmgsrn.training.trainer import TrainConfig
 
@@ -62,7 +62,9 @@ def fit_series(
         resume: continue from ``out.ckpt`` if it exists.
         progress: show training progress (see :mod:`apmgsrn.progress`).
         stepwise: train step by step (None: one joint model of all steps).
-        packing: how to pack the grids (a ``packed-series`` file); None: a float series file.
+        packing: how to pack the grids (a ``packed-series`` file); None: a float series file. Its
+            quantisation-aware fine-tune after stepwise training shares the steps' budget and is shortened with
+            them (:meth:`~apmgsrn.training.series_steps.StepwiseConfig.budget_scale`).
 
     Returns:
         The result; its evaluation is a :class:`~apmgsrn.inference.evaluate.SeriesEvaluation`.
@@ -78,7 +80,11 @@ def fit_series(
     # A resume must continue on the same steps: each file's real path and a hash of a sample of its values.
     fingerprint = {"data": series_fingerprint(series), "field": field_config.to_dict(),
                    "transform": asdict(prepared.transform)}
+    tune_packed = partial(fine_tune_rounded, show_progress=progress)
+    if stepwise is not None:  # its steps' fine-tunes and the one towards the packing share one budget
+        stepwise, packing, tune_packed = budgeted(stepwise, packing, train_config, len(series),
+                                                  field_config.field.model, device, progress)
     display = TrainingProgress("train" if stepwise is None else "start step", enabled=progress)
     return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
                callbacks=[display], steps=steps, packing=packing, train=series_trainer(stepwise, progress),
-               tune_packed=partial(fine_tune_rounded, show_progress=progress))
+               tune_packed=tune_packed)

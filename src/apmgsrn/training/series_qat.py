@@ -19,7 +19,9 @@ random points; here only a step's own grids are rounded and the trainer's guided
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 import torch
@@ -28,8 +30,15 @@ from apmgsrn.errors import ApmgsrnError, InvalidArgument
 from apmgsrn.io.quantization import group_ids
 from apmgsrn.models.series_field import SeriesField
 from apmgsrn.progress import Progress
-from apmgsrn.training.series_packing import SHARED_STEP_TENSORS, PackedSeries, packed_group
-from apmgsrn.training.series_steps import STEP_BATCH_SHARES, load_step, store_step, step_worker
+from apmgsrn.training.series_packing import SHARED_STEP_TENSORS, PackedSeries, SeriesPacking, packed_group
+from apmgsrn.training.series_steps import (
+    StepwiseConfig,
+    load_step,
+    shortened_measurements,
+    step_shares,
+    step_worker,
+    store_step,
+)
 from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, current_names
 
 #: The fine-tune's learning rate as a share of the start model's. A viscous-finger step (7.25 bits, 50
@@ -96,7 +105,8 @@ def element_steps(series: SeriesField, packed: PackedSeries) -> dict[str, torch.
 
 
 def fine_tune_rounded(series: SeriesField, values: torch.Tensor, packed: PackedSeries, config: TrainConfig,
-                      iterations: int, show_progress: bool = True) -> tuple[int, float]:
+                      iterations: int, show_progress: bool = True, measurements: int = QAT_MEASUREMENTS
+                      ) -> tuple[int, float]:
     """Every step's features fine-tuned towards the steps ``packed`` rounds them to (module docstring); the
     series field is changed in place.
 
@@ -108,6 +118,8 @@ def fine_tune_rounded(series: SeriesField, values: torch.Tensor, packed: PackedS
             :data:`QAT_LR_SHARE`, the steps' batch share on a CPU, its voxel share, guided :data:`GUIDED_SHARE`).
         iterations: each step's iterations.
         show_progress: one line of progress over the steps.
+        measurements: times each step's fine-tune measures where it is wrong (fewer where a long series shortened
+            it: :func:`~apmgsrn.training.series_steps.shortened_measurements`).
 
     Returns:
         (iterations run over all steps, seconds).
@@ -117,10 +129,10 @@ def fine_tune_rounded(series: SeriesField, values: torch.Tensor, packed: PackedS
     if not steps or iterations < 1:
         return 0, 0.0
     device = values.device
-    batch_share = STEP_BATCH_SHARES.get(series.config.field.model, 1.0) if device.type == "cpu" else 1.0
+    batch_share, _ = step_shares(series.config.field.model, device)
     tune = replace(config, iterations=iterations, lr=config.lr * QAT_LR_SHARE, density_start=iterations + 1,
                    history_every=None, stop_after_lr_cuts=None, error_sampling=GUIDED_SHARE,
-                   error_measurements=QAT_MEASUREMENTS, error_parts=QAT_ERROR_PARTS,
+                   error_measurements=measurements, error_parts=QAT_ERROR_PARTS,
                    batch_size=max(1, round(config.batch_size * batch_share)))
     series.requires_grad_(False)
     worker = step_worker(series).requires_grad_(False)
@@ -135,6 +147,22 @@ def fine_tune_rounded(series: SeriesField, values: torch.Tensor, packed: PackedS
             shown.update(1)
     series.requires_grad_(True)
     return iterations * series.steps, time.perf_counter() - began
+
+
+def budgeted(stepwise: StepwiseConfig, packing: SeriesPacking | None, config: TrainConfig, steps: int, model: str,
+             device: torch.device, show_progress: bool = True
+             ) -> tuple[StepwiseConfig, SeriesPacking | None, Callable[..., tuple[int, float]]]:
+    """A series of ``steps`` steps trained stepwise, its steps' fine-tunes and the quantisation-aware one after them
+    under one budget (:meth:`~apmgsrn.training.series_steps.StepwiseConfig.budget_scale`): the stepwise config
+    that counts the packing's fine-tune, the packing with that fine-tune shortened with the steps', and the
+    fine-tune (``fit``'s ``tune_packed``) measuring as often per iteration as an unshortened one."""
+    measurements = QAT_MEASUREMENTS
+    if packing is not None and packing.qat_iterations:
+        stepwise = replace(stepwise, qat_iterations=packing.qat_iterations)
+        shares = step_shares(model, device)
+        packing = replace(packing, qat_iterations=stepwise.shortened_qat(config, steps - 1, *shares))
+        measurements = shortened_measurements(measurements, stepwise.budget_scale(config, steps - 1, *shares))
+    return stepwise, packing, partial(fine_tune_rounded, show_progress=show_progress, measurements=measurements)
 
 
 def stored_train_config(training: dict, where: str) -> TrainConfig:

@@ -104,15 +104,30 @@ STEP_SPARSITY_OF: dict[str, float] = {"hybrid": 0.01}
 #: budget). Consecutive viscous-finger steps differ by 4-9 times the error (200 iterations enough); steps 40
 #: apart by about 75 times, where 200 iterations left them 7 dB below their own models and 2,000 put them above.
 STEP_CHANGE_SCALE, STEP_ITERATION_CAP = 8.0, 10.0
-#: The steps after the start together get at most this many times the start model's iterations at the base
-#: share (a long series' fine-tunes are shortened in proportion), so a series of steps that change little
-#: trains in about 1 + 0.7 x 4 single models' time whatever its length (a fine-tune iteration costs about 0.7
-#: of a start iteration); steps that change much still get more. The 30 viscous-finger steps (29 x 200 = 5,800)
-#: are not shortened; at 100 iterations per step instead of 200 they lose 1.3 dB (mean), still 1.8 to 3.8 dB
-#: above independent models: about what a 60-step series of the same spacing gets. Capping the
-#: change-driven iterations too was tried and not kept: a volume shifted 4 voxels a step (10 steps, 1,285
-#: iterations each) then fell to 54.0-54.2 dB on its last steps, below independent models.
-STEPS_BUDGET_CAP = 4.0
+#: The fine-tunes after the start model, the steps' at their base share and every step's quantisation-aware one
+#: (:attr:`StepwiseConfig.qat_iterations`), together with what every step costs besides (:data:`STEP_FIXED_COST`)
+#: take at most this many times the start model's points (iterations times batch; a fine-tune's point, its share
+#: of the measurements of where it is wrong included, costs about what a start model's does). A long series'
+#: fine-tunes are shortened in proportion, their measurements with them, so a series of steps that change little
+#: trains in about the time the 30 viscous-finger steps take (4.8-5.0 times one step's model) whatever its
+#: length; steps that change much still get more. Those 30 steps (29 x 200 x 0.9 + 30 x 250 x 0.375 + 30 x 16 =
+#: 8,513 start-model iterations' points) are just within it. Before the fine-tune towards the packing and the
+#: steps' own costs counted, and the measurements shortened with the fine-tunes, the cap (4, on the steps alone)
+#: let 60 steps train in 8.1 times one step (641.2 s; now 393.4 s, 4.95 times). A cap that shortened the 30
+#: steps' fine-tunes to 0.92 of their share trained them in 373.6 s instead of 385.5-397.7 and lost 0.12-0.15 dB
+#: on every seed's steps, step 5's margin over its own models (mean of 3 seeds) falling from +0.19 to +0.01 dB
+#: (docs/time_series.md). Capping the change-driven iterations too was tried and not kept: a volume shifted 4
+#: voxels a step (10 steps, 1,285 iterations each) then fell to 54.0-54.2 dB on its last steps, below
+#: independent models.
+STEPS_BUDGET_CAP = 4.26
+#: What every step costs besides its fine-tunes' iterations, in start-model iterations: the first measurement of
+#: every voxel of each of its two fine-tunes, the check against its neighbour's grids, its checkpoint, its share
+#: of the packing search (13.5 s over the 30 viscous-finger steps besides 0.18 s a step of first measurements:
+#: 0.63 s a step, 16.7 start iterations of 37.7 ms; CPU, one thread).
+STEP_FIXED_COST = 16
+#: The least share of their base the fine-tunes of a series too long for the budget are shortened to (the
+#: budget is then exceeded: the steps' own costs alone take it).
+LEAST_BUDGET_SCALE = 0.05
 #: Voxels compared to measure how much a step differs from its neighbour (a regular subset of larger steps).
 CHANGE_VOXELS = 1 << 20
 #: Voxels on which a step's fine-tune must end better than the neighbour's grids it started from, else the step
@@ -152,12 +167,16 @@ class StepwiseConfig:
             (:class:`PullTowardsStart`; 0: not at all; None: the model kind's default, :data:`STEP_SPARSITY_OF`).
             The more entries keep their neighbour's value, the fewer bytes the packed file's time predictor
             spends on the step, and the less closely the step fits its data.
+        qat_iterations: the quantisation-aware fine-tune every step gets once all are trained (the packing's,
+            :attr:`~apmgsrn.training.series_packing.SeriesPacking.qat_iterations`), before
+            :meth:`budget_scale` shortens it with the steps': it shares their budget.
     """
 
     start: int | str = "auto"
     step_iterations: int | None = None
     step_lr: float | None = None
     step_sparsity: float | None = None
+    qat_iterations: int = 0
 
     def __post_init__(self) -> None:
         """Refuse values training cannot run with (:class:`~apmgsrn.errors.InvalidArgument`)."""
@@ -173,6 +192,7 @@ class StepwiseConfig:
             check_number("step_lr", self.step_lr, 0.0)
         if self.step_sparsity is not None:
             check_number("step_sparsity", self.step_sparsity, 0.0)
+        check_int("qat_iterations", self.qat_iterations, 0)
 
     def sparsity(self, model: str) -> float:
         """The pull of :attr:`step_sparsity` for steps of a ``model`` kind series."""
@@ -193,7 +213,8 @@ class StepwiseConfig:
             config: the start model's training.
             change: RMS difference between the step's values and its neighbour's (scaled units).
             error: the start model's RMS error (scaled units).
-            scale: a long series' share of the base (:meth:`budget_scale`).
+            scale: a long series' share of the base (:meth:`budget_scale`), and of the measurements of where
+                the step is wrong (:func:`shortened_measurements`).
             lr_share: the learning rate's share of the start model's (:data:`STEP_LR_SHARES`), unless ``step_lr``.
             batch_share: the batch's share of the start model's (:data:`STEP_BATCH_SHARES`); the iterations
                 above are counted at the start model's batch and divided by it.
@@ -204,17 +225,46 @@ class StepwiseConfig:
         lr = config.lr * lr_share if self.step_lr is None else self.step_lr
         return replace(config, iterations=iterations, lr=lr, density_start=iterations + 1, history_every=None,
                        stop_after_lr_cuts=None, batch_size=max(1, round(config.batch_size * batch_share)),
-                       error_measurements=STEP_ERROR_MEASUREMENTS, error_parts=STEP_ERROR_PARTS)
+                       error_measurements=shortened_measurements(STEP_ERROR_MEASUREMENTS, scale),
+                       error_parts=STEP_ERROR_PARTS)
 
 
-    def budget_scale(self, config: TrainConfig, steps: int) -> float:
-        """The share of :meth:`base_iterations` every step gets so that ``steps`` steps after the start together
-        take at most :data:`STEPS_BUDGET_CAP` times the start model's iterations at the base (1 for a series
-        short enough, and when ``step_iterations`` was given). Steps that change much keep their extra
-        iterations in proportion (:meth:`step_config`)."""
+    def budget_scale(self, config: TrainConfig, steps: int, batch_share: float = 1.0, point_share: float = 1.0
+                     ) -> float:
+        """The share of :meth:`base_iterations` and of :attr:`qat_iterations` (and of their measurements of where
+        they are wrong) every step gets so that the ``steps`` steps after the start (at ``point_share`` of the
+        base's points), the quantisation-aware fine-tune of all ``steps + 1`` (at ``batch_share`` of the start
+        model's batch) and what every step costs besides (:data:`STEP_FIXED_COST`) together take at most
+        :data:`STEPS_BUDGET_CAP` times the start model's points (1 for a series short enough, and when
+        ``step_iterations`` was given; at least :data:`LEAST_BUDGET_SCALE`). Steps that change much keep their
+        extra iterations in proportion (:meth:`step_config`)."""
         if self.step_iterations is not None or steps < 1:
             return 1.0
-        return min(1.0, STEPS_BUDGET_CAP * config.iterations / (steps * self.base_iterations(config)))
+        points = steps * self.base_iterations(config) * point_share + (steps + 1) * self.qat_iterations * batch_share
+        allowed = STEPS_BUDGET_CAP * config.iterations - (steps + 1) * STEP_FIXED_COST
+        return min(1.0, max(allowed / points, LEAST_BUDGET_SCALE))
+
+    def shortened_qat(self, config: TrainConfig, steps: int, batch_share: float = 1.0, point_share: float = 1.0
+                      ) -> int:
+        """:attr:`qat_iterations` at the share of :meth:`budget_scale` (at least one when there are any)."""
+        if not self.qat_iterations:
+            return 0
+        return max(1, round(self.qat_iterations * self.budget_scale(config, steps, batch_share, point_share)))
+
+
+def shortened_measurements(measurements: int, scale: float) -> int:
+    """A fine-tune's measurements of where it is wrong when a long series shortens it to ``scale`` of its share
+    (:meth:`StepwiseConfig.budget_scale`): as many per iteration, at least one."""
+    return max(1, round(measurements * min(scale, 1.0)))
+
+
+def step_shares(model: str, device: torch.device) -> tuple[float, float]:
+    """A ``model`` kind series' steps' batch and points as shares of the start model's where they train
+    (:data:`STEP_BATCH_SHARES`, :data:`STEP_POINT_SHARES`: on a CPU; on a GPU, where a step is bound by kernel
+    launches, a smaller batch would not take proportionally less time)."""
+    if device.type != "cpu":
+        return 1.0, 1.0
+    return STEP_BATCH_SHARES.get(model, 1.0), STEP_POINT_SHARES.get(model, 1.0)
 
 
 def series_trainer(stepwise: StepwiseConfig | None, show_progress: bool = True) -> Callable[..., TrainedField]:
@@ -502,9 +552,7 @@ def train_stepwise(
     values = prepared.values
     steps = values.shape[0]
     lr_share = STEP_LR_SHARES.get(field_config.field.model, STEP_LR_SHARE)
-    # On a GPU, where a step is bound by kernel launches, a smaller batch would not take proportionally less time.
-    batch_share = STEP_BATCH_SHARES.get(field_config.field.model, 1.0) if values.device.type == "cpu" else 1.0
-    point_share = STEP_POINT_SHARES.get(field_config.field.model, 1.0) if values.device.type == "cpu" else 1.0
+    batch_share, point_share = step_shares(field_config.field.model, values.device)
     sparsity = stepwise.sparsity(field_config.field.model)
     fingerprint = {**(fingerprint or {}), "stepwise": asdict(stepwise), "train": asdict(train_config)}
     if prepared.constant:
@@ -549,7 +597,7 @@ def train_stepwise(
         if checkpoint is not None:
             _save_steps(checkpoint, series, progress, fingerprint)
     state = progress.state
-    scale = stepwise.budget_scale(train_config, steps - 1)
+    scale = stepwise.budget_scale(train_config, steps - 1, batch_share, point_share)
     todo = [(t, n) for t, n in step_order(progress.start, steps) if t not in progress.done]
     display = Progress(steps, unit="step", description="steps", initial=steps - len(todo), enabled=show_progress)
     try:
