@@ -280,6 +280,27 @@ def test_the_draws_search_finds_what_torch_searchsorted_finds(channel):
         assert found.dtype == torch.int64 and torch.equal(found, torch.searchsorted(cumulative, queries))
 
 
+def test_the_draws_merge_walk_finds_what_torch_searchsorted_finds(channel):
+    """The guide's search for ascending draws (a merge walk in C on a CPU) against ``torch.searchsorted``: a
+    real volume's absolute values as errors (zeros among them, so runs of equal sums), queries as a draw makes
+    them, exact ties at a running sum's value, queries before the first sum and past the last, and none."""
+    from apmgsrn.ops.sorted_search_cpu import LIBRARY, ascending_search_cpu
+    from apmgsrn.training.points import search_ascending
+
+    assert LIBRARY.available(), LIBRARY.error
+    errors = channel.reshape(-1).double().abs()
+    errors[::7] = 0.0
+    cumulative = errors.cumsum(0) / errors.sum()
+    for count, offset in ((8192, 0.3), (100, 0.999), (30000, 0.0), (1, 0.5)):
+        queries = (torch.arange(1, count + 1, dtype=torch.float64) - offset) / count
+        queries, _ = torch.cat([queries, cumulative[::997], torch.tensor([-1.0, 0.0, 2.0], dtype=torch.float64)]
+                               ).sort()
+        expected = torch.searchsorted(cumulative, queries)
+        assert torch.equal(ascending_search_cpu(cumulative, queries), expected)
+        assert torch.equal(search_ascending(cumulative, queries), expected)
+    assert ascending_search_cpu(cumulative, torch.empty(0, dtype=torch.float64)).shape == (0,)
+
+
 def test_error_guided_points_sit_on_voxels_with_their_values_and_keep_the_uniform_share(channel):
     from apmgsrn.training.points import ErrorGuide
 

@@ -109,7 +109,7 @@ STEP_CHANGE_SCALE, STEP_ITERATION_CAP = 8.0, 10.0
 #: take at most this many times the start model's points (iterations times batch; a fine-tune's point, its share
 #: of the measurements of where it is wrong included, costs about what a start model's does). A long series'
 #: fine-tunes are shortened in proportion, their measurements with them, so a series of steps that change little
-#: trains in about the time the 30 viscous-finger steps take (4.9-5.0 times one step's model) whatever its
+#: trains in about the time the 30 viscous-finger steps take (4.8-4.9 times one step's model) whatever its
 #: length; steps that change much still get more. Those 30 steps (29 x 200 x 0.9 + 30 x 250 x 0.375 + 30 x 16 =
 #: 8,513 start-model iterations' points) are just within it. Before the fine-tune towards the packing and the
 #: steps' own costs counted, and the measurements shortened with the fine-tunes, the cap (4, on the steps alone)
