@@ -12,7 +12,6 @@ import pickle
 import resource
 import socket
 from dataclasses import dataclass, replace
-from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +29,7 @@ from apmgsrn.io import SeriesStepInfo, SourceInfo
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.training.fit import fit, prepare_values
 from apmgsrn.training.series_packing import SeriesPacking
-from apmgsrn.training.series_qat import budgeted, fine_tune_rounded
+from apmgsrn.training.series_qat import budgeted
 from apmgsrn.training.series_steps import StepwiseConfig, series_trainer
 from apmgsrn.training.trainer import TrainConfig
 
@@ -279,10 +278,9 @@ def _fit_region(job: BrickJob, region: np.ndarray, device: torch.device, worker:
     if isinstance(job.volume, VolumeSeries):  # each step's number, file and value range in the brick's box
         steps = [SeriesStepInfo(label, job.volume.step_name(t), (float(region[t].min()), float(region[t].max())))
                  for t, label in enumerate(job.volume.labels)]
-    stepwise, packing, tune_packed = job.stepwise, job.packing, partial(fine_tune_rounded, show_progress=False)
-    if stepwise is not None:  # its steps' fine-tunes and the one towards the packing share one budget
-        stepwise, packing, tune_packed = budgeted(stepwise, packing, job.train_config, region.shape[0],
-                                                  job.field_config.field.model, device, show_progress=False)
+    # A series trained stepwise: its steps' fine-tunes and the one towards the packing share one budget.
+    stepwise, packing, tune_packed = budgeted(job.stepwise, job.packing, job.train_config, region.shape[0],
+                                              job.field_config, device, show_progress=False)
     # A brick always resumes its own checkpoint: the job may be a retry after a crash.
     result = fit(prepared, region, job.field_config, job.train_config, Path(job.model_path), job.source,
                  fingerprint, resume=True, psnr_voxels=job.psnr_voxels, summary_extra={"brick": box}, steps=steps,

@@ -70,9 +70,9 @@ class ErrorGuide:
     def _voxels(self, block_index: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """A voxel (flat index) drawn at random in each of the blocks ``[N]`` (in a block the volume's edge cuts,
         the draws past the edge land on the edge voxel)."""
-        d, h, w = self.volume.shape
         if self.block == 1:  # a block is its voxel: its flat index is the voxel's
             return block_index
+        d, h, w = self.volume.shape
         _, bh, bw = self.blocks
         corner = (block_index // (bh * bw), block_index // bw % bh, block_index % bw)
         offset = torch.randint(0, self.block, (3, len(block_index)), generator=generator, device=block_index.device)

@@ -13,7 +13,6 @@ Two ways to train (docs/time_series.md measures both):
 from __future__ import annotations
 
 from dataclasses import asdict
-from functools import partial
 from pathlib import Path
 
 import torch
@@ -26,7 +25,7 @@ from apmgsrn.models.series_field import SeriesFieldConfig
 from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.fit import FitResult, check_output, fit, prepare_values
 from apmgsrn.training.series_packing import SeriesPacking
-from apmgsrn.training.series_qat import budgeted, fine_tune_rounded
+from apmgsrn.training.series_qat import budgeted
 from apmgsrn.training.series_steps import StepwiseConfig, series_trainer
 from apmgsrn.training.trainer import TrainConfig
 
@@ -80,10 +79,9 @@ def fit_series(
     # A resume must continue on the same steps: each file's real path and a hash of a sample of its values.
     fingerprint = {"data": series_fingerprint(series), "field": field_config.to_dict(),
                    "transform": asdict(prepared.transform)}
-    tune_packed = partial(fine_tune_rounded, show_progress=progress)
-    if stepwise is not None:  # its steps' fine-tunes and the one towards the packing share one budget
-        stepwise, packing, tune_packed = budgeted(stepwise, packing, train_config, len(series),
-                                                  field_config.field.model, device, progress)
+    # Stepwise, the steps' fine-tunes and the one towards the packing share one budget.
+    stepwise, packing, tune_packed = budgeted(stepwise, packing, train_config, len(series), field_config, device,
+                                              progress)
     display = TrainingProgress("train" if stepwise is None else "start step", enabled=progress)
     return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
                callbacks=[display], steps=steps, packing=packing, train=series_trainer(stepwise, progress),

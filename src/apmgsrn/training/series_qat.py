@@ -149,17 +149,19 @@ def fine_tune_rounded(series: SeriesField, values: torch.Tensor, packed: PackedS
     return iterations * series.steps, time.perf_counter() - began
 
 
-def budgeted(stepwise: StepwiseConfig, packing: SeriesPacking | None, config: TrainConfig, steps: int, model: str,
-             device: torch.device, show_progress: bool = True
-             ) -> tuple[StepwiseConfig, SeriesPacking | None, Callable[..., tuple[int, float]]]:
-    """A series of ``steps`` steps trained stepwise, its steps' fine-tunes and the quantisation-aware one after them
-    under one budget (:meth:`~apmgsrn.training.series_steps.StepwiseConfig.budget_scale`): the stepwise config
-    that counts the packing's fine-tune, the packing with that fine-tune shortened with the steps', and the
-    fine-tune (``fit``'s ``tune_packed``) measuring as often per iteration as an unshortened one."""
+def budgeted(stepwise: StepwiseConfig | None, packing: SeriesPacking | None, config: TrainConfig, steps: int,
+             field_config, device: torch.device, show_progress: bool = True
+             ) -> tuple[StepwiseConfig | None, SeriesPacking | None, Callable[..., tuple[int, float]]]:
+    """What ``fit`` trains a model of ``field_config`` on ``steps`` steps with. A series trained stepwise: its
+    steps' fine-tunes and the quantisation-aware one after them under one budget
+    (:meth:`~apmgsrn.training.series_steps.StepwiseConfig.budget_scale`): the stepwise config that counts the
+    packing's fine-tune, the packing with that fine-tune shortened with the steps', and the fine-tune (``fit``'s
+    ``tune_packed``) measuring as often per iteration as an unshortened one. Anything else (no ``stepwise``: a
+    joint series, one volume): as given, with the fine-tune as it is."""
     measurements = QAT_MEASUREMENTS
-    if packing is not None and packing.qat_iterations:
+    if stepwise is not None and packing is not None and packing.qat_iterations:
         stepwise = replace(stepwise, qat_iterations=packing.qat_iterations)
-        shares = step_shares(model, device)
+        shares = step_shares(field_config.field.model, device)
         packing = replace(packing, qat_iterations=stepwise.shortened_qat(config, steps - 1, *shares))
         measurements = shortened_measurements(measurements, stepwise.budget_scale(config, steps - 1, *shares))
     return stepwise, packing, partial(fine_tune_rounded, show_progress=show_progress, measurements=measurements)
