@@ -9,6 +9,7 @@ import lzma
 
 import numpy as np
 import pytest
+import torch
 
 import apmgsrn
 from apmgsrn.errors import ApmgsrnError
@@ -22,6 +23,7 @@ from apmgsrn.io.quantization import (
     round_steps,
     steps_for_bits,
 )
+from apmgsrn.threads import map_in_threads
 
 
 @pytest.fixture(scope="module")
@@ -82,6 +84,27 @@ def test_the_smallest_encoding_is_chosen(parameters):
     data, _, predictor = codec.best_encoding(levels, grids.shape)
     assert len(data) == min(len(codec.encode_levels(levels, grids.shape, p)[0]) for p in codec.PREDICTORS)
     assert predictor in codec.PREDICTORS
+
+
+def test_parameters_coded_side_by_side_are_the_bytes_coded_one_after_another(parameters):
+    """best_encodings runs every (parameter, predictor) compression on the process's threads: the same bytes,
+    widths and choices as one at a time, in the parameters' order, on one thread or two."""
+    jobs = []
+    for name in ("encoder.grids", "decoder.0.weight", "encoder.translations"):
+        values = parameters[name]
+        size = group_size(values.shape)
+        jobs.append((quantize(values, steps_for_bits(values, size, 9), size).levels, values.shape, None))
+    jobs.append((jobs[0][0], jobs[0][1], ("delta",)))  # a predictor imposed
+    one_at_a_time = [codec.best_encoding(*job) for job in jobs]
+    threads = torch.get_num_threads()
+    try:
+        for count in (1, 2):
+            torch.set_num_threads(count)
+            assert codec.best_encodings(jobs) == one_at_a_time
+    finally:
+        torch.set_num_threads(threads)
+    assert one_at_a_time[3][2] == "delta"
+    assert map_in_threads(lambda x: x * x, range(7), 3) == [x * x for x in range(7)]
 
 
 def test_zigzag_and_byte_planes_round_trip_signed_values():

@@ -29,7 +29,13 @@ from apmgsrn.training.series_packing import (
     parameter_budget,
     series_sensitivity,
 )
-from apmgsrn.training.series_qat import RoundedForward, element_steps, fine_tune_rounded, stored_train_config
+from apmgsrn.training.series_qat import (
+    RoundedForward,
+    element_steps,
+    fine_tune_rounded,
+    qat_lanes,
+    stored_train_config,
+)
 from apmgsrn.training.series_steps import StepwiseConfig, stepwise_config, train_stepwise
 from apmgsrn.training.trainer import TrainConfig
 
@@ -116,6 +122,26 @@ def test_a_quantisation_aware_fine_tune_lowers_what_packing_costs_on_the_real_st
     for name, value in hybrid_series.state_dict().items():
         if "decoder" in name or name in ("encoder.matrices", "encoder.translations"):
             assert torch.equal(value, tuned.state_dict()[name]), name
+
+
+def test_steps_fine_tuned_side_by_side_give_what_one_thread_gives(hybrid_series, prepared):
+    """With two threads the steps are fine-tuned two at a time, each on one thread (series_qat.qat_lanes): every
+    step ends exactly as it does in a one-thread process, the thread count is given back, and every step ran."""
+    packed = pack_series(hybrid_series, 5, series_sensitivity(hybrid_series))
+    alone, side_by_side = copy.deepcopy(hybrid_series), copy.deepcopy(hybrid_series)
+    assert qat_lanes(4, torch.device("cpu")) == 1  # this module runs on one thread
+    fine_tune_rounded(alone, prepared.values, packed, CONFIG, 30, show_progress=False)
+    torch.set_num_threads(2)
+    try:
+        assert qat_lanes(4, torch.device("cpu")) == 2 and qat_lanes(1, torch.device("cpu")) == 1
+        ran, _ = fine_tune_rounded(side_by_side, prepared.values, packed, CONFIG, 30, show_progress=False)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(1)
+    assert ran == 30 * 4
+    for name, value in alone.state_dict().items():
+        assert torch.equal(value, side_by_side.state_dict()[name]), name
+    assert not torch.equal(alone.encoder.level_table, hybrid_series.encoder.level_table)  # the fine-tune ran
 
 
 def test_repack_packs_anew_when_the_fine_tuned_field_no_longer_fits(hybrid_series, prepared):

@@ -18,6 +18,11 @@ process. Two measures, both here so that training, decoding, evaluation and rend
    time the choice stands. When a core is busy the loop runs at the speed of the cores that are free,
    not at the speed of the slowest thread.
 
+And where work comes in independent pieces that release the GIL (the LZMA coding of a packed file's
+parameters), :func:`map_in_threads` runs them side by side on as many Python threads as the process may use
+(:func:`work_threads`: torch's count, so a process told to use one core keeps to one; a series' quantisation-aware
+fine-tune runs its steps so too, :func:`apmgsrn.training.series_qat.qat_lanes`).
+
 Importing this module does not import torch (``import apmgsrn`` stays light); the governor imports it
 when used.
 """
@@ -28,7 +33,11 @@ import os
 import statistics
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
+from typing import TypeVar
+
+Item, Result = TypeVar("Item"), TypeVar("Result")
 
 #: Rounds an idle OpenMP thread spins before it sleeps (libgomp's ``GOMP_SPINCOUNT``; its default is
 #: 300,000). About 0.1 ms here: enough to bridge the gaps between the operations of one step, short
@@ -49,6 +58,26 @@ def set_openmp_wait_policy() -> bool:
         return False
     os.environ["GOMP_SPINCOUNT"] = str(SPIN_COUNT)
     return True
+
+
+def work_threads() -> int:
+    """Threads a process may keep busy: torch's thread count where torch is loaded (so a process told to use
+    one core, ``OMP_NUM_THREADS=1`` or ``torch.set_num_threads(1)``, keeps to one), else one."""
+    torch = sys.modules.get("torch")
+    return max(1, int(torch.get_num_threads())) if torch is not None else 1
+
+
+def map_in_threads(function: Callable[[Item], Result], items: Iterable[Item], threads: int | None = None
+                   ) -> list[Result]:
+    """``[function(item) for item in items]`` on up to ``threads`` Python threads (None: :func:`work_threads`),
+    the results in the items' order: for work that releases the GIL (LZMA, NumPy on large arrays), which then
+    runs on that many cores at once. One thread, or one item: a plain loop. An error in any item is raised."""
+    items = list(items)
+    workers = min(threads if threads is not None else work_threads(), len(items))
+    if workers <= 1:
+        return [function(item) for item in items]
+    with ThreadPoolExecutor(workers) as pool:
+        return list(pool.map(function, items))
 
 
 def thread_candidates(threads: int) -> tuple[int, ...]:

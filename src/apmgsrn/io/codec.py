@@ -33,6 +33,7 @@ import zlib
 import numpy as np
 
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.threads import map_in_threads
 
 PREDICTORS = ("none", "delta", "lorenzo", "time")
 #: LZMA settings: for parameter integers no literal context (values are close to independent), for text
@@ -256,9 +257,19 @@ def best_encoding(levels: np.ndarray, shape: tuple[int, ...], predictors: tuple[
     Returns:
         (compressed bytes, width, predictor).
     """
-    best = None
-    for predictor in predictors or predictors_for(shape):
-        data, width = encode_levels(levels, shape, predictor)
-        if best is None or len(data) < len(best[0]):
-            best = (data, width, predictor)
+    return best_encodings([(levels, shape, predictors)])[0]
+
+
+def best_encodings(jobs: list[tuple[np.ndarray, tuple[int, ...], tuple[str, ...] | None]]
+                   ) -> list[tuple[bytes, int, str]]:
+    """:func:`best_encoding` of every ``(levels, shape, predictors)``, all their compressions run side by side on
+    the threads the process may use (:func:`~apmgsrn.threads.map_in_threads`: LZMA releases the GIL); the same
+    bytes as one after another, the first predictor kept where two code alike."""
+    tasks = [(index, predictor) for index, (_, shape, predictors) in enumerate(jobs)
+             for predictor in predictors or predictors_for(shape)]
+    coded = map_in_threads(lambda task: encode_levels(jobs[task[0]][0], jobs[task[0]][1], task[1]), tasks)
+    best: list[tuple[bytes, int, str] | None] = [None] * len(jobs)
+    for (index, predictor), (data, width) in zip(tasks, coded):
+        if best[index] is None or len(data) < len(best[index][0]):
+            best[index] = (data, width, predictor)
     return best

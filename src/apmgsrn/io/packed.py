@@ -112,10 +112,21 @@ class PackedTensor:
 def encode_quantized(name: str, quantized: QuantizedTensor, predictors: tuple[str, ...] | None = None) -> PackedTensor:
     """A quantised parameter as a section, with whichever of ``predictors`` (default: all that apply) codes
     it smallest."""
-    coded, width, predictor = codec.best_encoding(quantized.levels, quantized.shape, predictors)
-    top = int(np.abs(quantized.levels).max()) if quantized.levels.size else 0
-    data = quantized.steps.astype("<f2").tobytes() + coded
-    return PackedTensor(name, "quantized", data, quantized.group, predictor, width, bits=top.bit_length() + 1)
+    return encode_quantized_all([(name, quantized, predictors)])[0]
+
+
+def encode_quantized_all(parameters: list[tuple[str, QuantizedTensor, tuple[str, ...] | None]]
+                         ) -> list[PackedTensor]:
+    """:func:`encode_quantized` of every ``(name, quantized, predictors)``, coded side by side
+    (:func:`~apmgsrn.io.codec.best_encodings`)."""
+    coded = codec.best_encodings([(quantized.levels, quantized.shape, predictors)
+                                  for _, quantized, predictors in parameters])
+    out = []
+    for (name, quantized, _), (data, width, predictor) in zip(parameters, coded):
+        top = int(np.abs(quantized.levels).max()) if quantized.levels.size else 0
+        out.append(PackedTensor(name, "quantized", quantized.steps.astype("<f2").tobytes() + data, quantized.group,
+                                predictor, width, bits=top.bit_length() + 1))
+    return out
 
 
 def encode_float32(name: str, tensor: torch.Tensor) -> PackedTensor:

@@ -40,7 +40,7 @@ from apmgsrn.io.packed import (
     VoxelCorrection,
     build_field,
     encode_float32,
-    encode_quantized,
+    encode_quantized_all,
     packed_file_bytes,
     save_packed,
 )
@@ -350,18 +350,16 @@ def encode_field(field: NeuralField, quantizer: Quantizer | None, predictors: di
         quantizer: steps of every parameter, or None to keep float32.
         predictors: name -> the predictor to use (default: whichever codes smallest).
     """
-    tensors, state = [], {}
+    if quantizer is None:
+        return ([encode_float32(name, p) for name, p in field.named_parameters()],
+                {name: p.detach().cpu().float().clone() for name, p in field.named_parameters()})
+    to_code, state = [], {}
     for name, p in field.named_parameters():
-        if quantizer is None:
-            tensors.append(encode_float32(name, p))
-            state[name] = p.detach().cpu().float().clone()
-        else:
-            quantized = QuantizedTensor(tuple(p.shape), quantizer.groups[name], quantizer.steps[name],
-                                        quantizer.levels(name, p))
-            chosen = (predictors[name],) if predictors else None
-            tensors.append(encode_quantized(name, quantized, chosen))
-            state[name] = quantized.dequantize()
-    return tensors, state
+        quantized = QuantizedTensor(tuple(p.shape), quantizer.groups[name], quantizer.steps[name],
+                                    quantizer.levels(name, p))
+        to_code.append((name, quantized, (predictors[name],) if predictors else None))
+        state[name] = quantized.dequantize()
+    return encode_quantized_all(to_code), state  # coded side by side
 
 
 def _with_parameters(field: NeuralField, state: dict[str, torch.Tensor]) -> NeuralField:

@@ -48,7 +48,7 @@ from apmgsrn.arguments import check_int
 from apmgsrn.errors import InvalidArgument
 from apmgsrn.inference.evaluate import SeriesEvaluation
 from apmgsrn.io import SeriesStepInfo, SourceInfo
-from apmgsrn.io.packed import PackedTensor, encode_float32, encode_quantized
+from apmgsrn.io.packed import PackedTensor, encode_float32, encode_quantized_all
 from apmgsrn.io.packed_series import packed_series_bytes, save_packed_series, series_predictors
 from apmgsrn.io.quantization import (
     MAX_BITS,
@@ -249,7 +249,7 @@ def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS,
                          for name, chosen in allocated.items()}
     else:
         allocated = steps
-    tensors, state = [], {}
+    tensors, state, to_code = {}, {}, []
     for name in field.config.parameter_shapes():
         values = parameters[name]
         if name in SHARED_STEP_TENSORS:
@@ -260,14 +260,15 @@ def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS,
             if finer:
                 group_steps = round_steps(group_steps.astype(np.float64) * 2.0**-finer)
         else:  # weights, grid placement and decoder: small, kept exactly
-            tensors.append(encode_float32(name, values))
+            tensors[name] = encode_float32(name, values)
             state[name] = values.clone()
             continue
         quantized = quantize(values, group_steps, group)
-        allowed = (predictors or {}).get(name) or series_predictors(name, quantized.shape)
-        tensors.append(encode_quantized(name, quantized, allowed))
+        to_code.append((name, quantized, (predictors or {}).get(name) or series_predictors(name, quantized.shape)))
         state[name] = quantized.dequantize()
-    return PackedSeries(tensors, state, bits, finer, {name: allocated[name] for name in shared})
+    tensors.update((packed.name, packed) for packed in encode_quantized_all(to_code))  # coded side by side
+    return PackedSeries([tensors[name] for name in field.config.parameter_shapes()], state, bits, finer,
+                        {name: allocated[name] for name in shared})
 
 
 def packed_group(packed: PackedSeries, name: str, shape: tuple[int, ...]) -> int:
