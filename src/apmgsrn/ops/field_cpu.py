@@ -242,7 +242,7 @@ void level_decode(const float *points, i64 n, i64 levels, const float *maps, con
         for (i64 t = 0; t < ntiles; ++t) {
             const i64 i0 = t * TILE;
             const int nt = (int)(n - i0 < TILE ? n - i0 : TILE);
-            encode_tile(&s, points, i0, nt, levels, maps, meta, rows, offsets, table, mlp.feat, 1, TILE);
+            encode_tile(&s, points, i0, nt, levels, maps, meta, rows, offsets, table, mlp.feat, 1, TILE, NULL);
             decode_tile(&mlp, nt, out + i0);
         }
         mlp_close(&mlp);

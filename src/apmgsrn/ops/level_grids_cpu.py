@@ -42,10 +42,15 @@ typedef uint32_t u32;
 
 #define TILE 128
 
+/* One level's 8 corners of every tile point. */
 typedef struct {
-    float px[TILE], py[TILE], pz[TILE];   /* the tile's points */
     int off[8][TILE];                     /* corner rows times F (float offsets in the level) */
     float wt[8][TILE];                    /* corner weights; 0 for corners outside the lattice */
+} Corners;
+
+typedef struct {
+    float px[TILE], py[TILE], pz[TILE];   /* the tile's points */
+    Corners c;                            /* the level at hand's corners, unless the caller keeps every level's */
     float res[TILE];                      /* one gathered feature */
 } Scratch;
 
@@ -59,9 +64,9 @@ static inline void load_tile(Scratch *s, const float *points, i64 i0, int nt) {
 
 static inline float clampf(float v, float hi) { return v < 0.0f ? 0.0f : (v > hi ? hi : v); }
 
-/* The 8 corners of every tile point in one level: rows (times F) and trilinear weights. Corners outside
+/* The 8 corners of every tile point in one level into c: rows (times F) and trilinear weights. Corners outside
    the lattice get weight 0 and a clamped, valid row. Branch-free (ternaries) so that gcc vectorises. */
-static inline void corners(Scratch *s, Level lv, int nt) {
+static inline void corners(const Scratch *s, Level lv, int nt, Corners *c) {
     const float *a = lv.map;
     const float a0 = a[0], a1 = a[1], a2 = a[2], a3 = a[3], a4 = a[4], a5 = a[5];
     const float a6 = a[6], a7 = a[7], a8 = a[8], a9 = a[9], a10 = a[10], a11 = a[11];
@@ -69,10 +74,10 @@ static inline void corners(Scratch *s, Level lv, int nt) {
     const u32 mask = lv.rows - 1u, sy = (u32)lv.rx, sz = (u32)lv.rx * (u32)lv.ry;
     const int hashed = lv.hashed, f = lv.features;
     const float *restrict px = s->px, *restrict py = s->py, *restrict pz = s->pz;
-    int *restrict o0 = s->off[0], *restrict o1 = s->off[1], *restrict o2 = s->off[2], *restrict o3 = s->off[3];
-    int *restrict o4 = s->off[4], *restrict o5 = s->off[5], *restrict o6 = s->off[6], *restrict o7 = s->off[7];
-    float *restrict w0 = s->wt[0], *restrict w1 = s->wt[1], *restrict w2 = s->wt[2], *restrict w3 = s->wt[3];
-    float *restrict w4 = s->wt[4], *restrict w5 = s->wt[5], *restrict w6 = s->wt[6], *restrict w7 = s->wt[7];
+    int *restrict o0 = c->off[0], *restrict o1 = c->off[1], *restrict o2 = c->off[2], *restrict o3 = c->off[3];
+    int *restrict o4 = c->off[4], *restrict o5 = c->off[5], *restrict o6 = c->off[6], *restrict o7 = c->off[7];
+    float *restrict w0 = c->wt[0], *restrict w1 = c->wt[1], *restrict w2 = c->wt[2], *restrict w3 = c->wt[3];
+    float *restrict w4 = c->wt[4], *restrict w5 = c->wt[5], *restrict w6 = c->wt[6], *restrict w7 = c->wt[7];
     #pragma omp simd
     for (int k = 0; k < nt; ++k) {
         const float fx = a0 * px[k] + a1 * py[k] + a2 * pz[k] + a9;
@@ -109,12 +114,12 @@ static inline void corners(Scratch *s, Level lv, int nt) {
     }
 }
 
-/* res[k] = sum_j b[off_j[k]] w_j[k] (vectorised gathers). */
-static inline void gather(const float *restrict b, Scratch *s, int nt) {
-    const int *restrict o0 = s->off[0], *restrict o1 = s->off[1], *restrict o2 = s->off[2], *restrict o3 = s->off[3];
-    const int *restrict o4 = s->off[4], *restrict o5 = s->off[5], *restrict o6 = s->off[6], *restrict o7 = s->off[7];
-    const float *restrict w0 = s->wt[0], *restrict w1 = s->wt[1], *restrict w2 = s->wt[2], *restrict w3 = s->wt[3];
-    const float *restrict w4 = s->wt[4], *restrict w5 = s->wt[5], *restrict w6 = s->wt[6], *restrict w7 = s->wt[7];
+/* res[k] = sum_j b[off_j[k]] w_j[k] over the corners c (vectorised gathers). */
+static inline void gather(const float *restrict b, Scratch *s, const Corners *c, int nt) {
+    const int *restrict o0 = c->off[0], *restrict o1 = c->off[1], *restrict o2 = c->off[2], *restrict o3 = c->off[3];
+    const int *restrict o4 = c->off[4], *restrict o5 = c->off[5], *restrict o6 = c->off[6], *restrict o7 = c->off[7];
+    const float *restrict w0 = c->wt[0], *restrict w1 = c->wt[1], *restrict w2 = c->wt[2], *restrict w3 = c->wt[3];
+    const float *restrict w4 = c->wt[4], *restrict w5 = c->wt[5], *restrict w6 = c->wt[6], *restrict w7 = c->wt[7];
     float *restrict res = s->res;
     #pragma omp simd
     for (int k = 0; k < nt; ++k) {
@@ -131,16 +136,18 @@ static inline Level level_at(i64 l, const float *maps, const int *meta, const i6
     return lv;
 }
 
-/* The features of the tile's nt points from i0, every level: point k, column c into out[k * sn + c * sc]. */
+/* The features of the tile's nt points from i0, every level: point k, column c into out[k * sn + c * sc].
+   keep: NULL, or room for every level's corners (levels of them), kept there for scatter_tile. */
 static void encode_tile(Scratch *s, const float *points, i64 i0, int nt, i64 levels, const float *maps,
                         const int *meta, const i64 *rows, const i64 *offsets, const float *table, float *out,
-                        i64 sn, i64 sc) {
+                        i64 sn, i64 sc, Corners *keep) {
     load_tile(s, points, i0, nt);
     for (i64 l = 0; l < levels; ++l) {
         const Level lv = level_at(l, maps, meta, rows);
-        corners(s, lv, nt);
+        Corners *c = keep != NULL ? keep + l : &s->c;
+        corners(s, lv, nt, c);
         for (int f = 0; f < lv.features; ++f) {
-            gather(table + offsets[l] + f, s, nt);
+            gather(table + offsets[l] + f, s, c, nt);
             float *oc = out + (meta[6 * l + 5] + f) * sc;
             for (int k = 0; k < nt; ++k) oc[(i64)k * sn] = s->res[k];
         }
@@ -150,12 +157,14 @@ static void encode_tile(Scratch *s, const float *points, i64 i0, int nt, i64 lev
 /* dst += the trilinear scatter of the gradients of the features of the tile's nt points (loaded): point k,
    column c at g[k * sn + c * sc]. A level of two features (the hybrid's) adds both at each corner in one pass
    over the corners: every table entry still gets its additions in the same order, so the sums are the same to
-   the bit, with half the corner loads (a fused training step 5-6 % faster). */
+   the bit, with half the corner loads (a fused training step 5-6 % faster). kept: NULL, or every level's corners
+   as encode_tile kept them for these points (else computed again). */
 static void scatter_tile(Scratch *s, int nt, i64 levels, const float *maps, const int *meta, const i64 *rows,
-                         const i64 *offsets, const float *g, i64 sn, i64 sc, float *dst) {
+                         const i64 *offsets, const float *g, i64 sn, i64 sc, float *dst, const Corners *kept) {
     for (i64 l = 0; l < levels; ++l) {
         const Level lv = level_at(l, maps, meta, rows);
-        corners(s, lv, nt);
+        const Corners *c = kept != NULL ? kept + l : &s->c;
+        if (kept == NULL) corners(s, lv, nt, &s->c);
         float *b = dst + offsets[l];
         const float *g0 = g + meta[6 * l + 5] * sc;
         if (lv.features == 2) {
@@ -163,8 +172,8 @@ static void scatter_tile(Scratch *s, int nt, i64 levels, const float *maps, cons
             for (int k = 0; k < nt; ++k) {
                 const float v0 = g0[(i64)k * sn], v1 = g1[(i64)k * sn];
                 for (int j = 0; j < 8; ++j) {
-                    float *p = b + s->off[j][k];
-                    const float w = s->wt[j][k];
+                    float *p = b + c->off[j][k];
+                    const float w = c->wt[j][k];
                     p[0] += w * v0;
                     p[1] += w * v1;
                 }
@@ -175,7 +184,7 @@ static void scatter_tile(Scratch *s, int nt, i64 levels, const float *maps, cons
             const float *gc = g0 + f * sc;
             for (int k = 0; k < nt; ++k) {
                 const float v = gc[(i64)k * sn];
-                for (int j = 0; j < 8; ++j) b[s->off[j][k] + f] += s->wt[j][k] * v;
+                for (int j = 0; j < 8; ++j) b[c->off[j][k] + f] += c->wt[j][k] * v;
             }
         }
     }
@@ -196,7 +205,7 @@ void lg_forward(const float *points, i64 n, i64 levels, const float *maps, const
         for (i64 t = 0; t < ntiles; ++t) {
             const i64 i0 = t * TILE;
             const int nt = (int)(n - i0 < TILE ? n - i0 : TILE);
-            encode_tile(&s, points, i0, nt, levels, maps, meta, rows, offsets, table, out + i0 * sn, sn, sc);
+            encode_tile(&s, points, i0, nt, levels, maps, meta, rows, offsets, table, out + i0 * sn, sn, sc, NULL);
         }
     }
 }
@@ -216,7 +225,7 @@ void lg_backward(const float *points, i64 n, i64 levels, const float *maps, cons
         for (i64 i0 = lo; i0 < hi; i0 += TILE) {
             const int nt = (int)(hi - i0 < TILE ? hi - i0 : TILE);
             load_tile(&s, points, i0, nt);
-            scatter_tile(&s, nt, levels, maps, meta, rows, offsets, grad_out + i0 * sn, sn, sc, dst);
+            scatter_tile(&s, nt, levels, maps, meta, rows, offsets, grad_out + i0 * sn, sn, sc, dst, NULL);
         }
         #pragma omp barrier
         for (int b = 0; b < nth - 1; ++b) {
