@@ -131,7 +131,8 @@ void level_train(const float *points, i64 n, i64 levels, const float *maps, cons
     {
         Scratch sc;
         Step st = step_open(f, layers, pad, weights, rows);
-        /* every level's corners of the tile, computed once for the look-ups and the scatter */
+        /* every level's corners of the tile, computed once for the look-ups and the scatter (NULL if the
+           memory cannot be had: computed twice) */
         Corners *kept = malloc(sizeof(Corners) * (size_t)levels);
         const int th = omp_get_thread_num(), nth = omp_get_num_threads();
         float *dst = th == 0 ? grad_table : buffers + (size_t)(th - 1) * (size_t)size;
