@@ -32,31 +32,31 @@ from apmgsrn.data import open_volume
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config, training_defaults
 from apmgsrn.ops import field_train_cpu, level_grids_cpu
-from apmgsrn.ops.field_cpu import MLP_SOURCE
 from apmgsrn.ops.kernel_cache import CompiledLibrary
 from apmgsrn.ops.level_grids import level_grid_mse_step_reference
-from apmgsrn.ops.multigrid_cpu import LANE_LUT_SOURCE
 from apmgsrn.training.fit import prepare_values
 from apmgsrn.training.trainer import TrainConfig, Trainer
 
 
 def sources_of(src: Path) -> tuple[str, str]:
-    """The level kernel's and the fused step's C sources of the checkout whose package folder is ``src``."""
+    """The level kernel's C source and the fused step's whole C source (level kernel, lane table, decoder, step)
+    of the checkout whose package folder is ``src``."""
     texts = []
-    for module, attribute in (("level_grids_cpu", "C_SOURCE"), ("field_train_cpu", "TRAIN_SOURCE")):
+    parts = (("level_grids_cpu", "C_SOURCE"), ("multigrid_cpu", "LANE_LUT_SOURCE"), ("field_cpu", "MLP_SOURCE"),
+             ("field_train_cpu", "TRAIN_SOURCE"))
+    for module, attribute in parts:
         path = src / "apmgsrn" / "ops" / f"{module}.py"
         spec = importlib.util.spec_from_file_location(f"before_{module}", path)
         loaded = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(loaded)
         texts.append(getattr(loaded, attribute))
-    return texts[0], texts[1]
+    return texts[0], "".join(texts)
 
 
-def libraries(label: str, level_source: str, train_source: str) -> tuple[CompiledLibrary, CompiledLibrary]:
+def libraries(label: str, level_source: str, step_source: str) -> tuple[CompiledLibrary, CompiledLibrary]:
     """The level kernel and the fused step built from these sources."""
     level = CompiledLibrary(f"bench_level_{label}", level_source, level_grids_cpu._declare)
-    step = CompiledLibrary(f"bench_step_{label}", level_source + LANE_LUT_SOURCE + MLP_SOURCE + train_source,
-                           field_train_cpu._declare)
+    step = CompiledLibrary(f"bench_step_{label}", step_source, field_train_cpu._declare)
     return level, step
 
 
