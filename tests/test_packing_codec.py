@@ -110,6 +110,18 @@ def test_parameters_coded_side_by_side_are_the_bytes_coded_one_after_another(par
     assert map_in_threads(lambda x: x * x, range(7), 3) == [x * x for x in range(7)]
 
 
+def test_fewer_compressions_run_side_by_side_where_each_would_take_much_memory(monkeypatch):
+    """LZMA's match finder takes about ten times its dictionary: a small model's tensors code on every thread,
+    the tensors of a long series on as many as fit the memory set aside, and one at least."""
+    monkeypatch.setattr(codec, "work_threads", lambda: 64)
+    small = [10_000] * 12
+    assert codec.coding_threads(small) == 64
+    long_series = [300 * 42_000, 1_000]  # 300 steps of a small hybrid's level table, and a decoder
+    fitting = codec.coding_threads(long_series)
+    assert 1 < fitting < 64 and fitting * codec.coding_memory(long_series[0]) <= codec.PARALLEL_CODING_MEMORY
+    assert codec.coding_threads([10 ** 9]) == 1
+
+
 def test_zigzag_and_byte_planes_round_trip_signed_values():
     values = np.array([0, -1, 1, -2, 2, 127, -128, 40_000, -(1 << 30)], dtype=np.int64)
     assert codec.zigzag(values[:5]).tolist() == [0, 1, 2, 3, 4]

@@ -296,6 +296,37 @@ def test_stepwise_resume_after_kill_reaches_the_same_model(pattern, tmp_path):
     assert not checkpoint.exists()
 
 
+def test_ctrl_c_in_the_fine_tune_towards_the_packing_resumes_to_the_same_model(pattern, tmp_path, capsys,
+                                                                                monkeypatch):
+    """Ctrl-C after every step is trained, in the fine-tune towards the packing: the steps' checkpoint stays, the
+    command says how to go on (exit 130), and --resume packs the same file as a run never interrupted."""
+    from apmgsrn.training import series_qat
+
+    command = ["train", pattern, *FAST, "--step-iterations", "20", "--qat-iterations", "10"]
+    assert main([*command, "--out", str(tmp_path / "whole.apmgsrn")]) == 0
+    capsys.readouterr()
+    real = series_qat.fine_tune_rounded
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    out = tmp_path / "m.apmgsrn"
+    monkeypatch.setattr(series_qat, "fine_tune_rounded", interrupted)
+    assert main([*command, "--out", str(out)]) == 130
+    assert "run the same command with --resume to continue" in capsys.readouterr().out
+    assert not out.exists() and Path(f"{out}.ckpt").exists()
+    monkeypatch.setattr(series_qat, "fine_tune_rounded", real)
+    assert main([*command, "--out", str(out), "--resume"]) == 0
+    assert _same_tensors(out, tmp_path / "whole.apmgsrn")
+    assert not Path(f"{out}.ckpt").exists()
+
+
+def _same_tensors(a: Path, b: Path) -> bool:
+    """The two model files hold the same tensors (their descriptions record training seconds)."""
+    first, second = apmgsrn.load(a).field.state_dict(), apmgsrn.load(b).field.state_dict()
+    return first.keys() == second.keys() and all(torch.equal(first[k], second[k]) for k in first)
+
+
 def test_fit_in_python_takes_a_series_and_trains_it_stepwise(pattern, truth):
     """apmgsrn.fit on a glob: the notebook's way to the same stepwise, packed model as train."""
     model = apmgsrn.fit(pattern, iterations=120, batch_size=2048, resolution=8, width=32, progress=False)

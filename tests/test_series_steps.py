@@ -216,6 +216,37 @@ def test_an_interrupted_run_resumes_from_its_last_step_to_the_same_model(prepare
     assert all(torch.equal(expected[k], got[k]) for k in expected)
 
 
+def test_ctrl_c_in_the_start_steps_own_fine_tune_resumes_to_the_same_model(prepared, tmp_path, monkeypatch):
+    """Where the steps draw where they are wrong, the start step's grids get a fine-tune of their own after the
+    start model; Ctrl-C there leaves a checkpoint of the start model, and the resume runs that fine-tune."""
+    train = replace(HYBRID_TRAIN, iterations=40, error_sampling=1.0)
+    config, stepwise = stepwise_config(TINY_HYBRID, 4), StepwiseConfig(start=1, step_iterations=10)
+    whole = train_stepwise(prepared, config, train, (32, 32, 32), stepwise=stepwise, show_progress=False)
+    checkpoint = tmp_path / "m.apmgsrn.ckpt"
+    calls = []
+    real_run = series_steps.Trainer.run
+
+    def interrupted_run(self):
+        calls.append(1)
+        if len(calls) == 2:  # the start model, then Ctrl-C in the start step's own fine-tune
+            raise KeyboardInterrupt
+        return real_run(self)
+
+    monkeypatch.setattr(series_steps.Trainer, "run", interrupted_run)
+    with pytest.raises(TrainingInterrupted, match="checkpoint saved"):
+        train_stepwise(prepared, config, train, (32, 32, 32), checkpoint, {}, stepwise=stepwise, show_progress=False)
+    header = read_header(checkpoint)
+    assert header.kind == STEPS_CHECKPOINT_KIND
+    assert header.description["done"] == [1] and header.description["step_iterations"] == [0]  # not yet polished
+    monkeypatch.setattr(series_steps.Trainer, "run", real_run)
+    resumed = train_stepwise(prepared, config, train, (32, 32, 32), checkpoint, {}, stepwise=stepwise,
+                             show_progress=False)
+    assert resumed.summary == whole.summary and resumed.state.iteration == whole.state.iteration
+    assert whole.summary["stepwise"]["step_iterations"][1] > 0
+    expected, got = whole.field.state_dict(), resumed.field.state_dict()
+    assert all(torch.equal(expected[k], got[k]) for k in expected)
+
+
 def test_a_checkpoint_of_other_data_or_tampered_is_refused(prepared, tmp_path, monkeypatch):
     checkpoint = tmp_path / "m.apmgsrn.ckpt"
     config = stepwise_config(TINY, 4)

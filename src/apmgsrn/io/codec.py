@@ -33,7 +33,7 @@ import zlib
 import numpy as np
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.threads import map_in_threads
+from apmgsrn.threads import map_in_threads, work_threads
 
 PREDICTORS = ("none", "delta", "lorenzo", "time")
 #: LZMA settings: for parameter integers no literal context (values are close to independent), for text
@@ -42,12 +42,35 @@ CODECS = {"numbers": {"lc": 0, "lp": 0, "pb": 0}, "text": {}}
 MIN_DICTIONARY, MAX_DICTIONARY = 1 << 12, 1 << 24
 
 
+#: Memory the compressions :func:`best_encodings` runs side by side may take together: where each would take
+#: more (a series of many steps on a machine of many cores), fewer run at once.
+PARALLEL_CODING_MEMORY = 2 << 30
+
+
+def _dictionary(size: int) -> int:
+    """LZMA's dictionary for ``size`` bytes: the power of two just large enough, within the bounds."""
+    return min(max(MIN_DICTIONARY, 1 << max(size - 1, 1).bit_length()), MAX_DICTIONARY)
+
+
 def _filters(kind: str, size: int) -> list[dict]:
     """LZMA1 at preset 9 with a dictionary just large enough for ``size`` bytes: a larger one only costs
     time (the match finder allocates about ten times it), and the decoder, which knows ``size`` from the
     description, allocates the same."""
-    dictionary = min(max(MIN_DICTIONARY, 1 << max(size - 1, 1).bit_length()), MAX_DICTIONARY)
-    return [{"id": lzma.FILTER_LZMA1, "preset": 9, "dict_size": dictionary, **CODECS[kind]}]
+    return [{"id": lzma.FILTER_LZMA1, "preset": 9, "dict_size": _dictionary(size), **CODECS[kind]}]
+
+
+def coding_memory(values: int) -> int:
+    """About the most one :func:`encode_levels` of ``values`` integers allocates: LZMA's match finder, about 11
+    times its dictionary (:func:`_filters`, for up to 4 bytes a value), and the residuals and their bytes."""
+    return 11 * _dictionary(4 * values) + 20 * values
+
+
+def coding_threads(values: list[int]) -> int:
+    """How many compressions of tensors of ``values`` integers :func:`best_encodings` runs at once: as many as
+    the process has threads (:func:`~apmgsrn.threads.work_threads`), fewer where the largest would together
+    take more than :data:`PARALLEL_CODING_MEMORY`."""
+    largest = max((coding_memory(n) for n in values), default=1)
+    return max(1, min(work_threads(), PARALLEL_CODING_MEMORY // largest))
 
 
 def compress(data: bytes, kind: str = "numbers") -> bytes:
@@ -263,11 +286,13 @@ def best_encoding(levels: np.ndarray, shape: tuple[int, ...], predictors: tuple[
 def best_encodings(jobs: list[tuple[np.ndarray, tuple[int, ...], tuple[str, ...] | None]]
                    ) -> list[tuple[bytes, int, str]]:
     """:func:`best_encoding` of every ``(levels, shape, predictors)``, all their compressions run side by side on
-    the threads the process may use (:func:`~apmgsrn.threads.map_in_threads`: LZMA releases the GIL); the same
-    bytes as one after another, the first predictor kept where two code alike."""
+    the threads the process may use (:func:`~apmgsrn.threads.map_in_threads`: LZMA releases the GIL; as many as
+    memory allows, :func:`coding_threads`); the same bytes as one after another, the first predictor kept where
+    two code alike."""
     tasks = [(index, predictor) for index, (_, shape, predictors) in enumerate(jobs)
              for predictor in predictors or predictors_for(shape)]
-    coded = map_in_threads(lambda task: encode_levels(jobs[task[0]][0], jobs[task[0]][1], task[1]), tasks)
+    coded = map_in_threads(lambda task: encode_levels(jobs[task[0]][0], jobs[task[0]][1], task[1]), tasks,
+                           coding_threads([jobs[index][0].size for index, _ in tasks]))
     best: list[tuple[bytes, int, str] | None] = [None] * len(jobs)
     for (index, predictor), (data, width) in zip(tasks, coded):
         if best[index] is None or len(data) < len(best[index][0]):

@@ -38,7 +38,7 @@ from apmgsrn.models.value_transform import ValueTransform, fit_value_transform
 from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.checkpoint import checkpoint_path_for
 from apmgsrn.training.series_packing import SeriesPacking, series_packing_report, step_tensors, write_packed_series
-from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, TrainingState
+from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, TrainingInterrupted, TrainingState
 
 
 @dataclass(frozen=True)
@@ -269,6 +269,9 @@ def fit(
             config's storage dtype).
         tune_packed: a series packed with ``qat_iterations``: fine-tunes the field towards its first packing
             (:func:`~apmgsrn.training.series_qat.fine_tune_rounded`'s signature, less ``show_progress``).
+
+    Raises:
+        TrainingInterrupted: Ctrl-C in training or in a series' packing, with a checkpoint to resume from.
     """
     out = Path(out)
     series = isinstance(field_config, SeriesFieldConfig)
@@ -285,14 +288,19 @@ def fit(
             # The packing search and the fine-tune towards it are part of making the model: they count in its
             # training time (the evaluations, as for one volume, do not).
             started = time.perf_counter()
-            packed = packing.pack(trained.field)
-            if packing.qat_iterations:  # trained towards the packing's steps, then packed on them
-                if tune_packed is None:
-                    raise ValueError("packing.qat_iterations needs tune_packed")
-                before_tune = step_tensors(trained.field)
-                ran, _ = tune_packed(trained.field, prepared.values, packed, train_config, packing.qat_iterations)
-                trained.state.iteration += ran
-                packed = packing.repack(trained.field, packed, before_tune)
+            try:
+                packed = packing.pack(trained.field)
+                if packing.qat_iterations:  # trained towards the packing's steps, then packed on them
+                    if tune_packed is None:
+                        raise ValueError("packing.qat_iterations needs tune_packed")
+                    before_tune = step_tensors(trained.field)
+                    ran, _ = tune_packed(trained.field, prepared.values, packed, train_config, packing.qat_iterations)
+                    trained.state.iteration += ran
+                    packed = packing.repack(trained.field, packed, before_tune)
+            except KeyboardInterrupt:  # the checkpoint holds the training: a resume packs again
+                if not checkpoint.exists():
+                    raise
+                raise TrainingInterrupted(trained.state.iteration, checkpoint) from None
             trained.state.elapsed += time.perf_counter() - started
             trained.field.load_state_dict(packed.state)  # measure what the file will give back
         evaluation = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)

@@ -582,21 +582,29 @@ def train_stepwise(
         # Its RMS error at the voxels, not its last batch's: a batch drawn where the model is wrong
         # (TrainConfig.error_sampling) overstates it.
         error = math.sqrt(_voxel_error(first.field, _check_sample(values[start], start)))
-        polished = 0
-        if train_config.error_guided and train_config.error_sampling != START_ERROR_SAMPLING:
-            # The start step's own grids fine-tuned like any step's, from themselves, with the model kind's
-            # draws where the step is wrong (the shared decoder stays what uniform draws made it).
-            began = time.perf_counter()
-            config = stepwise.step_config(train_config, 0.0, error, 1.0, lr_share, batch_share, point_share)
-            _train_step(worker, series, values[start], start, start, config, error, False, sparsity)
-            polished = config.iterations
-            first.state.iteration += polished
-            first.state.elapsed += time.perf_counter() - began
-        progress = _Progress(start, [start], [polished], [False], error, first.state)
+        progress = _Progress(start, [start], [0], [False], error, first.state)
         resumed_from = first.resumed_from
-        if checkpoint is not None:
+        if checkpoint is not None:  # the start model, before the polish below
             _save_steps(checkpoint, series, progress, fingerprint)
     state = progress.state
+    polish = train_config.error_guided and train_config.error_sampling != START_ERROR_SAMPLING
+    if polish and progress.iterations[0] == 0:  # not yet done (a checkpoint records it)
+        # The start step's own grids fine-tuned like any step's, from themselves, with the model kind's draws
+        # where the step is wrong (the shared decoder stays what uniform draws made it).
+        began = time.perf_counter()
+        config = stepwise.step_config(train_config, 0.0, progress.error, 1.0, lr_share, batch_share, point_share)
+        try:
+            _train_step(worker, series, values[progress.start], progress.start, progress.start, config,
+                        progress.error, False, sparsity)
+        except KeyboardInterrupt:
+            if checkpoint is None:
+                raise
+            raise TrainingInterrupted(state.iteration, checkpoint) from None
+        progress.iterations[0] = config.iterations
+        state.iteration += config.iterations
+        state.elapsed += time.perf_counter() - began
+        if checkpoint is not None:
+            _save_steps(checkpoint, series, progress, fingerprint)
     scale = stepwise.budget_scale(train_config, steps - 1, batch_share, point_share)
     todo = [(t, n) for t, n in step_order(progress.start, steps) if t not in progress.done]
     display = Progress(steps, unit="step", description="steps", initial=steps - len(todo), enabled=show_progress)
