@@ -253,6 +253,24 @@ def write_moving(args: argparse.Namespace) -> None:
           f"along {args.axis}")
 
 
+def write_upsampled(args: argparse.Namespace) -> None:
+    """Every step of a series folder (``--series``) resampled to ``--size``^3 (trilinear, corner-aligned), written
+    as ``step_NNN.npy`` files to ``--out``: the same run at a resolution where the error guide measures one voxel
+    per block and every step holds more voxels than the batches see."""
+    import numpy as np
+
+    from apmgsrn.data import open_volume
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    files = _series_files(args.series)
+    for step, path in enumerate(files):
+        values = torch.from_numpy(np.ascontiguousarray(open_volume(path).to_numpy(), dtype=np.float32))
+        resized = torch.nn.functional.interpolate(values[None, None], size=(args.size,) * 3, mode="trilinear",
+                                                  align_corners=True)[0, 0]
+        np.save(args.out / f"step_{step:03d}.npy", resized.numpy())
+    print(f"wrote {len(files)} steps of {args.size}^3 to {args.out}")
+
+
 def run_timing(args: argparse.Namespace) -> None:
     """Train one step's small model under the protocol and record how long it took (for the 5x comparison,
     measured right before and right after the series model, on the same machine and threads)."""
@@ -500,13 +518,17 @@ def main() -> None:
     moving.add_argument("--shift", type=int, default=4, help="voxels per step")
     moving.add_argument("--axis", choices=("x", "y", "z"), default="x")
     moving.add_argument("--out", type=Path, required=True)
+    upsample = sub.add_parser("upsample", help="write every step of a series resampled to a larger grid")
+    upsample.add_argument("--series", type=Path, default=SERIES)
+    upsample.add_argument("--size", type=int, default=128)
+    upsample.add_argument("--out", type=Path, required=True)
     report = sub.add_parser("report", help="the per-step table and chart in docs/")
     report.add_argument("--out", type=Path)
     for p in (base, series, timing):
         p.add_argument("--data", type=Path, default=SERIES, help="a folder of volume files, one per step")
         p.add_argument("--iterations", type=int, default=2000)
         p.add_argument("--batch-size", type=int, default=32768)
-    for p in (base, series, timing, moving, report):
+    for p in (base, series, timing, moving, upsample, report):
         p.add_argument("--threads", type=int, default=1)
     for p in (base, series, timing, report):
         p.add_argument("--kind", choices=KINDS, default="apmgsrn", help="the model kind (default apmgsrn)")
@@ -530,6 +552,8 @@ def main() -> None:
         run_speed(args)
     elif args.command == "moving":
         write_moving(args)
+    elif args.command == "upsample":
+        write_upsampled(args)
     else:
         write_report(args.out, [int(t) for t in args.timing_steps.split(",")] if args.timing_steps else None,
                      args.kind)

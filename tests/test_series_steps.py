@@ -24,6 +24,7 @@ from apmgsrn.training.series_steps import (
     STEPS_CHECKPOINT_KIND,
     StepwiseConfig,
     choose_start,
+    step_factors,
     step_order,
     stepwise_config,
     tracking_config,
@@ -179,6 +180,28 @@ def test_a_step_far_from_its_neighbour_gets_more_iterations(prepared, truth):
     (_, far_count), (_, near_count) = (run.summary["stepwise"]["step_iterations"] for run in runs)
     assert series_steps.change(far.values, 1, 0) > series_steps.change(near.values, 1, 0)
     assert far_count >= near_count >= StepwiseConfig().base_iterations(TRAIN)
+
+
+def test_steps_that_change_little_share_their_iterations_evenly():
+    """Below twice the base, how much a step changed does not set its fine-tune's length: those steps get the
+    mean of their factors (the same iterations in all); a step that changes more keeps its own."""
+    error = 0.001
+    changes = [0.010, 0.012, 0.014, 0.005, 0.05]  # 1.25, 1.5, 1.75, 1 (at least the base) and 6.25 times the base
+    factors = step_factors(changes, error)
+    assert factors[:4] == pytest.approx([1.375] * 4) and factors[4] == pytest.approx(6.25)
+    assert sum(factors) == pytest.approx(sum(series_steps.change_factor(c, error) for c in changes))
+    assert step_factors([0.05, 0.5], error) == [6.25, 10.0] and step_factors([], error) == []
+
+
+def test_a_run_gives_every_step_its_evened_factor(prepared, monkeypatch):
+    """The run computes every step's change before the first fine-tune and trains each with its evened factor
+    (the start is step 1: steps 0 and 2 change little, step 3 much)."""
+    monkeypatch.setattr(series_steps, "change", lambda values, t, neighbour: float(t))
+    monkeypatch.setattr(series_steps, "change_factor", lambda change, error: {0: 1.0, 2: 1.5, 3: 6.0}[int(change)])
+    run = train_stepwise(prepared, stepwise_config(TINY, 4), TRAIN, (32, 32, 32), stepwise=StepwiseConfig(start=1),
+                         show_progress=False)
+    base = StepwiseConfig().base_iterations(TRAIN)
+    assert run.summary["stepwise"]["step_iterations"] == [round(base * 1.25), 0, round(base * 1.25), base * 6]
 
 
 def test_bad_stepwise_options_are_refused():

@@ -12,7 +12,8 @@ docs/time_series.md):
 2. **The other steps**, moving away from the start one neighbour at a time (:func:`step_order`), start from
    the neighbour's grids and fine-tune only their own feature grids at a lower learning rate (their voxel
    points drawn where they are wrong, as the model kind trains: ``error_sampling``), for a tenth of that
-   budget, more for a step that differs much from its neighbour (:meth:`StepwiseConfig.step_config`); the
+   budget, more for a step that differs much from its neighbour (:meth:`StepwiseConfig.step_config`; steps
+   that differ little share their iterations evenly, :func:`step_factors`); the
    decoder stays the start model's, frozen (with ``step_sparsity`` the features are pulled back towards
    the neighbour's after every iteration, :class:`PullTowardsStart`, the default for a hybrid series), and so
    does the placement, unless the fine-tuned step ends
@@ -104,6 +105,15 @@ STEP_SPARSITY_OF: dict[str, float] = {"hybrid": 0.01}
 #: budget). Consecutive viscous-finger steps differ by 4-9 times the error (200 iterations enough); steps 40
 #: apart by about 75 times, where 200 iterations left them 7 dB below their own models and 2,000 put them above.
 STEP_CHANGE_SCALE, STEP_ITERATION_CAP = 8.0, 10.0
+#: Steps whose change asks for less than this many times the base iterations (differ from their neighbour by
+#: less than twice :data:`STEP_CHANGE_SCALE` times the start model's error: consecutive steps of a smooth run)
+#: share their iterations evenly (:func:`step_factors`). At that scale how much a step changed does not say how
+#: long its fine-tune must be: the 30 viscous-finger steps (1.0-1.75 times the base, the most to the steps
+#: nearest the start, which have the most detail) spread evenly ended 0.16-0.22 dB higher on steps 0 and 5, far
+#: from the start, which fit finest and were closest to their own models, 0.06-0.28 lower on steps 15-25, whose
+#: margin was widest, and the start step the same (three seeds, one thread; on two threads every step of three
+#: seeds then above its own model; docs/time_series.md). Steps that change more keep their own.
+STEP_EVEN_BELOW = 2.0
 #: The fine-tunes after the start model, the steps' at their base share and every step's quantisation-aware one
 #: (:attr:`StepwiseConfig.qat_iterations`), together with what every step costs besides (:data:`STEP_FIXED_COST`)
 #: take at most this many times the start model's points (iterations times batch; a fine-tune's point, its share
@@ -203,11 +213,11 @@ class StepwiseConfig:
         return self.step_iterations or max(1, round(config.iterations * STEP_ITERATION_SHARE))
 
     def step_config(self, config: TrainConfig, change: float = 0.0, error: float = 1.0, scale: float = 1.0,
-                    lr_share: float = STEP_LR_SHARE, batch_share: float = 1.0, point_share: float = 1.0
-                    ) -> TrainConfig:
+                    lr_share: float = STEP_LR_SHARE, batch_share: float = 1.0, point_share: float = 1.0,
+                    factor: float | None = None) -> TrainConfig:
         """How a step after the start is fine-tuned: its grids only (the density loss never starts), for
         :meth:`base_iterations`, more when the step differs from its neighbour by more than
-        :data:`STEP_CHANGE_SCALE` times the start model's error.
+        :data:`STEP_CHANGE_SCALE` times the start model's error (:func:`change_factor`).
 
         Args:
             config: the start model's training.
@@ -219,8 +229,9 @@ class StepwiseConfig:
             batch_share: the batch's share of the start model's (:data:`STEP_BATCH_SHARES`); the iterations
                 above are counted at the start model's batch and divided by it.
             point_share: the iterations above times this (:data:`STEP_POINT_SHARES`).
+            factor: the base's multiple instead of the one ``change`` and ``error`` give (:func:`step_factors`).
         """
-        factor = min(max(change / (STEP_CHANGE_SCALE * max(error, 1e-12)), 1.0), STEP_ITERATION_CAP)
+        factor = change_factor(change, error) if factor is None else factor
         iterations = max(1, round(self.base_iterations(config) * factor * scale * point_share / batch_share))
         lr = config.lr * lr_share if self.step_lr is None else self.step_lr
         return replace(config, iterations=iterations, lr=lr, density_start=iterations + 1, history_every=None,
@@ -250,6 +261,22 @@ class StepwiseConfig:
         if not self.qat_iterations:
             return 0
         return max(1, round(self.qat_iterations * self.budget_scale(config, steps, batch_share, point_share)))
+
+
+def change_factor(change: float, error: float) -> float:
+    """How many times :meth:`StepwiseConfig.base_iterations` a step gets that differs from its neighbour by
+    ``change`` where the start model's RMS error is ``error``: 1 up to :data:`STEP_CHANGE_SCALE` times the error,
+    then in proportion, at most :data:`STEP_ITERATION_CAP`."""
+    return min(max(change / (STEP_CHANGE_SCALE * max(error, 1e-12)), 1.0), STEP_ITERATION_CAP)
+
+
+def step_factors(changes: list[float], error: float) -> list[float]:
+    """:func:`change_factor` of every step's change, those below :data:`STEP_EVEN_BELOW` replaced by their mean:
+    the same iterations in all, spread evenly over the steps that change little."""
+    factors = [change_factor(c, error) for c in changes]
+    small = [f for f in factors if f < STEP_EVEN_BELOW]
+    even = sum(small) / len(small) if small else 1.0
+    return [even if f < STEP_EVEN_BELOW else f for f in factors]
 
 
 def shortened_measurements(measurements: int, scale: float) -> int:
@@ -606,13 +633,15 @@ def train_stepwise(
         if checkpoint is not None:
             _save_steps(checkpoint, series, progress, fingerprint)
     scale = stepwise.budget_scale(train_config, steps - 1, batch_share, point_share)
-    todo = [(t, n) for t, n in step_order(progress.start, steps) if t not in progress.done]
+    order = step_order(progress.start, steps)
+    factors = dict(zip((t for t, _ in order), step_factors([change(values, t, n) for t, n in order], progress.error)))
+    todo = [(t, n) for t, n in order if t not in progress.done]
     display = Progress(steps, unit="step", description="steps", initial=steps - len(todo), enabled=show_progress)
     try:
         for t, neighbour in todo:
             began = time.perf_counter()
-            config = stepwise.step_config(train_config, change(values, t, neighbour), progress.error, scale, lr_share,
-                                          batch_share, point_share)
+            config = stepwise.step_config(train_config, scale=scale, lr_share=lr_share, batch_share=batch_share,
+                                          point_share=point_share, factor=factors[t])
             moved = dict(zip(progress.done, progress.tracked))
             tracked, runs = _train_step(worker, series, values[t], t, neighbour, config, progress.error,
                                         track_first=moved[neighbour], sparsity=sparsity)
