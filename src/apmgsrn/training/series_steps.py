@@ -614,30 +614,25 @@ def train_stepwise(
         if checkpoint is not None:  # the start model, before the polish below
             _save_steps(checkpoint, series, progress, fingerprint)
     state = progress.state
-    polish = train_config.error_guided and train_config.error_sampling != START_ERROR_SAMPLING
-    if polish and progress.iterations[0] == 0:  # not yet done (a checkpoint records it)
-        # The start step's own grids fine-tuned like any step's, from themselves, with the model kind's draws
-        # where the step is wrong (the shared decoder stays what uniform draws made it).
-        began = time.perf_counter()
-        config = stepwise.step_config(train_config, 0.0, progress.error, 1.0, lr_share, batch_share, point_share)
-        try:
-            _train_step(worker, series, values[progress.start], progress.start, progress.start, config,
-                        progress.error, False, sparsity)
-        except KeyboardInterrupt:
-            if checkpoint is None:
-                raise
-            raise TrainingInterrupted(state.iteration, checkpoint) from None
-        progress.iterations[0] = config.iterations
-        state.iteration += config.iterations
-        state.elapsed += time.perf_counter() - began
-        if checkpoint is not None:
-            _save_steps(checkpoint, series, progress, fingerprint)
     scale = stepwise.budget_scale(train_config, steps - 1, batch_share, point_share)
     order = step_order(progress.start, steps)
     factors = dict(zip((t for t, _ in order), step_factors([change(values, t, n) for t, n in order], progress.error)))
     todo = [(t, n) for t, n in order if t not in progress.done]
+    polish = train_config.error_guided and train_config.error_sampling != START_ERROR_SAMPLING
     display = Progress(steps, unit="step", description="steps", initial=steps - len(todo), enabled=show_progress)
     try:
+        if polish and progress.iterations[0] == 0:  # not yet done (a checkpoint records it)
+            # The start step's own grids fine-tuned like any step's, from themselves, with the model kind's draws
+            # where the step is wrong (the shared decoder stays what uniform draws made it).
+            began = time.perf_counter()
+            config = stepwise.step_config(train_config, 0.0, progress.error, 1.0, lr_share, batch_share, point_share)
+            _train_step(worker, series, values[progress.start], progress.start, progress.start, config,
+                        progress.error, False, sparsity)
+            progress.iterations[0] = config.iterations
+            state.iteration += config.iterations
+            state.elapsed += time.perf_counter() - began
+            if checkpoint is not None:
+                _save_steps(checkpoint, series, progress, fingerprint)
         for t, neighbour in todo:
             began = time.perf_counter()
             config = stepwise.step_config(train_config, scale=scale, lr_share=lr_share, batch_share=batch_share,
