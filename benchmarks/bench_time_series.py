@@ -56,6 +56,8 @@ COMPARED = {"hybrid": {
         RESULTS / "time_series_model_hybrid_20261127.csv",
     "hybrid series with 200 at half the batch (2026-11-27 third session, seed 0, 4.76 files, 5.33x with its packing)":
         RESULTS / "time_series_model_hybrid_20261127b.csv",
+    "hybrid series, start model at 2,000 iterations (2026-11-27 eighth session, seed 0, 4.66 files)":
+        RESULTS / "time_series_model_hybrid_start2000.csv",
     "APMGSRN series (4.6 files)": SERIES_CSV}}
 
 

@@ -252,8 +252,10 @@ def test_a_long_series_shortens_its_fine_tune_towards_the_packing_with_its_steps
 
     monkeypatch.setattr(series_qat, "fine_tune_rounded", spy)
 
-    # 30 of 100 start iterations' points after the 4 steps' own costs
-    monkeypatch.setattr(series_steps, "STEPS_BUDGET_CAP", (30 + 4 * series_steps.STEP_FIXED_COST) / 100)
+    # 30 of 100 start iterations' points after the 4 steps' own costs and what the hybrid's longer start model
+    # (START_ITERATION_SHARES, on a CPU) takes
+    extra = series_steps.START_POINT_COST * (series_steps.START_ITERATION_SHARES["hybrid"] - 1)
+    monkeypatch.setattr(series_steps, "STEPS_BUDGET_CAP", (30 + 4 * series_steps.STEP_FIXED_COST) / 100 + extra)
     assert main(["train", pattern, "--model", "hybrid", "--levels", "6", "--log2-table-size", "10", "--grids", "4",
                  "--resolution", "8", "--width", "16", "--iterations", "100", "--batch-size", "2048", "--device",
                  "cpu", "--bits", "6", "--qat-iterations", "40", "--json", "--out", str(tmp_path / "s.apmgsrn")]) == 0
@@ -264,7 +266,9 @@ def test_a_long_series_shortens_its_fine_tune_towards_the_packing_with_its_steps
     assert stepwise["budget_scale"] == pytest.approx(30 / 87, abs=1e-6)
     qat = description.packing.report["qat_iterations"]
     assert qat == round(40 * 30 / 87) < 40
-    assert description.training["iterations"] == 100 + sum(stepwise["step_iterations"]) + 4 * qat
+    assert stepwise["start_iterations"] == round(100 * series_steps.START_ITERATION_SHARES["hybrid"])
+    start = stepwise["start_iterations"]
+    assert description.training["iterations"] == start + sum(stepwise["step_iterations"]) + 4 * qat
     assert seen["measurements"] == round(QAT_MEASUREMENTS * 30 / 87) < QAT_MEASUREMENTS
 
 

@@ -158,6 +158,10 @@ def test_a_long_series_shortens_every_step_to_stay_within_the_budget():
     assert series_steps.shortened_measurements(20, series_steps.LEAST_BUDGET_SCALE) == 1
     assert StepwiseConfig(step_iterations=200, qat_iterations=250).shortened_qat(start, 99, 0.375, 0.9) == 250
     assert StepwiseConfig().shortened_qat(start, 99) == 0
+    # A start model trained 1.4 times as long takes its extra points, at START_POINT_COST each, from the steps' budget
+    longer = (cap - series_steps.START_POINT_COST * 0.4 * 2000 - 30 * fixed) / (29 * 200 * 0.9 + 30 * 250 * 0.375)
+    assert tuned.budget_scale(start, 29, 0.375, 0.9, 1.4) == pytest.approx(longer) and longer < 1
+    assert tuned.shortened_qat(start, 29, 0.375, 0.9, 1.4) == round(250 * longer)
 
 
 def test_stepwise_training_applies_the_budget(prepared, monkeypatch):
@@ -399,7 +403,10 @@ def test_hybrid_steps_share_the_decoder_and_each_fits_its_own_data(trained_hybri
     encoder = field.encoder
     assert encoder.level_table.shape[0] == encoder.grids.shape[0] == 4
     counts = trained_hybrid.summary["stepwise"]["step_iterations"]
-    assert counts[1] == 0 and trained_hybrid.state.iteration == HYBRID_TRAIN.iterations + sum(counts)
+    start = trained_hybrid.summary["stepwise"]["start_iterations"]  # the hybrid's start model trains longer on a CPU
+    share = series_steps.START_ITERATION_SHARES["hybrid"]
+    assert start == round(HYBRID_TRAIN.iterations * share) > HYBRID_TRAIN.iterations
+    assert counts[1] == 0 and trained_hybrid.state.iteration == start + sum(counts)
     assert trained_hybrid.summary["stepwise"]["step_lr"] == pytest.approx(HYBRID_TRAIN.lr)  # the hybrid's share: 1
     for t in range(4):
         step = field.step_field(t)
@@ -497,4 +504,5 @@ def test_the_start_model_draws_its_voxel_points_uniformly_and_the_steps_where_th
     # Then the start step's own fine-tune (from itself), and one per other step, all drawn where they are wrong.
     assert len(built) >= 5 and all(entry == (1.0, True) for entry in built[1:])
     counts = trained.summary["stepwise"]["step_iterations"]
-    assert counts[1] > 0 and trained.state.iteration == train.iterations + sum(counts)
+    start = trained.summary["stepwise"]["start_iterations"]
+    assert counts[1] > 0 and trained.state.iteration == start + sum(counts)

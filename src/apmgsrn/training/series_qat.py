@@ -136,7 +136,7 @@ def fine_tune_rounded(series: SeriesField, values: torch.Tensor, packed: PackedS
     if not steps or iterations < 1:
         return 0, 0.0
     device = values.device
-    batch_share, _ = step_shares(series.config.field.model, device)
+    batch_share, _, _ = step_shares(series.config.field.model, device)
     tune = replace(config, iterations=iterations, lr=config.lr * QAT_LR_SHARE, density_start=iterations + 1,
                    history_every=None, stop_after_lr_cuts=None, error_sampling=GUIDED_SHARE,
                    error_measurements=measurements, error_parts=QAT_ERROR_PARTS,

@@ -5,8 +5,9 @@ docs/time_series.md):
 
 1. **Start step.** The step with the most detail (largest mean gradient magnitude of its values,
    :func:`choose_start`) gets a single-step model trained on it alone, with the whole budget of one volume
-   (its voxel points drawn uniformly, :data:`START_ERROR_SAMPLING`; then its own grids get a step's fine-tune
-   from themselves, drawn where it is wrong, where the model kind trains so).
+   (more where the model kind's steps gain from it, :data:`START_ITERATION_SHARES`; its voxel points drawn
+   uniformly, :data:`START_ERROR_SAMPLING`; then its own grids get a step's fine-tune from themselves, drawn
+   where it is wrong, where the model kind trains so).
    Its grid placement is the one every step shares, so it is taken where the structures are richest (in a
    viscous-finger run, the last step, where the fingers have spread furthest).
 2. **The other steps**, moving away from the start one neighbour at a time (:func:`step_order`), start from
@@ -86,6 +87,24 @@ STEP_POINT_SHARES = {"hybrid": 0.9}
 #: steps, steps 0 and 5 about 1.4 dB lower, step 29 0.8 higher; docs/time_series.md). Where the kind draws
 #: where it is wrong, the start step's own grids then get a step's fine-tune from themselves, drawn that way.
 START_ERROR_SAMPLING = 0.0
+#: The start model's iterations as a share of the configured ones (``--iterations``), for a model kind where it
+#: differs (CPU only, as :data:`STEP_BATCH_SHARES`); its extra points are taken from the steps' budget at
+#: :data:`START_POINT_COST` each (:meth:`StepwiseConfig.budget_scale`), so the series trains in the same time.
+#: Its decoder is every step's, and the steps gain more from a finer one than from their own longer fine-tunes:
+#: the hybrid's at 1.4 (2,800 iterations after 2,000), the steps' and their fine-tune towards the packing
+#: shortened to 0.85 of their share, lifted steps 0 and 5 of the 30 viscous-finger steps by 0.1-0.5 dB and the
+#: start step by 0.4-0.65, steps 15-25 0.3 lower to 0.03 higher, every step of three seeds above its own model
+#: (one thread; before, two of the 21 seed-by-seed pairs were 0.03 and 0.22 dB below), in the same time. The
+#: fewer passes over every voxel the start model's iterations make, the more it gains: upsampled to 128^3 (31
+#: passes instead of 250) every step measured ended above its own model where two were below. At 0.6 or 0.8 of
+#: the iterations, the steps lengthened instead, every step ended lower (0.2-0.9 dB at 128^3; docs/time_series.md).
+START_ITERATION_SHARES = {"hybrid": 1.4}
+#: What one of the start model's points costs in the steps' budget (:data:`STEPS_BUDGET_CAP`, in fine-tune
+#: points): its decoder's weights get gradients, its placement and density steps run, and it has no fused
+#: frozen-decoder pass. 800 more start iterations took 32-34 s where 30 fewer base iterations a step saved 16 s
+#: (CPU, one thread); at 1.5 the 30 viscous-finger steps trained in 363.9 s, at 1.0 in 363.5 (a step: 75.8 and
+#: 76.0 s), at 2.0 their steps ended 0.1-0.25 dB lower for about 15 s less.
+START_POINT_COST = 1.5
 #: Default pull of a step's features towards its neighbour's (:attr:`StepwiseConfig.step_sparsity`) where a model
 #: kind has one (elsewhere none). A hybrid series' tables take 2.59 MB at 10 bits unpulled, 1.91 MB pulled at
 #: 0.02 and 1.35 MB at 8 bits (within five single-step files), 0.5-1.1 dB below the unpulled steps and 0.6-1.6
@@ -115,20 +134,20 @@ STEP_CHANGE_SCALE, STEP_ITERATION_CAP = 8.0, 10.0
 #: seeds then above its own model; docs/time_series.md). Steps that change more keep their own.
 STEP_EVEN_BELOW = 2.0
 #: The fine-tunes after the start model, the steps' at their base share and every step's quantisation-aware one
-#: (:attr:`StepwiseConfig.qat_iterations`), together with what every step costs besides (:data:`STEP_FIXED_COST`)
-#: take at most this many times the start model's points (iterations times batch; a fine-tune's point, its share
-#: of the measurements of where it is wrong included, costs about what a start model's does). A long series'
-#: fine-tunes are shortened in proportion, their measurements with them, so a series of steps that change little
-#: trains in about the time the 30 viscous-finger steps take (4.8-4.9 times one step's model) whatever its
-#: length; steps that change much still get more. Those 30 steps (29 x 200 x 0.9 + 30 x 250 x 0.375 + 30 x 16 =
-#: 8,513 start-model iterations' points) are just within it. Before the fine-tune towards the packing and the
-#: steps' own costs counted, and the measurements shortened with the fine-tunes, the cap (4, on the steps alone)
-#: let 60 steps train in 8.1 times one step (641.2 s; now 393.4 s, 4.95 times). A cap that shortened the 30
-#: steps' fine-tunes to 0.92 of their share trained them in 373.6 s instead of 385.5-397.7 and lost 0.12-0.15 dB
-#: on every seed's steps, step 5's margin over its own models (mean of 3 seeds) falling from +0.19 to +0.01 dB
-#: (docs/time_series.md). Capping the change-driven iterations too was tried and not kept: a volume shifted 4
-#: voxels a step (10 steps, 1,285 iterations each) then fell to 54.0-54.2 dB on its last steps, below
-#: independent models.
+#: (:attr:`StepwiseConfig.qat_iterations`), together with what every step costs besides (:data:`STEP_FIXED_COST`) take
+#: at most this many times the start model's points (iterations times batch; a fine-tune's point, its share of the
+#: measurements of where it is wrong included, costs about what a start model's does). A long series' fine-tunes are
+#: shortened in proportion, their measurements with them, so a series of steps that change little trains in about the
+#: time the 30 viscous-finger steps take (4.8-4.9 times one step's model) whatever its length; steps that change much
+#: still get more. Those 30 steps (29 x 200 x 0.9 + 30 x 250 x 0.375 + 30 x 16 = 8,513 start-model iterations' points)
+#: are just within it (the hybrid's start model, trained 1.4 times as long, takes 0.6 of it, :data:`START_POINT_COST`:
+#: they get 0.85 of their share). Before the fine-tune towards the packing and the steps' own costs counted, and the
+#: measurements shortened with the fine-tunes, the cap (4, on the steps alone) let 60 steps train in 8.1 times one step
+#: (641.2 s; now 393.4 s, 4.95 times). A cap that shortened the 30 steps' fine-tunes to 0.92 of their share trained them
+#: in 373.6 s instead of 385.5-397.7 and lost 0.12-0.15 dB on every seed's steps, step 5's margin over its own models
+#: (mean of 3 seeds) falling from +0.19 to +0.01 dB (docs/time_series.md). Capping the change-driven iterations too was
+#: tried and not kept: a volume shifted 4 voxels a step (10 steps, 1,285 iterations each) then fell to 54.0-54.2 dB on
+#: its last steps, below independent models.
 STEPS_BUDGET_CAP = 4.26
 #: What every step costs besides its fine-tunes' iterations, in start-model iterations: the first measurement of
 #: every voxel of each of its two fine-tunes, the check against its neighbour's grids, its checkpoint, its share
@@ -240,27 +259,31 @@ class StepwiseConfig:
                        error_parts=STEP_ERROR_PARTS)
 
 
-    def budget_scale(self, config: TrainConfig, steps: int, batch_share: float = 1.0, point_share: float = 1.0
-                     ) -> float:
+    def budget_scale(self, config: TrainConfig, steps: int, batch_share: float = 1.0, point_share: float = 1.0,
+                     start_share: float = 1.0) -> float:
         """The share of :meth:`base_iterations` and of :attr:`qat_iterations` (and of their measurements of where
         they are wrong) every step gets so that the ``steps`` steps after the start (at ``point_share`` of the
         base's points), the quantisation-aware fine-tune of all ``steps + 1`` (at ``batch_share`` of the start
         model's batch) and what every step costs besides (:data:`STEP_FIXED_COST`) together take at most
-        :data:`STEPS_BUDGET_CAP` times the start model's points (1 for a series short enough, and when
-        ``step_iterations`` was given; at least :data:`LEAST_BUDGET_SCALE`). Steps that change much keep their
-        extra iterations in proportion (:meth:`step_config`)."""
+        :data:`STEPS_BUDGET_CAP` times the configured start model's points, less what a start model trained
+        ``start_share`` times as long (:data:`START_ITERATION_SHARES`) takes beyond them at
+        :data:`START_POINT_COST` (1 for a series short enough, and when ``step_iterations`` was given; at least
+        :data:`LEAST_BUDGET_SCALE`). Steps that change much keep their extra iterations in proportion
+        (:meth:`step_config`)."""
         if self.step_iterations is not None or steps < 1:
             return 1.0
         points = steps * self.base_iterations(config) * point_share + (steps + 1) * self.qat_iterations * batch_share
-        allowed = STEPS_BUDGET_CAP * config.iterations - (steps + 1) * STEP_FIXED_COST
+        cap = STEPS_BUDGET_CAP - START_POINT_COST * (start_share - 1)
+        allowed = cap * config.iterations - (steps + 1) * STEP_FIXED_COST
         return min(1.0, max(allowed / points, LEAST_BUDGET_SCALE))
 
-    def shortened_qat(self, config: TrainConfig, steps: int, batch_share: float = 1.0, point_share: float = 1.0
-                      ) -> int:
+    def shortened_qat(self, config: TrainConfig, steps: int, batch_share: float = 1.0, point_share: float = 1.0,
+                      start_share: float = 1.0) -> int:
         """:attr:`qat_iterations` at the share of :meth:`budget_scale` (at least one when there are any)."""
         if not self.qat_iterations:
             return 0
-        return max(1, round(self.qat_iterations * self.budget_scale(config, steps, batch_share, point_share)))
+        scale = self.budget_scale(config, steps, batch_share, point_share, start_share)
+        return max(1, round(self.qat_iterations * scale))
 
 
 def change_factor(change: float, error: float) -> float:
@@ -285,13 +308,14 @@ def shortened_measurements(measurements: int, scale: float) -> int:
     return max(1, round(measurements * min(scale, 1.0)))
 
 
-def step_shares(model: str, device: torch.device) -> tuple[float, float]:
-    """A ``model`` kind series' steps' batch and points as shares of the start model's where they train
-    (:data:`STEP_BATCH_SHARES`, :data:`STEP_POINT_SHARES`: on a CPU; on a GPU, where a step is bound by kernel
-    launches, a smaller batch would not take proportionally less time)."""
+def step_shares(model: str, device: torch.device) -> tuple[float, float, float]:
+    """A ``model`` kind series' steps' batch and points as shares of the start model's, and the start model's
+    iterations as a share of the configured ones, where they train (:data:`STEP_BATCH_SHARES`,
+    :data:`STEP_POINT_SHARES`, :data:`START_ITERATION_SHARES`: on a CPU; on a GPU, where a step is bound by kernel
+    launches, a smaller batch would not take proportionally less time, and none of them was measured)."""
     if device.type != "cpu":
-        return 1.0, 1.0
-    return STEP_BATCH_SHARES.get(model, 1.0), STEP_POINT_SHARES.get(model, 1.0)
+        return 1.0, 1.0, 1.0
+    return STEP_BATCH_SHARES.get(model, 1.0), STEP_POINT_SHARES.get(model, 1.0), START_ITERATION_SHARES.get(model, 1.0)
 
 
 def series_trainer(stepwise: StepwiseConfig | None, show_progress: bool = True) -> Callable[..., TrainedField]:
@@ -579,7 +603,8 @@ def train_stepwise(
     values = prepared.values
     steps = values.shape[0]
     lr_share = STEP_LR_SHARES.get(field_config.field.model, STEP_LR_SHARE)
-    batch_share, point_share = step_shares(field_config.field.model, values.device)
+    batch_share, point_share, start_share = step_shares(field_config.field.model, values.device)
+    start_iterations = max(1, round(train_config.iterations * start_share))
     sparsity = stepwise.sparsity(field_config.field.model)
     fingerprint = {**(fingerprint or {}), "stepwise": asdict(stepwise), "train": asdict(train_config)}
     if prepared.constant:
@@ -588,7 +613,7 @@ def train_stepwise(
     resumed = checkpoint is not None and checkpoint.exists() and read_header(checkpoint).kind == STEPS_CHECKPOINT_KIND
     if resumed:
         series = build_field(prepared, field_config, volume_shape, train_config.seed)
-        most = train_config.iterations + steps * 2 * math.ceil(  # two fine-tunes of a step at most
+        most = start_iterations + steps * 2 * math.ceil(  # two fine-tunes of a step at most
             stepwise.base_iterations(train_config) * STEP_ITERATION_CAP * point_share / batch_share)
         progress = _load_steps(checkpoint, series, fingerprint, most)
         resumed_from = progress.state.iteration
@@ -599,7 +624,8 @@ def train_stepwise(
             raise ApmgsrnError(f"{checkpoint}: not a training checkpoint; remove it or pass another out=",
                                arguments=("out",))
         first = train_prepared(replace(prepared, values=values[start]), field_config.field,
-                               replace(train_config, error_sampling=START_ERROR_SAMPLING), volume_shape, checkpoint,
+                               replace(train_config, iterations=start_iterations, error_sampling=START_ERROR_SAMPLING),
+                               volume_shape, checkpoint,
                                {**fingerprint, "start": start}, callbacks)
         # Built after the start model, which thus starts exactly as a model of that step alone would (building
         # a decoder draws from the global random generator).
@@ -614,7 +640,7 @@ def train_stepwise(
         if checkpoint is not None:  # the start model, before the polish below
             _save_steps(checkpoint, series, progress, fingerprint)
     state = progress.state
-    scale = stepwise.budget_scale(train_config, steps - 1, batch_share, point_share)
+    scale = stepwise.budget_scale(train_config, steps - 1, batch_share, point_share, start_share)
     order = step_order(progress.start, steps)
     factors = dict(zip((t for t, _ in order), step_factors([change(values, t, n) for t, n in order], progress.error)))
     todo = [(t, n) for t, n in order if t not in progress.done]
@@ -658,7 +684,8 @@ def train_stepwise(
     display.close(completed=True)
     series.requires_grad_(True)
     by_step = dict(zip(progress.done, progress.iterations))
-    summary = {"start": progress.start, "step_iterations": [by_step[t] for t in range(steps)],
+    summary = {"start": progress.start, "start_iterations": start_iterations,
+               "step_iterations": [by_step[t] for t in range(steps)],
                "step_lr": stepwise.step_config(train_config, lr_share=lr_share).lr,
                "tracked_steps": sorted(t for t, moved in zip(progress.done, progress.tracked) if moved),
                "budget_scale": round(scale, 6), "step_sparsity": sparsity}
