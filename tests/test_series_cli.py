@@ -263,8 +263,10 @@ def test_stepwise_series_unpacked_and_at_8_bits(pattern, tmp_path, capsys, truth
     assert start in range(4) and len(iterations) == 4 and all(n > 0 for n in iterations)
     # a tenth of 150, up to all 150; twice that at the hybrid's half batch on a CPU
     assert all(30 <= n <= 300 for t, n in enumerate(iterations) if t != start)
+    # the hybrid's start model on a CPU trains 1.4 times --iterations (START_ITERATION_SHARES)
+    assert info["stepwise"]["start_iterations"] == 210
     assert main(["info", str(tmp_path / "p8.apmgsrn")]) == 0
-    assert f"trained stepwise from step {info['stepwise']['start']}" in capsys.readouterr().out
+    assert f"trained stepwise from step {start} (210 iterations)" in capsys.readouterr().out
 
 
 def test_stepwise_resume_after_kill_reaches_the_same_model(pattern, tmp_path):
