@@ -29,7 +29,8 @@ from apmgsrn.data.series import open_series
 from apmgsrn.inference.evaluate import evaluate
 from apmgsrn.models.registry import preset_config
 from apmgsrn.training.fit import prepare_values, train_prepared
-from apmgsrn.training.series_steps import STEPWISE_VOXEL_FRACTION, StepwiseConfig, change, choose_start, step_order
+from apmgsrn.training.series_steps import (STEPWISE_VOXEL_FRACTION, StepwiseConfig, change, change_factor,
+                                           choose_start, step_order)
 from apmgsrn.training.trainer import SERIES_ANCHORED_GRIDS, TrainConfig, Trainer
 
 
@@ -66,7 +67,8 @@ def main() -> None:
         field.load_state_dict(states[neighbour])
         for parameter in field.encoder.placement_parameters():
             parameter.requires_grad_(True)  # the trainer freezes them at half of each fine-tune
-        step_config = StepwiseConfig().step_config(config, change(prepared.values, step, neighbour), error)
+        factor = change_factor(change(prepared.values, step, neighbour), error)
+        step_config = StepwiseConfig().step_config(config, factor)
         Trainer(field.train(), prepared.values[step], replace(step_config, density_start=0), None, {}, []).run()
         states[step] = {k: v.clone() for k, v in field.state_dict().items()}
         rows.append({"step": step, "psnr": evaluate(field.eval(), data[step]).psnr,

@@ -42,7 +42,8 @@ from apmgsrn.models.registry import preset_config
 from apmgsrn.ops.multigrid import multigrid_features_reference
 from apmgsrn.training.fit import train_prepared
 from apmgsrn.training.points import draw_batch
-from apmgsrn.training.series_steps import STEPWISE_VOXEL_FRACTION, StepwiseConfig, change, choose_start, step_order
+from apmgsrn.training.series_steps import (STEPWISE_VOXEL_FRACTION, StepwiseConfig, change, change_factor,
+                                           choose_start, step_order)
 from apmgsrn.training.trainer import SERIES_ANCHORED_GRIDS, TrainConfig, Trainer
 
 MODES = ("frozen", "register", "joint", "subset", "quarter", "density")
@@ -176,7 +177,8 @@ def main() -> None:
     for step, neighbour in step_order(start, len(data))[: args.steps]:
         began = time.perf_counter()
         field.load_state_dict(states[neighbour])
-        step_config = StepwiseConfig().step_config(config, change(prepared.values, step, neighbour), error)
+        factor = change_factor(change(prepared.values, step, neighbour), error)
+        step_config = StepwiseConfig().step_config(config, factor)
         fine_tune(field, prepared.values[step], step_config, args.mode, generator)
         states[step] = {k: v.clone() for k, v in field.state_dict().items()}
         print(f"{args.mode} step {step}: {step_config.iterations} iterations, "

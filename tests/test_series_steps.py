@@ -111,13 +111,14 @@ def test_the_step_config_fine_tunes_grids_only_longer_the_more_a_step_changes():
     assert StepwiseConfig(step_iterations=7, step_lr=0.5).step_config(TRAIN).iterations == 7
     # A step that differs from its neighbour by up to 8 times the start model's error: the base; more: more,
     # in proportion, up to the start model's whole budget.
-    counts = [StepwiseConfig().step_config(start, change, 0.001).iterations for change in (0.004, 0.008, 0.016, 0.5)]
+    counts = [StepwiseConfig().step_config(start, series_steps.change_factor(change, 0.001)).iterations
+              for change in (0.004, 0.008, 0.016, 0.5)]
     assert counts == [200, 200, 400, 2000]
     # A smaller step batch (the hybrid's) runs proportionally more iterations: the same points in all.
-    half = StepwiseConfig().step_config(replace(start, batch_size=32768), 0.016, 0.001, batch_share=0.5)
+    half = StepwiseConfig().step_config(replace(start, batch_size=32768), 2.0, batch_share=0.5)  # 0.016 / 0.001
     assert (half.iterations, half.batch_size) == (800, 16384) and half.density_start > half.iterations
     # A share of the points (the hybrid's on a CPU): that share of those iterations, at the smaller batch.
-    fewer = StepwiseConfig().step_config(replace(start, batch_size=32768), 0.016, 0.001, batch_share=0.375,
+    fewer = StepwiseConfig().step_config(replace(start, batch_size=32768), 2.0, batch_share=0.375,
                                          point_share=0.9)
     assert (fewer.iterations, fewer.batch_size) == (960, 12288) and fewer.density_start > fewer.iterations
 
@@ -136,17 +137,18 @@ def test_a_long_series_shortens_every_step_to_stay_within_the_budget():
     assert stepwise.budget_scale(start, 29) == 1.0  # 29 x 200 + 30 x 16 = 6,280 <= 8,520
     scale = stepwise.budget_scale(start, 99)
     assert scale == pytest.approx((cap - 100 * fixed) / (99 * 200))
-    assert 99 * stepwise.step_config(start, 0.0, 0.001, scale).iterations + 100 * fixed <= cap + 99
-    assert stepwise.step_config(start, 0.5, 0.001, scale).iterations == round(2000 * scale)  # 10 x the base
+    assert 99 * stepwise.step_config(start, 1.0, scale).iterations + 100 * fixed <= cap + 99
+    assert stepwise.step_config(start, series_steps.change_factor(0.5, 0.001), scale).iterations == \
+        round(2000 * scale)  # 10 x the base
     assert StepwiseConfig(step_iterations=200).budget_scale(start, 99) == 1.0
     tuned = StepwiseConfig(qat_iterations=250)
     assert tuned.budget_scale(start, 29, 0.375, 0.9) == 1.0  # 5,220 + 2,812.5 + 480 <= 8,520: the 30-step default
-    assert tuned.step_config(start, 0.0, 0.001, 1.0, batch_share=0.375, point_share=0.9).error_measurements == \
+    assert tuned.step_config(start, 1.0, 1.0, batch_share=0.375, point_share=0.9).error_measurements == \
         series_steps.STEP_ERROR_MEASUREMENTS
     for steps in (39, 99):
         scale = tuned.budget_scale(start, steps, 0.375, 0.9)
         assert scale == pytest.approx((cap - (steps + 1) * fixed) / (steps * 200 * 0.9 + (steps + 1) * 250 * 0.375))
-        step = tuned.step_config(start, 0.0, 0.001, scale, batch_share=0.375, point_share=0.9)
+        step = tuned.step_config(start, 1.0, scale, batch_share=0.375, point_share=0.9)
         qat = tuned.shortened_qat(start, steps, 0.375, 0.9)
         assert qat == round(250 * scale)
         points = steps * step.iterations * step.batch_size + (steps + 1) * qat * step.batch_size

@@ -403,10 +403,11 @@ def print_series_info(info: dict) -> None:
         sparsity = stepwise.get("step_sparsity")
         pulled = (f", pulled towards its neighbour at {sparsity:g}" if isinstance(sparsity, (int, float)) and sparsity
                   else "")
-        first = stepwise.get("start_iterations")
-        first = f" ({first} iterations)" if isinstance(first, int) and first > 0 else ""
+        start_iterations = stepwise.get("start_iterations")
+        trained = (f" ({start_iterations} iterations)" if isinstance(start_iterations, int) and start_iterations > 0
+                   else "")
         print(f"time        {info['steps']} steps, each with its own grids: trained stepwise from step "
-              f"{stepwise['start']}{first}, {min(counts)} to {max(counts)} iterations per other step{pulled}")
+              f"{stepwise['start']}{trained}, {min(counts)} to {max(counts)} iterations per other step{pulled}")
         scale = stepwise.get("budget_scale")
         if isinstance(scale, (int, float)) and 0 < scale < 1:
             print(f"            every step's fine-tunes shortened to {scale:.2f} of their base share, "

@@ -231,26 +231,23 @@ class StepwiseConfig:
         """Fine-tune iterations of a step that differs little from its neighbour."""
         return self.step_iterations or max(1, round(config.iterations * STEP_ITERATION_SHARE))
 
-    def step_config(self, config: TrainConfig, change: float = 0.0, error: float = 1.0, scale: float = 1.0,
-                    lr_share: float = STEP_LR_SHARE, batch_share: float = 1.0, point_share: float = 1.0,
-                    factor: float | None = None) -> TrainConfig:
+    def step_config(self, config: TrainConfig, factor: float = 1.0, scale: float = 1.0,
+                    lr_share: float = STEP_LR_SHARE, batch_share: float = 1.0, point_share: float = 1.0
+                    ) -> TrainConfig:
         """How a step after the start is fine-tuned: its grids only (the density loss never starts), for
-        :meth:`base_iterations`, more when the step differs from its neighbour by more than
-        :data:`STEP_CHANGE_SCALE` times the start model's error (:func:`change_factor`).
+        ``factor`` times :meth:`base_iterations` (more when the step differs from its neighbour by more than
+        :data:`STEP_CHANGE_SCALE` times the start model's error: :func:`change_factor`, :func:`step_factors`).
 
         Args:
             config: the start model's training.
-            change: RMS difference between the step's values and its neighbour's (scaled units).
-            error: the start model's RMS error (scaled units).
+            factor: the base's multiple (1: a step that differs little from its neighbour).
             scale: a long series' share of the base (:meth:`budget_scale`), and of the measurements of where
                 the step is wrong (:func:`shortened_measurements`).
             lr_share: the learning rate's share of the start model's (:data:`STEP_LR_SHARES`), unless ``step_lr``.
             batch_share: the batch's share of the start model's (:data:`STEP_BATCH_SHARES`); the iterations
                 above are counted at the start model's batch and divided by it.
             point_share: the iterations above times this (:data:`STEP_POINT_SHARES`).
-            factor: the base's multiple instead of the one ``change`` and ``error`` give (:func:`step_factors`).
         """
-        factor = change_factor(change, error) if factor is None else factor
         iterations = max(1, round(self.base_iterations(config) * factor * scale * point_share / batch_share))
         lr = config.lr * lr_share if self.step_lr is None else self.step_lr
         return replace(config, iterations=iterations, lr=lr, density_start=iterations + 1, history_every=None,
@@ -651,7 +648,8 @@ def train_stepwise(
             # The start step's own grids fine-tuned like any step's, from themselves, with the model kind's draws
             # where the step is wrong (the shared decoder stays what uniform draws made it).
             began = time.perf_counter()
-            config = stepwise.step_config(train_config, 0.0, progress.error, 1.0, lr_share, batch_share, point_share)
+            config = stepwise.step_config(train_config, lr_share=lr_share, batch_share=batch_share,
+                                          point_share=point_share)
             _train_step(worker, series, values[progress.start], progress.start, progress.start, config,
                         progress.error, False, sparsity)
             progress.iterations[0] = config.iterations
@@ -661,8 +659,7 @@ def train_stepwise(
                 _save_steps(checkpoint, series, progress, fingerprint)
         for t, neighbour in todo:
             began = time.perf_counter()
-            config = stepwise.step_config(train_config, scale=scale, lr_share=lr_share, batch_share=batch_share,
-                                          point_share=point_share, factor=factors[t])
+            config = stepwise.step_config(train_config, factors[t], scale, lr_share, batch_share, point_share)
             moved = dict(zip(progress.done, progress.tracked))
             tracked, runs = _train_step(worker, series, values[t], t, neighbour, config, progress.error,
                                         track_first=moved[neighbour], sparsity=sparsity)
