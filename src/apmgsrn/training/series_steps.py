@@ -96,14 +96,16 @@ START_ERROR_SAMPLING = 0.0
 #: start step by 0.4-0.65, steps 15-25 0.3 lower to 0.03 higher, every step of three seeds above its own model
 #: (one thread; before, two of the 21 seed-by-seed pairs were 0.03 and 0.22 dB below), in the same time. The
 #: fewer passes over every voxel the start model's iterations make, the more it gains: upsampled to 128^3 (31
-#: passes instead of 250) every step measured ended above its own model where two were below. At 0.6 or 0.8 of
+#: passes instead of 250) seed 0's steps went from -0.21..+0.40 dB against their own models to -0.03..+0.72, and
+#: 19 of 21 seed-by-seed pairs are above (step 25 0.03 and 0.16 below on two of three seeds). At 0.6 or 0.8 of
 #: the iterations, the steps lengthened instead, every step ended lower (0.2-0.9 dB at 128^3; docs/time_series.md).
 START_ITERATION_SHARES = {"hybrid": 1.4}
 #: What one of the start model's points costs in the steps' budget (:data:`STEPS_BUDGET_CAP`, in fine-tune
 #: points): its decoder's weights get gradients, its placement and density steps run, and it has no fused
 #: frozen-decoder pass. 800 more start iterations took 32-34 s where 30 fewer base iterations a step saved 16 s
-#: (CPU, one thread); at 1.5 the 30 viscous-finger steps trained in 363.9 s, at 1.0 in 363.5 (a step: 75.8 and
-#: 76.0 s), at 2.0 their steps ended 0.1-0.25 dB lower for about 15 s less.
+#: (CPU, one thread); at 1.5, with the start model at 1.4, the 30 viscous-finger steps trained in 363.9 s, as
+#: they did with the start model at 1.0 before (363.5 s; a step: 75.8 and 76.0 s); at 2.0 their steps ended
+#: 0.1-0.25 dB lower for about 15 s less.
 START_POINT_COST = 1.5
 #: Default pull of a step's features towards its neighbour's (:attr:`StepwiseConfig.step_sparsity`) where a model
 #: kind has one (elsewhere none). A hybrid series' tables take 2.59 MB at 10 bits unpulled, 1.91 MB pulled at
