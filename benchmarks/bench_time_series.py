@@ -9,7 +9,8 @@
     python benchmarks/bench_time_series.py moving --out DIR        # a series whose structures move (then --data DIR)
 
 Protocol (REFERENCE.md, CPU): 2,000 iterations x 32,768 points, lr 0.01, seed 0, the small preset, PSNR
-over every voxel of each step at native resolution. Rows are appended as they finish, so a killed run
+over every voxel of each step at native resolution, and between the voxels against the data's trilinear
+interpolation (``psnr_between``, :func:`between_psnr`). Rows are appended as they finish, so a killed run
 continues where it stopped; each row records the 1-minute load average of the machine when it ended.
 """
 
@@ -32,12 +33,14 @@ SERIES = ROOT.parent / "shared" / "data" / "viscous_fingers_run01"
 RESULTS = ROOT / "benchmarks" / "results"
 BASELINE_CSV = RESULTS / "time_series_baseline.csv"
 BASELINE_FIELDS = ["step", "file", "psnr", "max_abs_error", "seconds", "iterations", "model_bytes", "parameters",
-                   "threads", "load_average", "cpu"]
+                   "threads", "load_average", "cpu", "psnr_between"]
 #: A kind's series CSV; ``_seedN`` beside it (``series --seed N --csv ...``) and beside the baseline CSV: lines of
 #: the chart, and the criterion on the means over seeds, when present (:func:`seed_rows`).
 SERIES_CSV = RESULTS / "time_series_model.csv"
 SERIES_FIELDS = ["step", "file", "psnr", "max_abs_error", "model_bytes", "train_seconds", "iterations", "config",
-                 "threads", "load_average", "cpu"]
+                 "threads", "load_average", "cpu", "psnr_between"]
+#: Points at which ``psnr_between`` measures a model between the voxels (:func:`between_psnr`).
+BETWEEN_POINTS = 1 << 18
 TIMING_CSV = RESULTS / "time_series_timing.csv"
 TIMING_FIELDS = ["what", "seconds", "iterations", "threads", "load_average_start", "load_average_end", "cpu"]
 SPEED_CSV = RESULTS / "time_series_speed.csv"
@@ -58,6 +61,8 @@ COMPARED = {"hybrid": {
         RESULTS / "time_series_model_hybrid_20261127b.csv",
     "hybrid series, start model at 2,000 iterations (2026-11-27 eighth session, seed 0, 4.66 files)":
         RESULTS / "time_series_model_hybrid_start2000.csv",
+    "hybrid series, steps with half their points between the voxels (2026-11-28 tenth session, seed 0, 4.67 files)":
+        RESULTS / "time_series_model_hybrid_between.csv",
     "APMGSRN series (4.6 files)": SERIES_CSV}}
 
 
@@ -104,9 +109,14 @@ def _done_rows(path: Path) -> list[dict]:
 
 
 def _append(path: Path, fields: list[str], row: dict) -> None:
+    """One row onto a CSV (its header first where it is new); a table written before a column was added keeps
+    its own columns."""
     new = not path.exists()
+    if not new:
+        with open(path, newline="") as f:
+            fields = next(csv.reader(f), fields)
     with open(path, "a", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=fields)
+        writer = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         if new:
             writer.writeheader()
         writer.writerow(row)
@@ -114,6 +124,7 @@ def _append(path: Path, fields: list[str], row: dict) -> None:
 
 def run_baseline(args: argparse.Namespace) -> None:
     """One independent small model per step, trained on that step alone under the protocol."""
+    import apmgsrn
     from apmgsrn.data import open_volume
     from apmgsrn.models.registry import preset_config
     from apmgsrn.training.fit import fit_volume
@@ -131,13 +142,41 @@ def run_baseline(args: argparse.Namespace) -> None:
             volume = open_volume(path)
             result = fit_volume(volume, preset_config(args.kind, "small"), config, Path(tmp) / "m.apmgsrn",
                                 torch.device("cpu"), progress=False)
+            between = between_psnr(apmgsrn.load(Path(tmp) / "m.apmgsrn").field, volume.to_numpy(), step)
             row = {"step": step, "file": path.name, "psnr": f"{result.psnr:.4f}",
                    "max_abs_error": f"{result.max_abs_error:.6g}", "seconds": f"{result.seconds:.2f}",
                    "iterations": result.iterations, "model_bytes": result.model_bytes,
                    "parameters": result.field.parameter_count(), "threads": torch.get_num_threads(),
-                   "load_average": f"{os.getloadavg()[0]:.2f}", "cpu": _cpu()}
+                   "load_average": f"{os.getloadavg()[0]:.2f}", "cpu": _cpu(), "psnr_between": f"{between:.4f}"}
             _append(args.csv, BASELINE_FIELDS, row)
             print(" ".join(f"{k}={v}" for k, v in row.items() if k != "cpu"), flush=True)
+
+
+def between_psnr(field, volume, step: int) -> float:
+    """PSNR of a network between the voxels: at :data:`BETWEEN_POINTS` points drawn uniformly in the domain (seeded
+    by ``step``, the same for every model of that step) against the data's trilinear interpolation there, what a
+    renderer that interpolates the data samples; over the step's value range, as the PSNR over the voxels.
+
+    Args:
+        field: ``[N, 3]`` ``(x, y, z)`` points in ``[-1, 1]`` to values in data units (a model's or a series
+            step's network).
+        volume: ``[D, H, W]`` the step's values.
+        step: the step's index.
+    """
+    import numpy as np
+    import torch.nn.functional as F
+
+    from apmgsrn.inference.evaluate import psnr_from_mse
+    from apmgsrn.inference.query import query
+
+    generator = torch.Generator().manual_seed(1000 + step)
+    points = torch.rand(BETWEEN_POINTS, 3, generator=generator) * 2 - 1  # [N, 3] (x, y, z)
+    data = torch.from_numpy(np.ascontiguousarray(volume, dtype=np.float32))[None, None]  # [1, 1, D, H, W]
+    # grid_sample reads (x, y, z) as (W, H, D); align_corners puts -1 and 1 on the first and last voxels.
+    target = F.grid_sample(data, points.view(1, -1, 1, 1, 3), mode="bilinear", align_corners=True).view(-1)
+    prediction = query(field, points).view(-1)
+    mse = float((prediction.double() - target.double()).square().mean())
+    return psnr_from_mse(mse, float(volume.max()) - float(volume.min()))
 
 
 def _series_files(folder: Path) -> list[Path]:
@@ -192,7 +231,9 @@ def run_series(args: argparse.Namespace) -> None:
         model_bytes = out.stat().st_size
         if args.keep:
             args.keep.write_bytes(out.read_bytes())
-        report = apmgsrn.load(out).description.packing.report if packing is not None else {}
+        model = apmgsrn.load(out)
+        report = model.description.packing.report if packing is not None else {}
+        between = [between_psnr(model.step_field(t), series.read(t), t) for t in result.evaluation.indices]
         bits, qat = report.get("bits"), report.get("qat_iterations")  # what ran: a long series shortens the fine-tune
     if stepwise is not None:
         described = (f"{args.kind} stepwise start={args.start} iterations={iterations} bits={bits} "
@@ -208,13 +249,13 @@ def run_series(args: argparse.Namespace) -> None:
                     + (f" anchored_grids={anchored}" if anchored else "")
     if args.csv.exists():
         args.csv.unlink()  # one model: the table is replaced, not appended to
-    for step, evaluation in zip(result.evaluation.indices, result.evaluation.steps):
+    for step, evaluation, measured in zip(result.evaluation.indices, result.evaluation.steps, between):
         _append(args.csv, SERIES_FIELDS, {
             "step": step, "file": series.step_name(step), "psnr": f"{evaluation.psnr:.4f}",
             "max_abs_error": f"{evaluation.max_abs_error:.6g}", "model_bytes": model_bytes,
             "train_seconds": f"{result.seconds:.2f}", "iterations": result.iterations, "config": described,
             "threads": torch.get_num_threads(), "load_average": f"{(load + os.getloadavg()[0]) / 2:.2f}",
-            "cpu": _cpu()})
+            "cpu": _cpu(), "psnr_between": f"{measured:.4f}"})
     print(f"series model: {model_bytes:,} bytes, {result.seconds:.1f} s, lowest step PSNR "
           f"{min(e.psnr for e in result.evaluation.steps):.2f} dB", flush=True)
     _report_kernels()
@@ -346,6 +387,41 @@ def run_speed(args: argparse.Namespace) -> None:
             print(f"{what}: series {min(times['series']):.3f} s, single {min(times['single']):.3f} s", flush=True)
 
 
+def _between_section(kind: str) -> str:
+    """Each seed's steps over the voxels and between them (:func:`between_psnr`), own models against the series,
+    where the baseline and series CSVs of a seed (:func:`seed_rows`' files) both measured between the voxels."""
+    own_path, series_path = for_kind(BASELINE_CSV, kind), for_kind(SERIES_CSV, kind)
+    found = {}
+    for seed in range(10):
+        paths = [p if seed == 0 else p.with_name(f"{p.stem}_seed{seed}{p.suffix}") for p in (own_path, series_path)]
+        rows = [{int(r["step"]): r for r in _done_rows(p) if r.get("psnr_between")} for p in paths]
+        steps = sorted(set(rows[0]) & set(rows[1]))
+        if steps:
+            found[seed] = (rows, steps)
+    if not found:
+        return ""
+    lines = ["| seed | step | own model: voxels / between dB | series: voxels / between dB | "
+             "series minus own: voxels / between dB |", "|---|---|---|---|---|"]
+    gaps = []
+    for seed, ((own, series), steps) in found.items():
+        for t in steps:
+            o = float(own[t]["psnr"]), float(own[t]["psnr_between"])
+            m = float(series[t]["psnr"]), float(series[t]["psnr_between"])
+            gaps.append((m[0] - o[0], m[1] - o[1]))
+            lines.append(f"| {seed} | {t} | {o[0]:.2f} / {o[1]:.2f} | {m[0]:.2f} / {m[1]:.2f} | "
+                         f"{m[0] - o[0]:+.2f} / {m[1] - o[1]:+.2f} |")
+    return f"""
+**Between the voxels too.** A renderer samples between the voxels, where a model is trained on the data's
+trilinear interpolation; there each model is measured at {BETWEEN_POINTS:,} points drawn uniformly in the domain
+(the same for both models of a step) against that interpolation, over the step's value range
+(the `psnr_between` column of `{own_path.name}`, `{series_path.name}` and their `_seedN` siblings). Series minus own
+model: {min(g[0] for g in gaps):+.2f} .. {max(g[0] for g in gaps):+.2f} dB over the voxels,
+{min(g[1] for g in gaps):+.2f} .. {max(g[1] for g in gaps):+.2f} dB between them.
+
+{chr(10).join(lines)}
+"""
+
+
 def _seeds_section(own: dict[int, dict[int, float]], series: dict[int, dict[int, float]]) -> str:
     """The criterion on the means over seeds, and the per-step means, when more than one seed of both sides was
     run (on the steps every seed of both has)."""
@@ -425,7 +501,7 @@ def write_report(out: Path, timing_steps: list[int] | None = None, kind: str = "
         f"{min(float(baseline[t]['seconds']) for t in steps):.0f} to "
         f"{max(float(baseline[t]['seconds']) for t in steps):.0f} s on this shared machine).")
     loads = ", ".join(sorted({r["load_average"] for r in series.values()}))
-    seeds_text = _seeds_section(seed_rows(BASELINE_CSV, kind), seed_rows(SERIES_CSV, kind))
+    seeds_text = _seeds_section(seed_rows(BASELINE_CSV, kind), seed_rows(SERIES_CSV, kind)) + _between_section(kind)
     text = f"""# One model for a whole run: measured (issue 16)
 
 Written by `python benchmarks/bench_time_series.py report` from `benchmarks/results/time_series_*.csv`.

@@ -36,7 +36,7 @@ from apmgsrn.training.series_qat import (
     qat_lanes,
     stored_train_config,
 )
-from apmgsrn.training.series_steps import StepwiseConfig, stepwise_config, train_stepwise
+from apmgsrn.training.series_steps import StepwiseConfig, step_voxel_fraction, stepwise_config, train_stepwise
 from apmgsrn.training.trainer import TrainConfig
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -122,6 +122,26 @@ def test_a_quantisation_aware_fine_tune_lowers_what_packing_costs_on_the_real_st
     for name, value in hybrid_series.state_dict().items():
         if "decoder" in name or name in ("encoder.matrices", "encoder.translations"):
             assert torch.equal(value, tuned.state_dict()[name]), name
+
+
+def test_the_fine_tune_towards_the_packing_draws_its_points_as_the_steps_do(hybrid_series, prepared, monkeypatch):
+    """Every step's fine-tune towards the packing draws as many of its points between the voxels as the steps'
+    own fine-tunes (half the start model's share), for the iterations asked."""
+    from apmgsrn.training import series_qat
+
+    seen = []
+
+    class Spy(series_qat.Trainer):
+        def __init__(self, field, values, config, *args, **kwargs):
+            seen.append(config)
+            super().__init__(field, values, config, *args, **kwargs)
+
+    monkeypatch.setattr(series_qat, "Trainer", Spy)
+    packed = pack_series(hybrid_series, 5, series_sensitivity(hybrid_series))
+    fine_tune_rounded(copy.deepcopy(hybrid_series), prepared.values, packed, CONFIG, 3, show_progress=False)
+    assert len(seen) == hybrid_series.steps
+    assert {c.voxel_fraction for c in seen} == {step_voxel_fraction(CONFIG.voxel_fraction)} == {0.75}
+    assert {c.iterations for c in seen} == {3}
 
 
 def test_steps_fine_tuned_side_by_side_give_what_one_thread_gives(hybrid_series, prepared):

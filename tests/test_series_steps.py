@@ -108,6 +108,10 @@ def test_the_step_config_fine_tunes_grids_only_longer_the_more_a_step_changes():
     config = StepwiseConfig().step_config(start)
     assert config.iterations == 200 and config.lr == pytest.approx(0.003)
     assert config.density_start > config.iterations  # the placement never moves
+    # Half as many of its points between the voxels as the start model draws (none stay none).
+    assert config.voxel_fraction == 0.5
+    assert StepwiseConfig().step_config(replace(start, voxel_fraction=0.5)).voxel_fraction == 0.75
+    assert StepwiseConfig().step_config(replace(start, voxel_fraction=1.0)).voxel_fraction == 1.0
     assert StepwiseConfig(step_iterations=7, step_lr=0.5).step_config(TRAIN).iterations == 7
     # A step that differs from its neighbour by up to 8 times the start model's error: the base; more: more,
     # in proportion, up to the start model's whole budget.

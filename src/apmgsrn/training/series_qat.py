@@ -43,6 +43,7 @@ from apmgsrn.training.series_steps import (
     load_step,
     shortened_measurements,
     step_shares,
+    step_voxel_fraction,
     step_worker,
     store_step,
 )
@@ -140,7 +141,8 @@ def fine_tune_rounded(series: SeriesField, values: torch.Tensor, packed: PackedS
     tune = replace(config, iterations=iterations, lr=config.lr * QAT_LR_SHARE, density_start=iterations + 1,
                    history_every=None, stop_after_lr_cuts=None, error_sampling=GUIDED_SHARE,
                    error_measurements=measurements, error_parts=QAT_ERROR_PARTS,
-                   batch_size=max(1, round(config.batch_size * batch_share)))
+                   batch_size=max(1, round(config.batch_size * batch_share)),
+                   voxel_fraction=step_voxel_fraction(config.voxel_fraction))
     series.requires_grad_(False)
     step_sizes = [steps[name].to(device) for name in steps]
     lanes = qat_lanes(series.steps, device)
