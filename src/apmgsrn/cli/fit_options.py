@@ -55,8 +55,9 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                                "steps: x0.33 at 40/60/80%% (NGP/fVSRN reference code)")
     training.add_argument("--voxel-fraction", type=float,
                           help="share of every batch drawn on voxels (their own values) instead of uniform points "
-                               "with trilinear targets, 0..1 (default: 0.5 for hybrid and for a stepwise series, 0 for the paper's "
-                               "models; a stepwise series' other steps draw half as many of theirs between the voxels)")
+                               "with trilinear targets, 0..1 (default: 0.5 for hybrid and for a stepwise series, 0 "
+                               "for the paper's models; a stepwise series' other steps draw half as many of theirs "
+                               "between the voxels)")
     training.add_argument("--error-sampling", type=float,
                           help="share of the voxel points drawn where the model is wrong (in proportion to its error "
                                "there, measured 20 times in the run) instead of uniformly, 0..1 (default: 1 for "

@@ -186,10 +186,10 @@ STEPWISE_VOXEL_FRACTION = 0.5
 #: (:func:`step_voxel_fraction`; every step's fine-tune towards the packing draws the same). The start model has
 #: taught the decoder what lies between the voxels; steps fine-tuned from it with a quarter of their points there
 #: instead of half ended 0.04-1.2 dB higher over the voxels on every step measured of the 30 viscous-finger steps
-#: (three seeds) and of the same steps at 128^3 (two seeds). Between the voxels (against the data's trilinear
-#: interpolation) they lose more, 0.9-1.6 dB at 64^3 and 0.4-0.75 at 128^3: the 64^3 steps stay 0.85-3.8 dB above
-#: independent models there, the 128^3 ones fall to 0.3-0.4 dB below them. The issue's measure is the voxels'
-#: (docs/time_series.md).
+#: and of the same steps at 128^3 (three seeds each). Between the voxels (against the data's trilinear
+#: interpolation) they lose more, 0.9-1.6 dB at 64^3 and 0.3-0.9 at 128^3 (one seed): the 64^3 steps stay
+#: 0.85-3.8 dB above independent models there, the 128^3 ones fall to between 0.34 below and 0.20 above them. The
+#: issue's measure is the voxels' (docs/time_series.md).
 STEP_OFF_VOXEL_SHARE = 0.5
 
 
