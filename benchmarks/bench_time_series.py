@@ -71,13 +71,19 @@ def for_kind(path: Path, kind: str) -> Path:
     return path if kind == "apmgsrn" else path.with_name(f"{path.stem}_{kind}{path.suffix}")
 
 
-def seed_rows(path: Path, kind: str) -> dict[int, dict[int, float]]:
-    """Seed -> step -> PSNR of a kind's CSV (seed 0) and its ``_seedN`` siblings (``baseline``/``series --seed N
-    --csv ...``), where they exist."""
+def seed_paths(path: Path, kind: str) -> dict[int, Path]:
+    """Seed -> a kind's CSV (seed 0) and its ``_seedN`` siblings (``baseline``/``series --seed N --csv ...``), in
+    seed order (the siblings where they exist)."""
     first = for_kind(path, kind)
     found = {0: first} | {int(p.stem.rsplit("_seed", 1)[1]): p for p in first.parent.glob(f"{first.stem}_seed*.csv")
                           if p.stem.rsplit("_seed", 1)[1].isdigit()}
-    rows = {seed: {int(r["step"]): float(r["psnr"]) for r in _done_rows(p)} for seed, p in sorted(found.items())}
+    return dict(sorted(found.items()))
+
+
+def seed_rows(path: Path, kind: str) -> dict[int, dict[int, float]]:
+    """Seed -> step -> PSNR of :func:`seed_paths`' CSVs, where they hold rows."""
+    rows = {seed: {int(r["step"]): float(r["psnr"]) for r in _done_rows(p)}
+            for seed, p in seed_paths(path, kind).items()}
     return {seed: steps for seed, steps in rows.items() if steps}
 
 
@@ -164,16 +170,14 @@ def between_psnr(field, volume, step: int) -> float:
         step: the step's index.
     """
     import numpy as np
-    import torch.nn.functional as F
 
     from apmgsrn.inference.evaluate import psnr_from_mse
     from apmgsrn.inference.query import query
+    from apmgsrn.ops.trilinear import sample_volume
 
     generator = torch.Generator().manual_seed(1000 + step)
     points = torch.rand(BETWEEN_POINTS, 3, generator=generator) * 2 - 1  # [N, 3] (x, y, z)
-    data = torch.from_numpy(np.ascontiguousarray(volume, dtype=np.float32))[None, None]  # [1, 1, D, H, W]
-    # grid_sample reads (x, y, z) as (W, H, D); align_corners puts -1 and 1 on the first and last voxels.
-    target = F.grid_sample(data, points.view(1, -1, 1, 1, 3), mode="bilinear", align_corners=True).view(-1)
+    target = sample_volume(torch.from_numpy(np.ascontiguousarray(volume, dtype=np.float32)), points)  # [N]
     prediction = query(field, points).view(-1)
     mse = float((prediction.double() - target.double()).square().mean())
     return psnr_from_mse(mse, float(volume.max()) - float(volume.min()))
@@ -389,12 +393,13 @@ def run_speed(args: argparse.Namespace) -> None:
 
 def _between_section(kind: str) -> str:
     """Each seed's steps over the voxels and between them (:func:`between_psnr`), own models against the series,
-    where the baseline and series CSVs of a seed (:func:`seed_rows`' files) both measured between the voxels."""
-    own_path, series_path = for_kind(BASELINE_CSV, kind), for_kind(SERIES_CSV, kind)
+    where the baseline and series CSVs of a seed (:func:`seed_paths`) both measured between the voxels."""
+    own_paths, series_paths = seed_paths(BASELINE_CSV, kind), seed_paths(SERIES_CSV, kind)
+    own_path, series_path = own_paths[0], series_paths[0]
     found = {}
-    for seed in range(10):
-        paths = [p if seed == 0 else p.with_name(f"{p.stem}_seed{seed}{p.suffix}") for p in (own_path, series_path)]
-        rows = [{int(r["step"]): r for r in _done_rows(p) if r.get("psnr_between")} for p in paths]
+    for seed in sorted(set(own_paths) & set(series_paths)):
+        rows = [{int(r["step"]): r for r in _done_rows(p) if r.get("psnr_between")}
+                for p in (own_paths[seed], series_paths[seed])]
         steps = sorted(set(rows[0]) & set(rows[1]))
         if steps:
             found[seed] = (rows, steps)
