@@ -232,6 +232,56 @@ def test_the_packing_to_tune_towards_leaves_room_for_the_fine_tuned_values(hybri
     assert SeriesPacking(8, qat_iterations=20).pack(hybrid_series).bit_width == 8  # no target: no margin
 
 
+def test_a_packing_that_leaves_less_room_than_the_margin_shortens_the_fine_tune_in_proportion(hybrid_series):
+    """Where the bit width is at its floor and the packing cannot leave TUNED_BYTES_MARGIN of the target free, the
+    fine-tune towards it runs in proportion to the room left (what it would code larger does not fit, and would be
+    undone); with the margin left, or no target, it runs whole; with no room, not at all."""
+    floor = SeriesPacking(6, min_bits=6).pack(hybrid_series).parameter_bytes
+    framing = 1024 + 64 * hybrid_series.steps  # parameter_budget's allowance
+
+    def tuned(target: int) -> tuple[int, int]:
+        packing = SeriesPacking(6, target_bytes=target, min_bits=6, strict=False, qat_iterations=40)
+        packed = packing.pack(hybrid_series)
+        assert packed.bit_width == 6  # at its floor whatever the target
+        return packing.tune_iterations(packed, hybrid_series.steps), packed.parameter_bytes
+
+    roomy = int((floor + framing) / (1 - TUNED_BYTES_MARGIN)) + 8
+    assert tuned(roomy) == (40, floor)
+    half = int((floor + framing) / (1 - TUNED_BYTES_MARGIN / 2))
+    iterations, _ = tuned(half)
+    assert 19 <= iterations <= 21
+    assert tuned(floor + framing - 1)[0] == 0  # over the target already
+    assert SeriesPacking(6, min_bits=6, qat_iterations=40).tune_iterations(
+        SeriesPacking(6, min_bits=6).pack(hybrid_series), hybrid_series.steps) == 40  # no target
+
+
+@pytest.mark.parametrize("iterations", [7, 0])
+def test_train_fine_tunes_towards_the_packing_as_long_as_the_room_allows(pattern, tmp_path, capsys, monkeypatch,
+                                                                        iterations):
+    """``train`` runs the fine-tune for the iterations :meth:`SeriesPacking.tune_iterations` gives (none for 0),
+    records them and counts them."""
+    from apmgsrn.training import series_qat
+
+    monkeypatch.setattr(SeriesPacking, "tune_iterations", lambda self, packed, steps: iterations)
+    calls = []
+
+    def spy(*args, **kwargs):
+        calls.append(args[4])
+        return fine_tune_rounded(*args, **kwargs)
+
+    monkeypatch.setattr(series_qat, "fine_tune_rounded", spy)
+    assert main(["train", pattern, "--model", "hybrid", "--levels", "6", "--log2-table-size", "10", "--grids", "4",
+                 "--resolution", "8", "--width", "16", "--iterations", "60", "--batch-size", "2048", "--device",
+                 "cpu", "--bits", "6", "--qat-iterations", "30", "--json", "--out", str(tmp_path / "s.apmgsrn")]) == 0
+    capsys.readouterr()
+    description = apmgsrn.load(tmp_path / "s.apmgsrn").description
+    assert calls == ([iterations] if iterations else [])
+    assert description.packing.report["qat_iterations"] == iterations
+    stepwise = description.training["stepwise"]
+    assert description.training["iterations"] == (stepwise["start_iterations"] + sum(stepwise["step_iterations"])
+                                                  + 4 * iterations)
+
+
 def test_train_with_qat_iterations_records_them_and_counts_them(pattern, tmp_path, capsys):
     """``train --qat-iterations N`` on a series: the file's packing entry and ``info`` name them, and the training
     counts them (iterations and seconds); without the option a hybrid series gets its default share of the

@@ -244,16 +244,21 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
     options = dict(trained_shape=model.description.volume_shape, progress=not args.json)
     log(f"measuring the float32 model on {len(series)} steps")
     before = evaluate_series(field.step_field, series, **options)
-    if packing.qat_iterations:
-        log(f"fine-tuning every step towards its packed grids, {packing.qat_iterations} iterations each")
+    tuned = packing.tune_iterations(packed, field.steps)
+    if tuned:
+        log(f"fine-tuning every step towards its packed grids, {tuned} iterations each"
+            + (f" (of {packing.qat_iterations}: the packing left too few bytes free for more)"
+               if tuned < packing.qat_iterations else ""))
         before_tune = step_tensors(field)
-        fine_tune_rounded(field, fitted_values(field, series.to_numpy()), packed, config, packing.qat_iterations,
+        fine_tune_rounded(field, fitted_values(field, series.to_numpy()), packed, config, tuned,
                           show_progress=not args.json)
         packed = packing.repack(field, packed, before_tune)
+    elif packing.qat_iterations:
+        log("no fine-tune towards the packed grids: the packing left no bytes free for it")
     log(f"measuring the packed model on {len(series)} steps")
     after = evaluate_series(packed_series_field(field, packed).step_field, series, **options)
     report = series_packing_report(field, packed.bit_width, before, after, packing.target_bytes,
-                                   packing.qat_iterations, len(packed.restored))
+                                   tuned, len(packed.restored))
     training = {**model.description.training,
                 "steps": [{"psnr": e.psnr, "max_abs_error": e.max_abs_error} for e in after.steps]}
     out = Path(args.out)

@@ -290,11 +290,12 @@ def fit(
             started = time.perf_counter()
             try:
                 packed = packing.pack(trained.field)
-                if packing.qat_iterations:  # trained towards the packing's steps, then packed on them
-                    if tune_packed is None:
-                        raise ValueError("packing.qat_iterations needs tune_packed")
+                if packing.qat_iterations and tune_packed is None:
+                    raise ValueError("packing.qat_iterations needs tune_packed")
+                tuned = packing.tune_iterations(packed, trained.field.steps)
+                if tuned:  # trained towards the packing's steps, then packed on them
                     before_tune = step_tensors(trained.field)
-                    ran, _ = tune_packed(trained.field, prepared.values, packed, train_config, packing.qat_iterations)
+                    ran, _ = tune_packed(trained.field, prepared.values, packed, train_config, tuned)
                     trained.state.iteration += ran
                     packed = packing.repack(trained.field, packed, before_tune)
             except KeyboardInterrupt:  # the checkpoint holds the training: a resume packs again
@@ -306,7 +307,7 @@ def fit(
         evaluation = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
         if packed is not None:
             report = series_packing_report(trained.field, packed.bit_width, before, evaluation, packing.target_bytes,
-                                           packing.qat_iterations, len(packed.restored))
+                                           tuned, len(packed.restored))
         summary_extra = {"steps": [{"psnr": e.psnr, "max_abs_error": e.max_abs_error} for e in evaluation.steps],
                          **(summary_extra or {})}
     else:
