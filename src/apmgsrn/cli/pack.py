@@ -48,7 +48,8 @@ def add_pack_arguments(parser: argparse.ArgumentParser, title: str = "packing") 
     group.add_argument("--qat-iterations", type=int, metavar="N",
                        help="quantisation-aware fine-tune iterations before coding (default 0); for a "
                             "stepwise time series, iterations per step (train of a hybrid series: by default "
-                            "--iterations / 8, 0 turns it off; docs/time_series.md)")
+                            "--iterations / 8, 0 turns it off), fewer where a size target leaves too few bytes "
+                            "free for what the fine-tuned values code larger (docs/time_series.md)")
 
 
 def packing_requested(args: argparse.Namespace) -> bool:
