@@ -223,7 +223,6 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
         SeriesPacking,
         packed_series_field,
         series_packing_report,
-        step_tensors,
         write_packed_series,
     )
     from apmgsrn.training.packing import fitted_values
@@ -245,16 +244,16 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
     options = dict(trained_shape=model.description.volume_shape, progress=not args.json)
     log(f"measuring the float32 model on {len(series)} steps")
     before = evaluate_series(field.step_field, series, **options)
-    tuned = packing.tune_iterations(packed, field.steps)
-    if tuned:
-        log(f"fine-tuning every step towards its packed grids, {tuned} iterations each"
+
+    def tune(packed, iterations: int) -> None:
+        log(f"fine-tuning every step towards its packed grids, {iterations} iterations each"
             + (f" (of {packing.qat_iterations}: the packing left too few bytes free for more)"
-               if tuned < packing.qat_iterations else ""))
-        before_tune = step_tensors(field)
-        fine_tune_rounded(field, fitted_values(field, series.to_numpy()), packed, config, tuned,
+               if iterations < packing.qat_iterations else ""))
+        fine_tune_rounded(field, fitted_values(field, series.to_numpy()), packed, config, iterations,
                           show_progress=not args.json)
-        packed = packing.repack(field, packed, before_tune)
-    elif packing.qat_iterations:
+
+    packed, tuned = packing.fine_tune(field, packed, tune)
+    if packing.qat_iterations and not tuned:
         log("no fine-tune towards the packed grids: the packing left no bytes free for it")
     log(f"measuring the packed model on {len(series)} steps")
     after = evaluate_series(packed_series_field(field, packed).step_field, series, **options)

@@ -37,7 +37,12 @@ from apmgsrn.models.series_field import SeriesField, SeriesFieldConfig
 from apmgsrn.models.value_transform import ValueTransform, fit_value_transform
 from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.checkpoint import checkpoint_path_for
-from apmgsrn.training.series_packing import SeriesPacking, series_packing_report, step_tensors, write_packed_series
+from apmgsrn.training.series_packing import (
+    PackedSeries,
+    SeriesPacking,
+    series_packing_report,
+    write_packed_series,
+)
 from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, TrainingInterrupted, TrainingState
 
 
@@ -292,12 +297,12 @@ def fit(
                 packed = packing.pack(trained.field)
                 if packing.qat_iterations and tune_packed is None:
                     raise ValueError("packing.qat_iterations needs tune_packed")
-                tuned = packing.tune_iterations(packed, trained.field.steps)
-                if tuned:  # trained towards the packing's steps, then packed on them
-                    before_tune = step_tensors(trained.field)
-                    ran, _ = tune_packed(trained.field, prepared.values, packed, train_config, tuned)
+
+                def tune(to: PackedSeries, iterations: int) -> None:  # towards the packing's steps
+                    ran, _ = tune_packed(trained.field, prepared.values, to, train_config, iterations)
                     trained.state.iteration += ran
-                    packed = packing.repack(trained.field, packed, before_tune)
+
+                packed, tuned = packing.fine_tune(trained.field, packed, tune)
             except KeyboardInterrupt:  # the checkpoint holds the training: a resume packs again
                 if not checkpoint.exists():
                     raise

@@ -38,6 +38,7 @@ from __future__ import annotations
 import copy
 import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from dataclasses import field as dataclass_field
 
@@ -354,6 +355,21 @@ class SeriesPacking:
         free = parameter_budget(self.target_bytes, steps) - packed.parameter_bytes
         share = free / (TUNED_BYTES_MARGIN * self.target_bytes)
         return self.qat_iterations if share >= 1 else max(0, round(self.qat_iterations * share))
+
+    def fine_tune(self, field: SeriesField, packed: PackedSeries, tune: Callable[[PackedSeries, int], object]
+                  ) -> tuple[PackedSeries, int]:
+        """``field`` fine-tuned towards ``packed`` (:meth:`pack` of it) for :meth:`tune_iterations`, by
+        ``tune(packed, iterations)`` (each step, in place), then packed on the same steps (:meth:`repack`).
+
+        Returns:
+            (the packing, the fine-tune's iterations per step: 0, and ``packed`` itself, where none ran).
+        """
+        iterations = self.tune_iterations(packed, field.steps)
+        if iterations:
+            before = step_tensors(field)
+            tune(packed, iterations)
+            packed = self.repack(field, packed, before)
+        return packed, iterations
 
     def repack(self, field: SeriesField, packed: PackedSeries,
                before: dict[str, torch.Tensor] | None = None) -> PackedSeries:
