@@ -315,6 +315,30 @@ def test_error_guided_points_sit_on_voxels_with_their_values_and_keep_the_unifor
     assert int((z >= 8).sum()) > 700  # the uniform half of the voxel points lands all over
 
 
+@pytest.mark.parametrize("depth", [40, 48])
+def test_a_guides_voxel_positions_are_those_voxel_points_computes_bit_for_bit(channel, depth):
+    """The guide's table of every voxel's position (made by its measurement of every voxel) gives the positions
+    the batch's voxel points always had, before a measurement (a resumed run) and after; a volume measured in
+    blocks (48 x 64 x 96) has no table and computes them."""
+    from apmgsrn.training.points import ERROR_POOL, ErrorGuide, voxel_points
+
+    channel = channel[:depth].contiguous()
+    guide = ErrorGuide(channel)
+    index = torch.randint(0, channel.numel(), (5000,), generator=torch.Generator().manual_seed(2))
+    index[:2] = torch.tensor([0, channel.numel() - 1])
+    expected = voxel_points(index, tuple(channel.shape))
+    assert torch.equal(guide.voxel_points(index), expected)  # no table yet: computed
+    guide.measure(_with_error_in(channel, (slice(0, 8), slice(None), slice(None)), 0.05), torch.Generator())
+    assert (guide._every_voxel is not None) == (channel.numel() <= ERROR_POOL)
+    assert torch.equal(guide.voxel_points(index), expected)  # from the table where there is one
+    points, targets = draw_batch(channel, 4000, 1.0, torch.Generator().manual_seed(1), guide, 0.5)
+    drawn = ((points + 1) / 2 * torch.tensor([channel.shape[2] - 1, channel.shape[1] - 1, channel.shape[0] - 1])
+             ).round().long()
+    flat = (drawn[:, 2] * channel.shape[1] + drawn[:, 1]) * channel.shape[2] + drawn[:, 0]
+    assert torch.equal(points, voxel_points(flat, tuple(channel.shape)))
+    assert torch.equal(targets, channel.reshape(-1)[flat])
+
+
 def test_a_large_volume_is_measured_once_per_block_and_drawn_anywhere_in_the_blocks_that_are_wrong(
         channel, monkeypatch):
     """Above ERROR_POOL voxels the guide measures one random voxel of every block of b^3 and draws the batch's

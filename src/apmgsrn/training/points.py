@@ -122,6 +122,13 @@ class ErrorGuide:
             raise DescriptionError("error_guide_errors are not finite errors of at least 0")
         self.cumulative, self.errors = cumulative, errors
 
+    def voxel_points(self, index: torch.Tensor) -> torch.Tensor:
+        """:func:`voxel_points` of the volume's voxels ``index`` ``[N]``: rows of the table of every voxel's
+        position where a measurement made one (a gather instead of a dozen operations at every draw)."""
+        if self._every_voxel is not None:
+            return self._every_voxel[1].index_select(0, index)
+        return voxel_points(index, self.volume.shape)
+
     def draw(self, count: int, generator: torch.Generator) -> torch.Tensor:
         """``[count]`` voxel indices (flat) drawn in proportion to the measured errors."""
         if self.cumulative is None:
@@ -186,7 +193,7 @@ def draw_batch(
     index = torch.randint(0, d * h * w, (on_voxels - guided,), generator=generator, device=volume.device)
     if guided:
         index = torch.cat([guide.draw(guided, generator), index])
-    voxels = voxel_points(index, volume.shape)
+    voxels = voxel_points(index, volume.shape) if guide is None else guide.voxel_points(index)
     points = torch.cat([voxels, uniform])
     targets = torch.cat([volume.reshape(-1)[index], sample_volume(volume, uniform)])
     return points, targets

@@ -58,6 +58,7 @@ from apmgsrn.ops.trilinear import voxel_coordinates
 from apmgsrn.progress import Progress
 from apmgsrn.training.checkpoint import CHECKPOINT_KIND, TrainingState, check_tensors, state_from_json
 from apmgsrn.training.fit import PreparedValues, TrainedField, build_field, train_prepared
+from apmgsrn.training.optimizer import pull_towards
 from apmgsrn.training.points import draw_batch
 from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, TrainingInterrupted, as_json
 
@@ -516,8 +517,7 @@ class PullTowardsStart(TrainingCallback):
             for parameter in group["params"]:
                 start = self.starts.get(id(parameter))
                 if start is not None:
-                    change = parameter - start
-                    parameter.copy_(start + change.sign() * (change.abs() - threshold).clamp_min(0))
+                    pull_towards(parameter, start, threshold)
 
 
 def _fine_tune(worker: NeuralField, values: torch.Tensor, config: TrainConfig, track: bool,

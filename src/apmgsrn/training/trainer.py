@@ -35,6 +35,7 @@ from apmgsrn.training.checkpoint import (
     state_from_json,
 )
 from apmgsrn.training.losses import feature_density_loss
+from apmgsrn.training.optimizer import CpuAdam
 from apmgsrn.training.points import ErrorGuide, draw_batch, spatially_ordered
 
 #: Times a run measures the error that guides :attr:`TrainConfig.error_sampling` (evenly spaced, the first before
@@ -323,13 +324,15 @@ class Trainer:
         placement_ids = {id(p) for p in placement_params}
         network_params = [p for p in field.parameters() if id(p) not in placement_ids]
         # One fused kernel per parameter group on a GPU, where a step is bound by kernel launches; the CPU keeps
-        # the multi-tensor Adam, whose numbers the reference models pin.
+        # Adam's single-tensor steps, whose numbers the reference models pin, made by CpuAdam's kernel in fewer
+        # passes.
         fused = self.device.type == "cuda"
-        self.network_optimizer = torch.optim.Adam(
+        adam = torch.optim.Adam if fused else CpuAdam
+        self.network_optimizer = adam(
             _learning_rate_groups(encoder, network_params), lr=config.lr, betas=config.betas, fused=fused
         )
         self.placement_optimizer = (
-            torch.optim.Adam(placement_params, lr=config.placement_lr, betas=config.betas, fused=fused)
+            adam(placement_params, lr=config.placement_lr, betas=config.betas, fused=fused)
             if placement_params
             else None
         )
