@@ -85,6 +85,17 @@ def test_cpu_adam_falls_back_to_adam_where_the_kernel_does_not_apply():
             fast.step()
             reference.step()
         assert all(torch.equal(a, b) for a, b in zip(params, twin))
+    # a closure, which makes the gradients itself: Adam's own step, the closure's loss returned
+    ours, theirs = (torch.linspace(-1, 1, 100).requires_grad_(True) for _ in range(2))
+    fast, reference = CpuAdam([ours], lr=0.01), torch.optim.Adam([theirs], lr=0.01)
+    for optimizer, p in ((fast, ours), (reference, theirs)):
+        def closure(p=p, optimizer=optimizer):
+            optimizer.zero_grad()
+            loss = (p**3).sum()
+            loss.backward()
+            return loss
+        assert float(optimizer.step(closure)) == float((torch.linspace(-1, 1, 100) ** 3).sum())
+    assert torch.equal(ours, theirs)
 
 
 def test_pull_kernel_is_the_pytorch_pull_bit_for_bit():

@@ -15,27 +15,25 @@ class CpuAdam(torch.optim.Adam):
     differentiable steps, ``1 - beta1`` below 0.5; the kernel built), else as Adam's own. Same state, same
     checkpoints, the same numbers bit for bit."""
 
+    def __init__(self, params, *args, **kwargs):
+        super().__init__(params, *args, **kwargs)
+        self._roots: dict[torch.Tensor, torch.Tensor] = {}
+
     def _plain(self, group: dict) -> bool:
         return (not group["amsgrad"] and not group["maximize"] and not group["weight_decay"]
                 and not group["differentiable"] and not group["capturable"] and not group["fused"]
                 and not isinstance(group["lr"], torch.Tensor) and 1 - group["betas"][0] < 0.5)
 
-    def __init__(self, params, *args, **kwargs):
-        super().__init__(params, *args, **kwargs)
-        self._roots: dict[torch.Tensor, torch.Tensor] = {}
-
     @torch.no_grad()
     def step(self, closure=None):
-        """One step of every parameter with a gradient (``closure`` as Adam's)."""
-        if not all(self._plain(group) for group in self.param_groups) or not LIBRARY.available():
+        """One step of every parameter with a gradient; with a ``closure`` (which makes the gradients, so they
+        cannot be checked before), Adam's own step."""
+        if closure is not None or not all(self._plain(group) for group in self.param_groups) \
+                or not LIBRARY.available():
             return super().step(closure)
         pairs = [(p, p.grad) for group in self.param_groups for p in group["params"] if p.grad is not None]
         if not all(not grad.is_sparse and fits(p, grad) for p, grad in pairs):
-            return super().step(closure)
-        loss = None
-        if closure is not None:
-            with torch.enable_grad():
-                loss = closure()
+            return super().step()
         for group in self.param_groups:
             beta1, beta2 = group["betas"]
             for p in group["params"]:
@@ -56,7 +54,7 @@ class CpuAdam(torch.optim.Adam):
                     root = self._roots[p] = torch.empty_like(p)
                 adam_step_cpu(p, p.grad, state["exp_avg"], state["exp_avg_sq"], root, 1 - beta1, beta2, 1 - beta2,
                               bias_correction2_sqrt, group["eps"], step_size)
-        return loss
+        return None
 
 
 def _step_dtype() -> torch.dtype:
