@@ -28,6 +28,8 @@ from pathlib import Path
 
 import torch
 
+from apmgsrn.bench.series import BETWEEN_POINTS, between_psnr
+
 ROOT = Path(__file__).resolve().parents[1]
 SERIES = ROOT.parent / "shared" / "data" / "viscous_fingers_run01"
 RESULTS = ROOT / "benchmarks" / "results"
@@ -39,8 +41,6 @@ BASELINE_FIELDS = ["step", "file", "psnr", "max_abs_error", "seconds", "iteratio
 SERIES_CSV = RESULTS / "time_series_model.csv"
 SERIES_FIELDS = ["step", "file", "psnr", "max_abs_error", "model_bytes", "train_seconds", "iterations", "config",
                  "threads", "load_average", "cpu", "psnr_between"]
-#: Points at which ``psnr_between`` measures a model between the voxels (:func:`between_psnr`).
-BETWEEN_POINTS = 1 << 18
 TIMING_CSV = RESULTS / "time_series_timing.csv"
 TIMING_FIELDS = ["what", "seconds", "iterations", "threads", "load_average_start", "load_average_end", "cpu"]
 SPEED_CSV = RESULTS / "time_series_speed.csv"
@@ -158,37 +158,16 @@ def run_baseline(args: argparse.Namespace) -> None:
             print(" ".join(f"{k}={v}" for k, v in row.items() if k != "cpu"), flush=True)
 
 
-def between_psnr(field, volume, step: int) -> float:
-    """PSNR of a network between the voxels: at :data:`BETWEEN_POINTS` points drawn uniformly in the domain (seeded
-    by ``step``, the same for every model of that step) against the data's trilinear interpolation there, what a
-    renderer that interpolates the data samples; over the step's value range, as the PSNR over the voxels.
-
-    Args:
-        field: ``[N, 3]`` ``(x, y, z)`` points in ``[-1, 1]`` to values in data units (a model's or a series
-            step's network).
-        volume: ``[D, H, W]`` the step's values.
-        step: the step's index.
-    """
-    import numpy as np
-
-    from apmgsrn.inference.evaluate import psnr_from_mse
-    from apmgsrn.inference.query import query
-    from apmgsrn.ops.trilinear import sample_volume
-
-    generator = torch.Generator().manual_seed(1000 + step)
-    points = torch.rand(BETWEEN_POINTS, 3, generator=generator) * 2 - 1  # [N, 3] (x, y, z)
-    target = sample_volume(torch.from_numpy(np.ascontiguousarray(volume, dtype=np.float32)), points)  # [N]
-    prediction = query(field, points).view(-1)
-    mse = float((prediction.double() - target.double()).square().mean())
-    return psnr_from_mse(mse, float(volume.max()) - float(volume.min()))
-
-
 def _series_files(folder: Path) -> list[Path]:
-    """The volume files of a folder (.vti, .npy, .nc, ...), in name order."""
+    """The volume files of a folder (.vti, .npy, .nc, ...), ordered by their step numbers as ``apmgsrn train``
+    orders them (``step_2`` before ``step_10``; a gap in the numbering is refused). Any other series ``train``
+    reads (a glob, a ``.pvd``, a file with a time dimension) is measured by ``apmgsrn bench series``."""
     from apmgsrn.data.readers import SUPPORTED_SUFFIXES
+    from apmgsrn.data.series import order_by_step_number
 
     suffixes = {s for names in SUPPORTED_SUFFIXES.values() for s in names}
-    return sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in suffixes)
+    files = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in suffixes)
+    return [path for _, path in order_by_step_number(files)]
 
 
 def run_series(args: argparse.Namespace) -> None:

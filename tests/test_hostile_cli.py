@@ -119,6 +119,11 @@ def _probe_case(name: str, work: Path, tmp: Path, test_data: Path) -> tuple[list
         return ["grids", str(tmp / "g.png"), str(v), "--out", str(tmp / "g")], tmp / "g.png"
     if name == "bench results folder onto its volume":
         return ["bench", "quality", str(v), "--out", str(v), "--iterations", "2"], v
+    if name == "bench series results folder onto a step":
+        for step in (0, 1):
+            shutil.copy(v, tmp / f"s_{step}.npy")
+        return ["bench", "series", str(tmp / "s_*.npy"), "--out", str(tmp / "s_1.npy"), "--iterations", "2"], \
+            tmp / "s_1.npy"
     raise AssertionError(name)
 
 
@@ -128,6 +133,7 @@ def _probe_case(name: str, work: Path, tmp: Path, test_data: Path) -> tuple[list
     "decode onto its model", "decode into its brick model folder", "info --plot onto its model",
     "render onto its model", "render --error-out onto the compared volume", "render --save-tf onto its preset",
     "grids whose picture is its model", "bench results folder onto its volume",
+    "bench series results folder onto a step",
 ])
 def test_an_output_that_is_an_input_is_refused_and_the_input_kept(name, work, tmp_path, test_data, capsys):
     argv, source = _probe_case(name, work, tmp_path, test_data)
@@ -244,6 +250,8 @@ OTHER_PROBES = [
     (["bench", "quality", "{v}", "--out", "{tmp}/b", "--batch-size", "0"], "--batch-size"),
     (["bench", "compress", "{v}", "--out", "{tmp}/b", "--bounds", "2"], "--bounds"),
     (["bench", "compress", "{v}", "--out", "{tmp}/b", "--query-points", "0"], "--query-points"),
+    (["bench", "series", "{v}", "--out", "{tmp}/b", "--iterations", "0"], "--iterations"),
+    (["bench", "series", "{v}", "--out", "{tmp}/b", "--batch-size", "0"], "--batch-size"),
 ]
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import tempfile
 from collections.abc import Callable
+from dataclasses import dataclass
 from dataclasses import fields as dataclass_fields
 from pathlib import Path
 from typing import Any
@@ -26,7 +27,7 @@ import apmgsrn.decomposition.series_bricks  # noqa: F401 - registers the time-se
 from apmgsrn.choices import default_model
 from apmgsrn.data import ArrayVolume, Volume, open_volume
 from apmgsrn.data.grid import AxisCoordinates, Region, VolumeMetadata, plain_attributes
-from apmgsrn.data.series import is_series_input, open_series, parse_time
+from apmgsrn.data.series import VolumeSeries, is_series_input, open_series, parse_time
 from apmgsrn.device import inference_dtype, resolve_device
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.export import export_onnx
@@ -40,6 +41,7 @@ from apmgsrn.io.description import check_time
 from apmgsrn.io.field_file import FIELD_KIND
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config, training_defaults
+from apmgsrn.models.series_field import SeriesFieldConfig
 from apmgsrn.render import Camera, RendererConfig, VolumeRenderer, extent_from_shape, make_transfer_function
 from apmgsrn.render.images import as_uint8
 from apmgsrn.render.raymarch import default_batch_size
@@ -47,7 +49,7 @@ from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.fit import fit as fit_prepared
 from apmgsrn.training.fit import prepare_values
 from apmgsrn.training.series_fit import fit_series
-from apmgsrn.training.series_packing import default_series_packing
+from apmgsrn.training.series_packing import SeriesPacking, default_series_packing
 from apmgsrn.training.series_steps import STEPWISE_VOXEL_FRACTION, StepwiseConfig, stepwise_config
 from apmgsrn.training.trainer import SERIES_ANCHORED_GRIDS, TrainConfig, default_budget
 
@@ -351,10 +353,42 @@ STEPWISE_OPTIONS = {"start_step": "start", "step_iterations": "step_iterations",
                     "step_sparsity": "step_sparsity"}
 
 
-def _fit_series(data, preset, model, iterations, batch_size, device, transform, log_offset, variable, time,
-                fill_nonfinite, progress, options) -> Model:
-    """:func:`fit` of a time series: trained stepwise and packed, as ``apmgsrn train`` does by default."""
-    series = open_series(data, variable=variable, time=time, fill_nonfinite=fill_nonfinite)
+def volume_setup(preset: str = "small", model: str | None = None, iterations: int | None = None,
+                 batch_size: int | None = None, device: torch.device | str = "cpu", **options):
+    """(FieldConfig, TrainConfig) that :func:`fit` trains one volume with (its arguments and ``options`` as
+    there; the field config not yet fitted to the volume's lattice)."""
+    return _configs(model or default_model(series=False), preset, iterations, batch_size, _device(device), options)
+
+
+@dataclass(frozen=True)
+class SeriesSetup:
+    """How :func:`fit` trains a time series, as ``apmgsrn train`` does by default: the opened series, its model,
+    the start model's training, how the other steps are trained and how the file is packed."""
+
+    series: VolumeSeries
+    field_config: SeriesFieldConfig
+    train_config: TrainConfig
+    stepwise: StepwiseConfig
+    packing: SeriesPacking
+
+
+def series_setup(data, preset: str = "small", model: str | None = None, iterations: int | None = None,
+                 batch_size: int | None = None, device: torch.device | str = "cpu", variable: str | None = None,
+                 time=None, fill_nonfinite: float | None = None, shape: tuple[int, int, int] | None = None,
+                 dtype: str | None = None, **options) -> SeriesSetup:
+    """What :func:`fit` of a time series trains (its arguments as there; ``options`` as there, the stepwise
+    ones included; ``shape`` and ``dtype`` of raw files): stepwise, packed within five single-step files of the
+    preset (``apmgsrn bench series`` trains exactly this).
+
+    Raises:
+        ApmgsrnError: unreadable data, a model kind a series cannot extend, an invalid option.
+    """
+    device = _device(device)
+    if isinstance(time, str):
+        time = parse_time(time)
+    model = model or default_model(series=True)
+    series = open_series(data, variable=variable, time=time, shape=shape, dtype=dtype, fill_nonfinite=fill_nonfinite)
+    options = dict(options)
     steps = {field: options.pop(name) for name, field in STEPWISE_OPTIONS.items() if name in options}
     stepwise = StepwiseConfig(**steps)
     anchored = {"anchored_grids": SERIES_ANCHORED_GRIDS} if model == "apmgsrn" else {}  # the hybrid's levels cover
@@ -365,9 +399,17 @@ def _fit_series(data, preset, model, iterations, batch_size, device, transform, 
     except ValueError as exc:  # a model kind a series cannot extend
         raise ApmgsrnError(f"invalid time-series options: {exc}") from None
     packing = default_series_packing(config, series.shape, train_config.iterations)
-    return _fitted(lambda out: fit_series(series, config, train_config, out, device, transform=transform,
-                                          log_offset=log_offset, progress=progress, stepwise=stepwise,
-                                          packing=packing), device)
+    return SeriesSetup(series, config, train_config, stepwise, packing)
+
+
+def _fit_series(data, preset, model, iterations, batch_size, device, transform, log_offset, variable, time,
+                fill_nonfinite, progress, options) -> Model:
+    """:func:`fit` of a time series: trained stepwise and packed, as ``apmgsrn train`` does by default."""
+    setup = series_setup(data, preset, model, iterations, batch_size, device, variable, time, fill_nonfinite,
+                         **options)
+    return _fitted(lambda out: fit_series(setup.series, setup.field_config, setup.train_config, out, device,
+                                          transform=transform, log_offset=log_offset, progress=progress,
+                                          stepwise=setup.stepwise, packing=setup.packing), device)
 
 
 def render(

@@ -132,6 +132,10 @@ def psnr_over_time_chart(labels: list[float], lines: dict[str, list[float]], pat
         measured = [(x, y) for x, y in zip(labels, values) if math.isfinite(y)]
         axis.plot([x for x, _ in measured], [y for _, y in measured], marker=marker, markersize=3.5, linewidth=1.2,
                   label=name)
+    if all(float(x).is_integer() for x in labels):
+        from matplotlib.ticker import MaxNLocator
+
+        axis.xaxis.set_major_locator(MaxNLocator(integer=True))
     axis.set_xlabel("time step")
     axis.set_ylabel("PSNR (dB)")
     if title:

@@ -115,7 +115,49 @@ class CompressRow:
     query_points_per_second: float
 
 
-Row = TypeVar("Row", QualityRow, CompressRow)
+@dataclass(frozen=True)
+class SeriesStepRow:
+    """One step of ``bench series`` (:mod:`apmgsrn.bench.series`): the series model's figures on it, or its own
+    model's.
+
+    Attributes:
+        dataset: the series (:meth:`~apmgsrn.data.series.VolumeSeries.describe`).
+        model, preset, seed, iterations, batch_size: what was trained (the series' start model's budget).
+        method: ``series`` or ``own``.
+        step: the step's index in the series.
+        file: its file (and time index).
+        psnr: over every voxel of the step (dB).
+        psnr_between: between the voxels (:func:`~apmgsrn.bench.series.between_psnr`, dB).
+        max_abs_error: largest voxel error in data units.
+        file_bytes: the model file (the series' whole file on every one of its rows).
+        train_seconds: the model's training time (the whole series' on every one of its rows).
+        threads: torch's CPU threads.
+        load_average: the machine's 1-minute load average when the row was written.
+        cpu: the processor.
+        model_file: path of the model file.
+    """
+
+    dataset: str
+    model: str
+    preset: str
+    seed: int
+    iterations: int
+    batch_size: int
+    method: str
+    step: int
+    file: str
+    psnr: float
+    psnr_between: float
+    max_abs_error: float
+    file_bytes: int
+    train_seconds: float
+    threads: int
+    load_average: float
+    cpu: str
+    model_file: str
+
+
+Row = TypeVar("Row", QualityRow, CompressRow, SeriesStepRow)
 
 
 def write_rows(path: Path, rows: list, row_type: type) -> None:

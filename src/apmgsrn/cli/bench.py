@@ -1,4 +1,5 @@
-"""``apmgsrn bench quality|compress``: compare APMGSRN with fVSRN, NGP, SZ3 and ZFP on your volumes."""
+"""``apmgsrn bench quality|compress|series``: compare APMGSRN with fVSRN, NGP, SZ3 and ZFP on your volumes, and one
+model for a whole time series with one model per step on your series."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from pathlib import Path
 
 from apmgsrn.bench.datasets import parse_data_spec
 from apmgsrn.choices import COMPRESSORS, LR_SCHEDULES, MODEL_KINDS, PAPER_MODELS, SIZE_PRESETS, VALUE_TRANSFORMS
-from apmgsrn.cli.common import add_device_argument
+from apmgsrn.cli.common import add_data_arguments, add_device_argument
 from apmgsrn.cli.paths import CommandPaths, Output
 
 OUT_HELP = ("results folder (default bench-results); its CSV is extended, its tables and chart rewritten, "
@@ -19,7 +20,8 @@ def register(subparsers) -> None:
         "bench",
         help="compare models and compressors on your volumes",
         description="Reproducible comparisons: PSNR, real size and time of every model and size preset "
-        "(bench quality), and networks against SZ3 and ZFP (bench compress).",
+        "(bench quality), networks against SZ3 and ZFP (bench compress), and one model for a time series against "
+        "one model per step (bench series).",
     )
     commands = parser.add_subparsers(dest="bench_command", required=True, metavar="BENCHMARK")
 
@@ -66,6 +68,43 @@ def register(subparsers) -> None:
     add_device_argument(compress)
     compress.set_defaults(func=run_compress_command, paths=compress_paths)
 
+    series = commands.add_parser(
+        "series",
+        help="one model for a whole time series against one model per step: PSNR per step, file size, time",
+        description="Train the series as apmgsrn train does (stepwise, packed within five single-step files), "
+        "then an independent model of each measured step with the same budget (after the series, on the same "
+        "machine: their median time is one step's); write OUT/series.csv (one row per step and model), "
+        "OUT/series.md (the criteria: every measured step at least its own model's PSNR, the file within five "
+        "own models, the training within five times one step) and OUT/series.png. What the CSV holds is not "
+        "trained again, and an interrupted series resumes.",
+    )
+    series.add_argument("data", nargs="+", metavar="DATA",
+                        help="the series: several files, a quoted glob such as 'run/*.vti', a .pvd, or one file "
+                             "with --time all|A:B[:S]")
+    add_data_arguments(series)
+    series.add_argument("--model", choices=MODEL_KINDS, help="model kind (default: the train command's)")
+    series.add_argument("--preset", choices=SIZE_PRESETS, default="small")
+    series.add_argument("--steps", type=_step_list, metavar="K,K,...",
+                        help="step indices measured against their own models (default: 7 evenly spaced, the "
+                             "first and last among them; every step of a shorter series)")
+    series.add_argument("--seed", type=int, default=0)
+    _add_budget(series, None, None)
+    series.add_argument("--out", default="bench-series", help="results folder (default bench-series); "
+                        "its CSV is extended, its report and chart rewritten, and its models reused")
+    add_device_argument(series)
+    series.set_defaults(func=run_series_command, paths=series_paths)
+
+
+def _step_list(text: str) -> tuple[int, ...]:
+    """``--steps``: comma-separated step indices (argparse type; a bad value is a usage error)."""
+    try:
+        steps = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give step indices separated by commas, e.g. 0,10,29") from None
+    if any(step < 0 for step in steps):
+        raise argparse.ArgumentTypeError(f"{text!r}: step indices start at 0")
+    return tuple(dict.fromkeys(steps))
+
 
 def _add_budget(parser: argparse.ArgumentParser, schedules, transforms) -> None:
     parser.add_argument("--iterations", type=int, default=2000, help="training iterations per run (default 2000)")
@@ -93,6 +132,13 @@ def compress_paths(args: argparse.Namespace) -> CommandPaths:
     return CommandPaths(reads=reads, writes=[Output(args.out, "--out", "results folder")])
 
 
+def series_paths(args: argparse.Namespace) -> CommandPaths:
+    """The series' files are read; the results folder written."""
+    from apmgsrn.data.series import input_files
+
+    return CommandPaths(reads=input_files(args.data), writes=[Output(args.out, "--out", "results folder")])
+
+
 def run_quality_command(args: argparse.Namespace) -> int:
     from apmgsrn.bench.quality import QualityPlan, quality_paths, run_quality
     from apmgsrn.device import resolve_device
@@ -110,11 +156,8 @@ def run_quality_command(args: argparse.Namespace) -> int:
         log_offset=args.log_offset,
     )
     out = Path(args.out)
-    run_quality(plan, out, resolve_device(args.device), log=lambda line: print(line, flush=True))
-    paths = quality_paths(out)
-    print(paths["markdown"].read_text())
-    print(f"wrote {paths['csv']}, {paths['markdown']} and {paths['chart']}")
-    return 0
+    run_quality(plan, out, resolve_device(args.device), log=_log)
+    return _print_report(quality_paths(out))
 
 
 def run_compress_command(args: argparse.Namespace) -> int:
@@ -133,10 +176,33 @@ def run_compress_command(args: argparse.Namespace) -> int:
         **({"bounds": tuple(args.bounds)} if args.bounds else {}),
         **({"precisions": tuple(args.precisions)} if args.precisions else {}),
     )
-    report = run_compress(plan, Path(args.out), resolve_device(args.device),
-                          log=lambda line: print(line, flush=True))
+    report = run_compress(plan, Path(args.out), resolve_device(args.device), log=_log)
     print(report.markdown.read_text())
     for reason in report.skipped:
         print(f"note: skipped {reason}")
     print(f"wrote {report.csv}, {report.markdown}" + (f" and {report.chart}" if report.rows else ""))
+    return 0
+
+
+def run_series_command(args: argparse.Namespace) -> int:
+    from apmgsrn.bench.series import SeriesPlan, run_series_bench, series_bench_paths
+    from apmgsrn.cli.common import volume_options
+    from apmgsrn.device import resolve_device
+
+    plan = SeriesPlan(data=tuple(args.data), **volume_options(args, allow_series=True), model=args.model,
+                      preset=args.preset, iterations=args.iterations, batch_size=args.batch_size, seed=args.seed,
+                      steps=args.steps)
+    out = Path(args.out)
+    run_series_bench(plan, out, resolve_device(args.device), log=_log)
+    return _print_report(series_bench_paths(out))
+
+
+def _log(line: str) -> None:
+    print(line, flush=True)
+
+
+def _print_report(paths: dict[str, Path]) -> int:
+    """Print a benchmark's Markdown report and where its files went; the command's exit code."""
+    print(paths["markdown"].read_text())
+    print(f"wrote {paths['csv']}, {paths['markdown']} and {paths['chart']}")
     return 0

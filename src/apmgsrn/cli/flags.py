@@ -95,7 +95,9 @@ FLAGS = {
     "fps": "--fps",
     # benchmarks and pictures
     "models": "--models",
+    "model": "--model",
     "sizes": "--sizes",
+    "preset": "--preset",
     "compressors": "--compressors",
     "seeds": "--seeds",
     "bounds": "--bounds",

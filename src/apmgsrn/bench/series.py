@@ -1,0 +1,318 @@
+"""``bench series``: one model for a whole time series against one model per step, on any series.
+
+Issue 16's criteria, measured on a series ``apmgsrn train`` reads (several files, a glob, a ``.pvd``, or one file
+with a time dimension):
+
+1. **The series model**, trained exactly as ``apmgsrn train`` and :func:`apmgsrn.fit` train a series by default
+   (:func:`apmgsrn.api.series_setup`: stepwise, packed within five single-step files), kept as a model file.
+2. **Own models**: an independent model of each measured step (:func:`measured_steps`: by default seven steps
+   evenly spaced, the first and last among them), trained on that step alone with the same budget, preset and
+   seed; trained after the series, on the same machine, so their training time is the one-step time the series
+   is compared with.
+3. **The report**: ``OUT/series.md`` (the criteria, then every measured step, over the voxels and between them)
+   and ``OUT/series.png`` (PSNR over time of both).
+
+Rows go to ``OUT/series.csv`` as they finish. A rerun skips what is there: a series interrupted while it trained
+resumes from its checkpoint, and own models already trained are not trained again.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+import statistics
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from apmgsrn.api import load, series_setup, volume_setup
+from apmgsrn.arguments import MAX_BATCH_SIZE, check_choice, check_int
+from apmgsrn.atomic import atomic_write_text
+from apmgsrn.bench.charts import psnr_over_time_chart
+from apmgsrn.bench.quality import prepare_folder
+from apmgsrn.bench.results import SeriesStepRow, append_row, read_rows
+from apmgsrn.choices import MODEL_KINDS, SIZE_PRESETS
+from apmgsrn.errors import ApmgsrnError
+from apmgsrn.inference.evaluate import psnr_from_mse
+from apmgsrn.inference.query import query
+from apmgsrn.ops.trilinear import sample_volume
+from apmgsrn.training.fit import fit_volume
+from apmgsrn.training.series_fit import fit_series
+
+#: Steps measured against their own models when none are named: evenly spaced, the first and last among them.
+DEFAULT_MEASURED_STEPS = 7
+#: Points at which :func:`between_psnr` measures a model between the voxels.
+BETWEEN_POINTS = 1 << 18
+#: The criteria's bounds: the series file within this many own-model files, its training within this many
+#: times one step's.
+FILE_BOUND, TIME_BOUND = 5, 5
+SERIES, OWN = "series", "own"
+
+
+@dataclass(frozen=True)
+class SeriesPlan:
+    """What ``bench series`` measures.
+
+    Attributes:
+        data: the series, as :func:`apmgsrn.fit` takes it (files, a glob, a ``.pvd``, or one file with ``time``).
+        variable, time, shape, dtype, fill_nonfinite: how to read it (as
+            :func:`apmgsrn.data.series.open_series`).
+        model, preset: the model kind (None: the default) and size preset of the series and the own models.
+        iterations, batch_size, seed: the budget of an own model, and of the series' start model.
+        steps: the steps measured against their own models (None: :func:`measured_steps`).
+    """
+
+    data: tuple[str, ...]
+    variable: str | None = None
+    time: object = None
+    shape: tuple[int, int, int] | None = None
+    dtype: str | None = None
+    fill_nonfinite: float | None = None
+    model: str | None = None
+    preset: str = "small"
+    iterations: int = 2000
+    batch_size: int = 32768
+    seed: int = 0
+    steps: tuple[int, ...] | None = None
+
+    def __post_init__(self) -> None:
+        if self.model is not None:
+            check_choice("model", self.model, MODEL_KINDS)
+        check_choice("preset", self.preset, SIZE_PRESETS)
+        check_int("iterations", self.iterations, 1)
+        check_int("batch_size", self.batch_size, 1, MAX_BATCH_SIZE)
+        check_int("seed", self.seed, 0)
+
+
+def measured_steps(count: int, wanted: int = DEFAULT_MEASURED_STEPS) -> list[int]:
+    """``wanted`` step indices of ``count`` spread evenly, the first and the last among them (all of a shorter
+    series)."""
+    if count <= wanted:
+        return list(range(count))
+    return sorted({round(i * (count - 1) / (wanted - 1)) for i in range(wanted)})
+
+
+def series_bench_paths(out: Path) -> dict[str, Path]:
+    """Files of a series benchmark in folder ``out``."""
+    return {"csv": out / "series.csv", "markdown": out / "series.md", "chart": out / "series.png",
+            "models": out / "models"}
+
+
+def between_psnr(field: Callable[[torch.Tensor], torch.Tensor], volume: np.ndarray, step: int,
+                 points: int = BETWEEN_POINTS) -> float:
+    """PSNR of a network between the voxels: at ``points`` points drawn uniformly in the domain (seeded by
+    ``step``, so the same for every model of that step) against the data's trilinear interpolation there, what a
+    renderer that interpolates the data samples; over the step's value range, as the PSNR over the voxels.
+
+    Args:
+        field: ``[N, 3]`` ``(x, y, z)`` points in ``[-1, 1]`` to values in data units.
+        volume: ``[D, H, W]`` the step's values.
+        step: the step's index.
+        points: how many points.
+    """
+    generator = torch.Generator().manual_seed(1000 + step)
+    where = torch.rand(points, 3, generator=generator) * 2 - 1  # [N, 3] (x, y, z)
+    target = sample_volume(torch.from_numpy(np.ascontiguousarray(volume, dtype=np.float32)), where)  # [N]
+    prediction = query(field, where).view(-1)
+    mse = float((prediction.double() - target.double()).square().mean())
+    return psnr_from_mse(mse, float(volume.max()) - float(volume.min()))
+
+
+def run_series_bench(plan: SeriesPlan, out: Path, device: torch.device, log: Callable[[str], None] = print,
+                     progress: bool = True) -> list[SeriesStepRow]:
+    """Train what ``plan`` asks that ``out/series.csv`` does not hold yet; then write the report and the chart.
+
+    Args:
+        plan: the series, the steps measured and the budget.
+        out: results folder (created if missing; its parent must exist).
+        device: training device.
+        log: receives one line per model.
+        progress: show the series' training progress.
+
+    Returns:
+        The rows of this plan (the series' every step, then the own models of the measured steps).
+
+    Raises:
+        ApmgsrnError: unreadable data, a step outside the series, an invalid option, another version's CSV.
+    """
+    setup = series_setup(list(plan.data), plan.preset, plan.model, plan.iterations, plan.batch_size, device,
+                         plan.variable, plan.time, plan.fill_nonfinite, plan.shape, plan.dtype, seed=plan.seed)
+    series = setup.series
+    steps = list(plan.steps) if plan.steps is not None else measured_steps(len(series))
+    outside = [t for t in steps if not 0 <= t < len(series)]
+    if outside:
+        raise ApmgsrnError(f"step {outside[0]} is not in the series: it has steps 0 .. {len(series) - 1}",
+                           arguments=("steps",))
+    prepare_folder(out)
+    paths = series_bench_paths(Path(out))
+    model = setup.field_config.field.model
+    dataset = series.describe()
+    rows = [r for r in read_rows(paths["csv"], SeriesStepRow) if r.dataset == dataset and r.model == model
+            and (r.preset, r.seed, r.iterations, r.batch_size) == (plan.preset, plan.seed, plan.iterations,
+                                                                   plan.batch_size)]
+    tag = f"{model}_{plan.preset}_s{plan.seed}_i{plan.iterations}_b{plan.batch_size}"
+    common = {"dataset": dataset, "model": model, "preset": plan.preset, "seed": plan.seed,
+              "iterations": plan.iterations, "batch_size": plan.batch_size}
+    if not any(r.method == SERIES for r in rows):
+        model_file = paths["models"] / f"series_{tag}.apmgsrn"
+        log(f"series: {dataset}, trained as apmgsrn train does ({len(series)} steps)")
+        result = fit_series(series, setup.field_config, setup.train_config, model_file, device, resume=True,
+                            progress=progress, stepwise=setup.stepwise, packing=setup.packing)
+        trained = load(model_file)
+        measured = [SeriesStepRow(**common, method=SERIES, step=t, file=series.step_name(t), psnr=evaluation.psnr,
+                                  psnr_between=between_psnr(trained.step_field(t), series.read(t), t),
+                                  max_abs_error=evaluation.max_abs_error, file_bytes=result.model_bytes,
+                                  train_seconds=result.seconds, threads=torch.get_num_threads(),
+                                  load_average=os.getloadavg()[0], cpu=_cpu(), model_file=str(model_file))
+                    for t, evaluation in enumerate(result.evaluation.steps)]
+        for row in measured:  # all at once, once every step is measured: a rerun finds all or none
+            append_row(paths["csv"], row)
+        rows += measured
+        psnrs = [row.psnr for row in measured]
+        log(f"series: {result.model_bytes:,} bytes, {result.seconds:.1f} s, steps {min(psnrs):.2f} .. "
+            f"{max(psnrs):.2f} dB")
+    done = {r.step for r in rows if r.method == OWN}
+    field_config, train_config = volume_setup(plan.preset, model, plan.iterations, plan.batch_size, device,
+                                              seed=plan.seed)
+    for number, t in enumerate(steps, 1):
+        if t in done:
+            continue
+        model_file = paths["models"] / f"step{t:04d}_{tag}.apmgsrn"
+        with series.volume(t) as volume:
+            result = fit_volume(volume, field_config, train_config, model_file, device, resume=True, progress=False)
+        row = SeriesStepRow(**common, method=OWN, step=t, file=series.step_name(t), psnr=result.psnr,
+                            psnr_between=between_psnr(load(model_file).field, series.read(t), t),
+                            max_abs_error=result.evaluation.max_abs_error, file_bytes=result.model_bytes,
+                            train_seconds=result.seconds, threads=torch.get_num_threads(),
+                            load_average=os.getloadavg()[0], cpu=_cpu(), model_file=str(model_file))
+        append_row(paths["csv"], row)
+        rows.append(row)
+        done.add(t)
+        log(f"[{number}/{len(steps)}] own model of step {t}: {row.psnr:.2f} dB, {row.file_bytes:,} bytes, "
+            f"{row.train_seconds:.1f} s")
+    rows = [r for r in rows if r.method == SERIES or r.step in steps]
+    atomic_write_text(paths["markdown"], series_report(rows, paths["chart"].name), "results table")
+    series_chart(rows, paths["chart"])
+    return rows
+
+
+@dataclass(frozen=True)
+class SeriesCriteria:
+    """Issue 16's criteria on one series' rows.
+
+    Attributes:
+        steps: the measured steps (those with an own model and the series' figure).
+        differences: series minus own model PSNR of each, dB.
+        between: the same between the voxels, dB.
+        own_bytes: the largest own model file.
+        series_bytes: the series' file.
+        step_seconds: one step's training time: the median of the own models'.
+        series_seconds: the series' training time.
+    """
+
+    steps: list[int]
+    differences: list[float]
+    between: list[float]
+    own_bytes: int
+    series_bytes: int
+    step_seconds: float
+    series_seconds: float
+
+    @property
+    def steps_at_least(self) -> int:
+        return sum(d >= 0 for d in self.differences)
+
+    @property
+    def files(self) -> float:
+        return self.series_bytes / self.own_bytes
+
+    @property
+    def times(self) -> float:
+        return self.series_seconds / self.step_seconds
+
+    def met(self) -> dict[str, bool]:
+        """Each criterion: met or not."""
+        return {"quality": self.steps_at_least == len(self.steps), "file": self.files <= FILE_BOUND,
+                "time": self.times <= TIME_BOUND}
+
+
+def series_criteria(rows: list[SeriesStepRow]) -> SeriesCriteria:
+    """The criteria on the rows of one plan (the series' steps and the own models).
+
+    Raises:
+        ApmgsrnError: no step has both figures.
+    """
+    series = {r.step: r for r in rows if r.method == SERIES}
+    own = {r.step: r for r in rows if r.method == OWN}
+    steps = sorted(set(series) & set(own))
+    if not steps:
+        raise ApmgsrnError("no step has both the series' figure and its own model's; run bench series first")
+    first = series[steps[0]]
+    return SeriesCriteria(
+        steps=steps, differences=[series[t].psnr - own[t].psnr for t in steps],
+        between=[series[t].psnr_between - own[t].psnr_between for t in steps],
+        own_bytes=max(own[t].file_bytes for t in steps), series_bytes=first.file_bytes,
+        step_seconds=statistics.median(own[t].train_seconds for t in steps), series_seconds=first.train_seconds)
+
+
+def series_report(rows: list[SeriesStepRow], chart_name: str) -> str:
+    """Markdown: what was measured, the criteria, every measured step, and the chart."""
+    criteria = series_criteria(rows)
+    series = {r.step: r for r in rows if r.method == SERIES}
+    own = {r.step: r for r in rows if r.method == OWN}
+    first = series[criteria.steps[0]]
+    met = criteria.met()
+    verdict = ("All three criteria are met." if all(met.values()) else
+               "Not met: " + ", ".join(name for name, ok in met.items() if not ok) + ".")
+    d, b = criteria.differences, criteria.between
+    lines = ["| step | file | own model dB | series dB | difference dB | between the voxels: own / series dB | "
+             "max abs error: own / series | own model s |", "|---|---|---|---|---|---|---|---|"]
+    for t, difference in zip(criteria.steps, d):
+        o, s = own[t], series[t]
+        lines.append(f"| {t} | {s.file} | {o.psnr:.2f} | {s.psnr:.2f} | {difference:+.2f} | "
+                     f"{o.psnr_between:.2f} / {s.psnr_between:.2f} | {o.max_abs_error:.3g} / {s.max_abs_error:.3g} | "
+                     f"{o.train_seconds:.1f} |")
+    loads = sorted({f"{r.load_average:.2f}" for r in rows})
+    return f"""# One model for the series against one model per step
+
+Written by `apmgsrn bench series`.
+
+- Data: {first.dataset}.
+- Every model: the {first.model} {first.preset} preset, {first.iterations:,} iterations x {first.batch_size:,} points,
+  seed {first.seed}.
+- The series: trained as `apmgsrn train` trains it (stepwise, packed); the own models: each on its step alone,
+  after the series, on the same machine.
+- Machine: {first.cpu}, {first.threads} thread(s); 1-minute load average {loads[0]} .. {loads[-1]}.
+
+| criterion | target | measured |
+|---|---|---|
+| PSNR on every measured step | >= the step's own model | {criteria.steps_at_least} of {len(criteria.steps)} steps; series minus own model {min(d):+.2f} .. {max(d):+.2f} dB (mean {statistics.fmean(d):+.2f}) |
+| model file | <= {FILE_BOUND} own model files ({FILE_BOUND * criteria.own_bytes:,} bytes) | {criteria.series_bytes:,} bytes ({criteria.files:.2f} files) |
+| training time | <= {TIME_BOUND} x one step ({TIME_BOUND * criteria.step_seconds:.0f} s; one step: the median own model, {criteria.step_seconds:.1f} s) | {criteria.series_seconds:.1f} s ({criteria.times:.2f} x) |
+
+{verdict} Between the voxels, where a renderer samples (not a criterion; {BETWEEN_POINTS:,} points drawn
+uniformly, against the data's trilinear interpolation), series minus own model: {min(b):+.2f} .. {max(b):+.2f} dB.
+
+![PSNR over time]({chart_name})
+
+{chr(10).join(lines)}
+"""
+
+
+def series_chart(rows: list[SeriesStepRow], path: Path) -> None:
+    """PSNR of every step of the series, and of the own models at the measured steps."""
+    series = {r.step: r.psnr for r in rows if r.method == SERIES}
+    own = {r.step: r.psnr for r in rows if r.method == OWN}
+    steps = sorted(series)
+    lines = {"one model for the series": [series[t] for t in steps],
+             "one model per step (measured steps)": [own.get(t, math.nan) for t in steps]}
+    first = next(r for r in rows if r.method == SERIES)
+    psnr_over_time_chart(steps, lines, path, title=f"{first.model} {first.preset}: PSNR of every step")
+
+
+def _cpu() -> str:
+    return platform.processor() or platform.machine()
