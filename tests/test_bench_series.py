@@ -116,3 +116,39 @@ def test_a_series_along_a_time_dimension_measures_as_its_files_do(tmp_path, caps
     for a, b in zip(runs["files"], runs["netcdf"]):
         assert (a.method, a.step) == (b.method, b.step)
         assert a.psnr == pytest.approx(b.psnr, abs=1e-4) and a.file_bytes == pytest.approx(b.file_bytes, rel=0.01)
+
+
+def test_several_seeds_compare_their_means_and_a_rerun_trains_only_the_new_seed(tmp_path, capsys):
+    out = tmp_path / "bench"
+    data = str(RUN / "*.vti")
+    assert main(["bench", "series", data, "--steps", "0,3", "--seeds", "2", "--out", str(out), *BUDGET]) == 0
+    printed = capsys.readouterr().out
+    assert printed.count("trained as apmgsrn train does") == 2
+    rows = read_rows(out / "series.csv", SeriesStepRow)
+    assert sorted({r.seed for r in rows}) == [0, 1]
+    files = {(r.method, r.seed): r.model_file for r in rows}
+    assert len(set(files.values())) == 4  # every seed its own series and own model files
+    psnr = {(r.method, r.seed, r.step): r.psnr for r in rows}
+    assert psnr[("series", 0, 1)] != psnr[("series", 1, 1)]  # the seeds train different models
+
+    criteria = series_criteria(rows)
+    report = (out / "series.md").read_text()
+    for index, t in enumerate((0, 3)):
+        own = (psnr[("own", 0, t)] + psnr[("own", 1, t)]) / 2
+        series = (psnr[("series", 0, t)] + psnr[("series", 1, t)]) / 2
+        assert criteria.differences[index] == pytest.approx(series - own)
+        at_least = sum(psnr[("series", s, t)] >= psnr[("own", s, t)] for s in (0, 1))
+        assert criteria.pairs[index] == (2, at_least)
+        assert f"| {own:.2f} | {series:.2f} |" in report and f"| {at_least} of 2 |" in report
+    pairs = sum(at_least for _, at_least in criteria.pairs)
+    assert f"seed by seed, {pairs} of 4 pairs" in report and "seeds 0 .. 1" in report
+    largest = max(r.file_bytes for r in rows if r.method == "series")
+    assert f"| {largest:,} bytes (" in report
+
+    # A third seed: only its models train.
+    assert main(["bench", "series", data, "--steps", "0,3", "--seeds", "3", "--out", str(out), *BUDGET]) == 0
+    printed = capsys.readouterr().out
+    assert re.findall(r"^seed (\d+): series:.*trained as", printed, flags=re.M) == ["2"]
+    assert re.findall(r"^seed (\d+): \[\d/2\] own model", printed, flags=re.M) == ["2", "2"]
+    assert sorted({r.seed for r in read_rows(out / "series.csv", SeriesStepRow)}) == [0, 1, 2]
+    assert "seeds 0 .. 2" in (out / "series.md").read_text()

@@ -252,6 +252,7 @@ OTHER_PROBES = [
     (["bench", "compress", "{v}", "--out", "{tmp}/b", "--query-points", "0"], "--query-points"),
     (["bench", "series", "{v}", "--out", "{tmp}/b", "--iterations", "0"], "--iterations"),
     (["bench", "series", "{v}", "--out", "{tmp}/b", "--batch-size", "0"], "--batch-size"),
+    (["bench", "series", "{v}", "--out", "{tmp}/b", "--seeds", "0"], "--seeds"),
 ]
 
 

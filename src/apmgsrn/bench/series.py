@@ -12,6 +12,11 @@ with a time dimension):
 3. **The report**: ``OUT/series.md`` (the criteria, then every measured step, over the voxels and between them)
    and ``OUT/series.png`` (PSNR over time of both).
 
+With several seeds (``seeds``) both are trained once per seed, seed after seed; the criteria compare the means
+over the seeds (one model's PSNR on a close-fitting step spreads by up to a dB between seeds, or between runs
+whose data differ in the last bit), and the report says on how many seeds each step's series was at least that
+seed's own model.
+
 Rows go to ``OUT/series.csv`` as they finish. A rerun skips what is there: a series interrupted while it trained
 resumes from its checkpoint, and own models already trained are not trained again.
 """
@@ -29,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from apmgsrn.api import load, series_setup, volume_setup
+from apmgsrn.api import SeriesSetup, load, series_setup, volume_setup
 from apmgsrn.arguments import MAX_BATCH_SIZE, check_choice, check_int
 from apmgsrn.atomic import atomic_write_text
 from apmgsrn.bench.charts import psnr_over_time_chart
@@ -62,7 +67,8 @@ class SeriesPlan:
         variable, time, shape, dtype, fill_nonfinite: how to read it (as
             :func:`apmgsrn.data.series.open_series`).
         model, preset: the model kind (None: the default) and size preset of the series and the own models.
-        iterations, batch_size, seed: the budget of an own model, and of the series' start model.
+        iterations, batch_size: the budget of an own model, and of the series' start model.
+        seeds: every model is trained with seeds ``0 .. seeds - 1``.
         steps: the steps measured against their own models (None: :func:`measured_steps`).
     """
 
@@ -76,7 +82,7 @@ class SeriesPlan:
     preset: str = "small"
     iterations: int = 2000
     batch_size: int = 32768
-    seed: int = 0
+    seeds: int = 1
     steps: tuple[int, ...] | None = None
 
     def __post_init__(self) -> None:
@@ -85,7 +91,7 @@ class SeriesPlan:
         check_choice("preset", self.preset, SIZE_PRESETS)
         check_int("iterations", self.iterations, 1)
         check_int("batch_size", self.batch_size, 1, MAX_BATCH_SIZE)
-        check_int("seed", self.seed, 0)
+        check_int("seeds", self.seeds, 1)
 
 
 def measured_steps(count: int, wanted: int = DEFAULT_MEASURED_STEPS) -> list[int]:
@@ -127,35 +133,48 @@ def run_series_bench(plan: SeriesPlan, out: Path, device: torch.device, log: Cal
     """Train what ``plan`` asks that ``out/series.csv`` does not hold yet; then write the report and the chart.
 
     Args:
-        plan: the series, the steps measured and the budget.
+        plan: the series, the steps measured, the budget and the seeds.
         out: results folder (created if missing; its parent must exist).
         device: training device.
         log: receives one line per model.
         progress: show the series' training progress.
 
     Returns:
-        The rows of this plan (the series' every step, then the own models of the measured steps).
+        The rows of this plan (seed by seed: the series' every step, then the own models of the measured steps).
 
     Raises:
         ApmgsrnError: unreadable data, a step outside the series, an invalid option, another version's CSV.
     """
-    setup = series_setup(list(plan.data), plan.preset, plan.model, plan.iterations, plan.batch_size, device,
-                         plan.variable, plan.time, plan.fill_nonfinite, plan.shape, plan.dtype, seed=plan.seed)
-    series = setup.series
-    steps = list(plan.steps) if plan.steps is not None else measured_steps(len(series))
-    outside = [t for t in steps if not 0 <= t < len(series)]
-    if outside:
-        raise ApmgsrnError(f"step {outside[0]} is not in the series: it has steps 0 .. {len(series) - 1}",
-                           arguments=("steps",))
-    prepare_folder(out)
     paths = series_bench_paths(Path(out))
+    rows: list[SeriesStepRow] = []
+    for seed in range(plan.seeds):
+        setup = series_setup(list(plan.data), plan.preset, plan.model, plan.iterations, plan.batch_size, device,
+                             plan.variable, plan.time, plan.fill_nonfinite, plan.shape, plan.dtype, seed=seed)
+        steps = list(plan.steps) if plan.steps is not None else measured_steps(len(setup.series))
+        outside = [t for t in steps if not 0 <= t < len(setup.series)]
+        if outside:
+            raise ApmgsrnError(f"step {outside[0]} is not in the series: it has steps 0 .. {len(setup.series) - 1}",
+                               arguments=("steps",))
+        prepare_folder(out)
+        label = f"seed {seed}: " if plan.seeds > 1 else ""
+        rows += _run_seed(plan, setup, seed, steps, paths, device, lambda line, label=label: log(label + line),
+                          progress)
+    atomic_write_text(paths["markdown"], series_report(rows, paths["chart"].name), "results table")
+    series_chart(rows, paths["chart"])
+    return rows
+
+
+def _run_seed(plan: SeriesPlan, setup: SeriesSetup, seed: int, steps: list[int], paths: dict[str, Path],
+              device: torch.device, log: Callable[[str], None], progress: bool) -> list[SeriesStepRow]:
+    """The rows of one seed: those ``paths["csv"]`` holds, the missing ones trained and appended."""
+    series = setup.series
     model = setup.field_config.field.model
     dataset = series.describe()
     rows = [r for r in read_rows(paths["csv"], SeriesStepRow) if r.dataset == dataset and r.model == model
-            and (r.preset, r.seed, r.iterations, r.batch_size) == (plan.preset, plan.seed, plan.iterations,
+            and (r.preset, r.seed, r.iterations, r.batch_size) == (plan.preset, seed, plan.iterations,
                                                                    plan.batch_size)]
-    tag = f"{model}_{plan.preset}_s{plan.seed}_i{plan.iterations}_b{plan.batch_size}"
-    common = {"dataset": dataset, "model": model, "preset": plan.preset, "seed": plan.seed,
+    tag = f"{model}_{plan.preset}_s{seed}_i{plan.iterations}_b{plan.batch_size}"
+    common = {"dataset": dataset, "model": model, "preset": plan.preset, "seed": seed,
               "iterations": plan.iterations, "batch_size": plan.batch_size}
     if not any(r.method == SERIES for r in rows):
         model_file = paths["models"] / f"series_{tag}.apmgsrn"
@@ -176,8 +195,7 @@ def run_series_bench(plan: SeriesPlan, out: Path, device: torch.device, log: Cal
         log(f"series: {result.model_bytes:,} bytes, {result.seconds:.1f} s, steps {min(psnrs):.2f} .. "
             f"{max(psnrs):.2f} dB")
     done = {r.step for r in rows if r.method == OWN}
-    field_config, train_config = volume_setup(plan.preset, model, plan.iterations, plan.batch_size, device,
-                                              seed=plan.seed)
+    field_config, train_config = volume_setup(plan.preset, model, plan.iterations, plan.batch_size, device, seed=seed)
     for number, t in enumerate(steps, 1):
         if t in done:
             continue
@@ -194,29 +212,33 @@ def run_series_bench(plan: SeriesPlan, out: Path, device: torch.device, log: Cal
         done.add(t)
         log(f"[{number}/{len(steps)}] own model of step {t}: {row.psnr:.2f} dB, {row.file_bytes:,} bytes, "
             f"{row.train_seconds:.1f} s")
-    rows = [r for r in rows if r.method == SERIES or r.step in steps]
-    atomic_write_text(paths["markdown"], series_report(rows, paths["chart"].name), "results table")
-    series_chart(rows, paths["chart"])
-    return rows
+    return [r for r in rows if r.method == SERIES or r.step in steps]
 
 
 @dataclass(frozen=True)
 class SeriesCriteria:
-    """Issue 16's criteria on one series' rows.
+    """Issue 16's criteria on one series' rows (with several seeds, over the seeds' means).
 
     Attributes:
-        steps: the measured steps (those with an own model and the series' figure).
-        differences: series minus own model PSNR of each, dB.
+        steps: the measured steps (those with an own model and the series' figure of at least one seed).
+        seeds: the seeds whose series was trained.
+        own, series: each step's PSNR, mean over the seeds with both figures, dB.
+        differences: series minus own model PSNR of each (of those means), dB.
         between: the same between the voxels, dB.
+        pairs: each step's seeds with both figures, and how many of them have the series at least the own model.
         own_bytes: the largest own model file.
-        series_bytes: the series' file.
+        series_bytes: the largest of the seeds' series files.
         step_seconds: one step's training time: the median of the own models'.
-        series_seconds: the series' training time.
+        series_seconds: the series' training time (the median over the seeds).
     """
 
     steps: list[int]
+    seeds: list[int]
+    own: list[float]
+    series: list[float]
     differences: list[float]
     between: list[float]
+    pairs: list[tuple[int, int]]
     own_bytes: int
     series_bytes: int
     step_seconds: float
@@ -241,56 +263,83 @@ class SeriesCriteria:
 
 
 def series_criteria(rows: list[SeriesStepRow]) -> SeriesCriteria:
-    """The criteria on the rows of one plan (the series' steps and the own models).
+    """The criteria on the rows of one plan (the series' steps and the own models, of one seed or several).
 
     Raises:
         ApmgsrnError: no step has both figures.
     """
-    series = {r.step: r for r in rows if r.method == SERIES}
-    own = {r.step: r for r in rows if r.method == OWN}
-    steps = sorted(set(series) & set(own))
-    if not steps:
+    series = {(r.seed, r.step): r for r in rows if r.method == SERIES}
+    own = {(r.seed, r.step): r for r in rows if r.method == OWN}
+    paired = sorted(set(series) & set(own))
+    if not paired:
         raise ApmgsrnError("no step has both the series' figure and its own model's; run bench series first")
-    first = series[steps[0]]
+    steps = sorted({t for _, t in paired})
+    by_step = {t: [key for key in paired if key[1] == t] for t in steps}
+
+    def mean(table: dict, t: int, value: str) -> float:
+        return statistics.fmean(getattr(table[key], value) for key in by_step[t])
+
+    seeds = sorted({seed for seed, _ in series})
+    own_psnr = [mean(own, t, "psnr") for t in steps]
+    series_psnr = [mean(series, t, "psnr") for t in steps]
     return SeriesCriteria(
-        steps=steps, differences=[series[t].psnr - own[t].psnr for t in steps],
-        between=[series[t].psnr_between - own[t].psnr_between for t in steps],
-        own_bytes=max(own[t].file_bytes for t in steps), series_bytes=first.file_bytes,
-        step_seconds=statistics.median(own[t].train_seconds for t in steps), series_seconds=first.train_seconds)
+        steps=steps, seeds=seeds, own=own_psnr, series=series_psnr,
+        differences=[s - o for s, o in zip(series_psnr, own_psnr)],
+        between=[mean(series, t, "psnr_between") - mean(own, t, "psnr_between") for t in steps],
+        pairs=[(len(by_step[t]), sum(series[key].psnr >= own[key].psnr for key in by_step[t])) for t in steps],
+        own_bytes=max(own[key].file_bytes for key in paired),
+        series_bytes=max(series[seed, steps[0]].file_bytes for seed in seeds if (seed, steps[0]) in series),
+        step_seconds=statistics.median(own[key].train_seconds for key in paired),
+        series_seconds=statistics.median(series[seed, steps[0]].train_seconds for seed in seeds
+                                         if (seed, steps[0]) in series))
 
 
 def series_report(rows: list[SeriesStepRow], chart_name: str) -> str:
     """Markdown: what was measured, the criteria, every measured step, and the chart."""
     criteria = series_criteria(rows)
-    series = {r.step: r for r in rows if r.method == SERIES}
-    own = {r.step: r for r in rows if r.method == OWN}
-    first = series[criteria.steps[0]]
+    several = len(criteria.seeds) > 1
+    first = next(r for r in rows if r.method == SERIES)
     met = criteria.met()
     verdict = ("All three criteria are met." if all(met.values()) else
                "Not met: " + ", ".join(name for name, ok in met.items() if not ok) + ".")
     d, b = criteria.differences, criteria.between
+
+    def worst(method: str, t: int) -> float:
+        return max(r.max_abs_error for r in rows if r.method == method and r.step == t)
+
+    seeds_column = " series >= own model, seed by seed |" if several else ""
     lines = ["| step | file | own model dB | series dB | difference dB | between the voxels: own / series dB | "
-             "max abs error: own / series | own model s |", "|---|---|---|---|---|---|---|---|"]
-    for t, difference in zip(criteria.steps, d):
-        o, s = own[t], series[t]
-        lines.append(f"| {t} | {s.file} | {o.psnr:.2f} | {s.psnr:.2f} | {difference:+.2f} | "
-                     f"{o.psnr_between:.2f} / {s.psnr_between:.2f} | {o.max_abs_error:.3g} / {s.max_abs_error:.3g} | "
-                     f"{o.train_seconds:.1f} |")
+             "max abs error: own / series | own model s |" + seeds_column,
+             "|---|---|---|---|---|---|---|---|" + ("---|" if several else "")]
+    for index, t in enumerate(criteria.steps):
+        own = [r for r in rows if r.method == OWN and r.step == t]
+        ours = [r for r in rows if r.method == SERIES and r.step == t]
+        between = (statistics.fmean(r.psnr_between for r in own), statistics.fmean(r.psnr_between for r in ours))
+        pairs, at_least = criteria.pairs[index]
+        lines.append(f"| {t} | {ours[0].file} | {criteria.own[index]:.2f} | {criteria.series[index]:.2f} | "
+                     f"{d[index]:+.2f} | {between[0]:.2f} / {between[1]:.2f} | "
+                     f"{worst(OWN, t):.3g} / {worst(SERIES, t):.3g} | "
+                     f"{statistics.median(r.train_seconds for r in own):.1f} |"
+                     + (f" {at_least} of {pairs} |" if several else ""))
     loads = sorted({f"{r.load_average:.2f}" for r in rows})
+    seeds = (f"seeds {criteria.seeds[0]} .. {criteria.seeds[-1]}; every figure below is the mean over the seeds "
+             "(a file, the largest; a time, the median)" if several else f"seed {first.seed}")
+    pairs = sum(at_least for _, at_least in criteria.pairs), sum(count for count, _ in criteria.pairs)
+    seed_by_seed = f"; seed by seed, {pairs[0]} of {pairs[1]} pairs" if several else ""
     return f"""# One model for the series against one model per step
 
 Written by `apmgsrn bench series`.
 
 - Data: {first.dataset}.
 - Every model: the {first.model} {first.preset} preset, {first.iterations:,} iterations x {first.batch_size:,} points,
-  seed {first.seed}.
+  {seeds}.
 - The series: trained as `apmgsrn train` trains it (stepwise, packed); the own models: each on its step alone,
   after the series, on the same machine.
 - Machine: {first.cpu}, {first.threads} thread(s); 1-minute load average {loads[0]} .. {loads[-1]}.
 
 | criterion | target | measured |
 |---|---|---|
-| PSNR on every measured step | >= the step's own model | {criteria.steps_at_least} of {len(criteria.steps)} steps; series minus own model {min(d):+.2f} .. {max(d):+.2f} dB (mean {statistics.fmean(d):+.2f}) |
+| PSNR on every measured step | >= the step's own model | {criteria.steps_at_least} of {len(criteria.steps)} steps; series minus own model {min(d):+.2f} .. {max(d):+.2f} dB (mean {statistics.fmean(d):+.2f}){seed_by_seed} |
 | model file | <= {FILE_BOUND} own model files ({FILE_BOUND * criteria.own_bytes:,} bytes) | {criteria.series_bytes:,} bytes ({criteria.files:.2f} files) |
 | training time | <= {TIME_BOUND} x one step ({TIME_BOUND * criteria.step_seconds:.0f} s; one step: the median own model, {criteria.step_seconds:.1f} s) | {criteria.series_seconds:.1f} s ({criteria.times:.2f} x) |
 
@@ -304,12 +353,16 @@ uniformly, against the data's trilinear interpolation), series minus own model: 
 
 
 def series_chart(rows: list[SeriesStepRow], path: Path) -> None:
-    """PSNR of every step of the series, and of the own models at the measured steps."""
-    series = {r.step: r.psnr for r in rows if r.method == SERIES}
-    own = {r.step: r.psnr for r in rows if r.method == OWN}
+    """PSNR of every step of the series, and of the own models at the measured steps (means over the seeds)."""
+    series, own = {}, {}
+    for r in rows:
+        (series if r.method == SERIES else own).setdefault(r.step, []).append(r.psnr)
     steps = sorted(series)
-    lines = {"one model for the series": [series[t] for t in steps],
-             "one model per step (measured steps)": [own.get(t, math.nan) for t in steps]}
+    seeds = len({r.seed for r in rows if r.method == SERIES})
+    mean = f" (mean of {seeds} seeds)" if seeds > 1 else ""
+    lines = {f"one model for the series{mean}": [statistics.fmean(series[t]) for t in steps],
+             f"one model per step (measured steps){mean}": [statistics.fmean(own[t]) if t in own else math.nan
+                                                            for t in steps]}
     first = next(r for r in rows if r.method == SERIES)
     psnr_over_time_chart(steps, lines, path, title=f"{first.model} {first.preset}: PSNR of every step")
 

@@ -87,7 +87,9 @@ def register(subparsers) -> None:
     series.add_argument("--steps", type=_step_list, metavar="K,K,...",
                         help="step indices measured against their own models (default: 7 evenly spaced, the "
                              "first and last among them; every step of a shorter series)")
-    series.add_argument("--seed", type=int, default=0)
+    series.add_argument("--seeds", type=int, default=1,
+                        help="train the series and every own model with seeds 0..K-1 and compare their means "
+                             "(default 1)")
     _add_budget(series, None, None)
     series.add_argument("--out", default="bench-series", help="results folder (default bench-series); "
                         "its CSV is extended, its report and chart rewritten, and its models reused")
@@ -190,7 +192,7 @@ def run_series_command(args: argparse.Namespace) -> int:
     from apmgsrn.device import resolve_device
 
     plan = SeriesPlan(data=tuple(args.data), **volume_options(args, allow_series=True), model=args.model,
-                      preset=args.preset, iterations=args.iterations, batch_size=args.batch_size, seed=args.seed,
+                      preset=args.preset, iterations=args.iterations, batch_size=args.batch_size, seeds=args.seeds,
                       steps=args.steps)
     out = Path(args.out)
     run_series_bench(plan, out, resolve_device(args.device), log=_log)
