@@ -288,7 +288,7 @@ def test_train_with_qat_iterations_records_them_and_counts_them(pattern, tmp_pat
     iterations, and 0 turns the fine-tune off."""
     common = [pattern, "--model", "hybrid", "--levels", "6", "--log2-table-size", "10", "--grids", "4",
               "--resolution", "8", "--width", "16", "--iterations", "100", "--batch-size", "2048", "--device", "cpu",
-              "--bits", "6", "--json"]
+              "--bits", "6", "--step-iterations", "10", "--json"]  # the base: no spare budget shared to the steps
     assert main(["train", *common, "--qat-iterations", "0", "--out", str(tmp_path / "plain.apmgsrn")]) == 0
     plain = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert apmgsrn.load(tmp_path / "plain.apmgsrn").description.packing.report["qat_iterations"] == 0

@@ -80,7 +80,18 @@ def test_every_step_is_trained_once_from_a_neighbour_already_trained(start, step
     assert distances == sorted(distances)
 
 
-def test_steps_share_the_decoder_and_each_fits_its_own_data(trained, truth):
+@pytest.fixture(scope="module")
+def at_the_base(prepared):
+    """The series of ``trained`` with every step at the base fine-tune (no budget left over to spend: with it, a
+    step's longer fine-tune can fit the start step's data better than the start model, which gets none)."""
+    config = stepwise_config(TINY, 4)
+    base = StepwiseConfig().base_iterations(TRAIN)
+    return train_stepwise(prepared, config, TRAIN, (32, 32, 32), stepwise=StepwiseConfig(start=1, step_iterations=base),
+                          show_progress=False)
+
+
+def test_steps_share_the_decoder_and_each_fits_its_own_data(at_the_base, truth):
+    trained = at_the_base
     field = trained.field
     assert field.config.series.per_step_grids and field.steps == 4
     # The start model's iterations and every step's fine-tune are counted.
@@ -125,6 +136,30 @@ def test_the_step_config_fine_tunes_grids_only_longer_the_more_a_step_changes():
     fewer = StepwiseConfig().step_config(replace(start, batch_size=32768), 2.0, batch_share=0.375,
                                          point_share=0.9)
     assert (fewer.iterations, fewer.batch_size) == (960, 12288) and fewer.density_start > fewer.iterations
+
+
+def test_a_short_series_spends_the_budget_its_steps_leave():
+    """A series whose steps after the start, at their change factors, and the fine-tune towards the packing take
+    less than the budget of budget_scale gets the rest, shared in proportion to the factors: the total then fills
+    the budget exactly. A series the budget shortens, or one whose step iterations were given, gets none."""
+    start = TrainConfig(iterations=2000, batch_size=32768)
+    cap = (series_steps.STEPS_BUDGET_CAP - series_steps.START_POINT_COST * 0.4) * 2000
+    fixed = series_steps.STEP_FIXED_COST
+    tuned = StepwiseConfig(qat_iterations=250)
+    for factors in ([10.0, 10.0], [1.0] * 14, [1.0, 4.0, 10.0]):
+        steps = len(factors)
+        spare = tuned.spare_factor(start, factors, 0.375, 0.9, 1.4)
+        longer = series_steps.spend_spare(factors, spare)
+        assert spare > 0 and all(b > a for a, b in zip(factors, longer))
+        assert longer[0] / factors[0] == pytest.approx(longer[-1] / factors[-1])  # in proportion
+        points = sum(longer) * 200 * 0.9 + (steps + 1) * 250 * 0.375 + (steps + 1) * fixed
+        assert points == pytest.approx(cap)
+        assert max(longer) <= tuned.largest_factor(start, steps, 0.9, 1.4)
+    # 29 steps (the 30-step default) are shortened by the budget: nothing spare
+    assert tuned.budget_scale(start, 29, 0.375, 0.9, 1.4) < 1
+    assert tuned.spare_factor(start, [1.0] * 29, 0.375, 0.9, 1.4) == 0.0
+    assert StepwiseConfig(step_iterations=200).spare_factor(start, [1.0, 1.0]) == 0.0
+    assert series_steps.spend_spare([2.0, 1.0], 0.0) == [2.0, 1.0]
 
 
 def test_a_long_series_shortens_every_step_to_stay_within_the_budget():
@@ -211,7 +246,12 @@ def test_a_run_gives_every_step_its_evened_factor(prepared, monkeypatch):
     run = train_stepwise(prepared, stepwise_config(TINY, 4), TRAIN, (32, 32, 32), stepwise=StepwiseConfig(start=1),
                          show_progress=False)
     base = StepwiseConfig().base_iterations(TRAIN)
-    assert run.summary["stepwise"]["step_iterations"] == [round(base * 1.25), 0, round(base * 1.25), base * 6]
+    evened = [1.25, 1.25, 6.0]  # steps 0, 2, 3 in training order
+    spare = StepwiseConfig().spare_factor(TRAIN, evened)
+    assert spare > 0  # 3 short steps leave most of the budget: shared out in proportion to the evened factors
+    longer = [round(base * f) for f in series_steps.spend_spare(evened, spare)]
+    assert run.summary["stepwise"]["step_iterations"] == [longer[0], 0, longer[1], longer[2]]
+    assert longer[2] / longer[0] == pytest.approx(6.0 / 1.25, rel=0.05)
 
 
 def test_bad_stepwise_options_are_refused():
