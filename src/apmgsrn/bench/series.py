@@ -28,7 +28,7 @@ import os
 import platform
 import statistics
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -145,19 +145,20 @@ def run_series_bench(plan: SeriesPlan, out: Path, device: torch.device, log: Cal
     Raises:
         ApmgsrnError: unreadable data, a step outside the series, an invalid option, another version's CSV.
     """
+    setup = series_setup(list(plan.data), plan.preset, plan.model, plan.iterations, plan.batch_size, device,
+                         plan.variable, plan.time, plan.fill_nonfinite, plan.shape, plan.dtype)
+    steps = list(plan.steps) if plan.steps is not None else measured_steps(len(setup.series))
+    outside = [t for t in steps if not 0 <= t < len(setup.series)]
+    if outside:
+        raise ApmgsrnError(f"step {outside[0]} is not in the series: it has steps 0 .. {len(setup.series) - 1}",
+                           arguments=("steps",))
+    prepare_folder(out)
     paths = series_bench_paths(Path(out))
     rows: list[SeriesStepRow] = []
-    for seed in range(plan.seeds):
-        setup = series_setup(list(plan.data), plan.preset, plan.model, plan.iterations, plan.batch_size, device,
-                             plan.variable, plan.time, plan.fill_nonfinite, plan.shape, plan.dtype, seed=seed)
-        steps = list(plan.steps) if plan.steps is not None else measured_steps(len(setup.series))
-        outside = [t for t in steps if not 0 <= t < len(setup.series)]
-        if outside:
-            raise ApmgsrnError(f"step {outside[0]} is not in the series: it has steps 0 .. {len(setup.series) - 1}",
-                               arguments=("steps",))
-        prepare_folder(out)
+    for seed in range(plan.seeds):  # the seed sets only the training (the series and its packing are the same)
+        seeded = replace(setup, train_config=replace(setup.train_config, seed=seed))
         label = f"seed {seed}: " if plan.seeds > 1 else ""
-        rows += _run_seed(plan, setup, seed, steps, paths, device, lambda line, label=label: log(label + line),
+        rows += _run_seed(plan, seeded, seed, steps, paths, device, lambda line, label=label: log(label + line),
                           progress)
     atomic_write_text(paths["markdown"], series_report(rows, paths["chart"].name), "results table")
     series_chart(rows, paths["chart"])
@@ -223,8 +224,8 @@ class SeriesCriteria:
         steps: the measured steps (those with an own model and the series' figure of at least one seed).
         seeds: the seeds whose series was trained.
         own, series: each step's PSNR, mean over the seeds with both figures, dB.
+        own_between, series_between: the same between the voxels, dB.
         differences: series minus own model PSNR of each (of those means), dB.
-        between: the same between the voxels, dB.
         pairs: each step's seeds with both figures, and how many of them have the series at least the own model.
         own_bytes: the largest own model file.
         series_bytes: the largest of the seeds' series files.
@@ -236,13 +237,19 @@ class SeriesCriteria:
     seeds: list[int]
     own: list[float]
     series: list[float]
+    own_between: list[float]
+    series_between: list[float]
     differences: list[float]
-    between: list[float]
     pairs: list[tuple[int, int]]
     own_bytes: int
     series_bytes: int
     step_seconds: float
     series_seconds: float
+
+    @property
+    def between(self) -> list[float]:
+        """Series minus own model between the voxels, each step, dB."""
+        return [s - o for s, o in zip(self.series_between, self.own_between)]
 
     @property
     def steps_at_least(self) -> int:
@@ -284,8 +291,9 @@ def series_criteria(rows: list[SeriesStepRow]) -> SeriesCriteria:
     series_psnr = [mean(series, t, "psnr") for t in steps]
     return SeriesCriteria(
         steps=steps, seeds=seeds, own=own_psnr, series=series_psnr,
+        own_between=[mean(own, t, "psnr_between") for t in steps],
+        series_between=[mean(series, t, "psnr_between") for t in steps],
         differences=[s - o for s, o in zip(series_psnr, own_psnr)],
-        between=[mean(series, t, "psnr_between") - mean(own, t, "psnr_between") for t in steps],
         pairs=[(len(by_step[t]), sum(series[key].psnr >= own[key].psnr for key in by_step[t])) for t in steps],
         own_bytes=max(own[key].file_bytes for key in paired),
         series_bytes=max(series[seed, steps[0]].file_bytes for seed in seeds if (seed, steps[0]) in series),
@@ -313,11 +321,9 @@ def series_report(rows: list[SeriesStepRow], chart_name: str) -> str:
              "|---|---|---|---|---|---|---|---|" + ("---|" if several else "")]
     for index, t in enumerate(criteria.steps):
         own = [r for r in rows if r.method == OWN and r.step == t]
-        ours = [r for r in rows if r.method == SERIES and r.step == t]
-        between = (statistics.fmean(r.psnr_between for r in own), statistics.fmean(r.psnr_between for r in ours))
         pairs, at_least = criteria.pairs[index]
-        lines.append(f"| {t} | {ours[0].file} | {criteria.own[index]:.2f} | {criteria.series[index]:.2f} | "
-                     f"{d[index]:+.2f} | {between[0]:.2f} / {between[1]:.2f} | "
+        lines.append(f"| {t} | {own[0].file} | {criteria.own[index]:.2f} | {criteria.series[index]:.2f} | "
+                     f"{d[index]:+.2f} | {criteria.own_between[index]:.2f} / {criteria.series_between[index]:.2f} | "
                      f"{worst(OWN, t):.3g} / {worst(SERIES, t):.3g} | "
                      f"{statistics.median(r.train_seconds for r in own):.1f} |"
                      + (f" {at_least} of {pairs} |" if several else ""))
