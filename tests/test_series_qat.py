@@ -7,6 +7,7 @@ import copy
 import json
 import types
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,10 +20,13 @@ from apmgsrn.errors import ApmgsrnError, InvalidArgument
 from apmgsrn.inference.evaluate import evaluate_series
 from apmgsrn.models.registry import preset_config
 from apmgsrn.training.fit import prepare_values
+from apmgsrn.training.series_decoder import fine_tune_decoder
 from apmgsrn.training.series_packing import (
+    DEFAULT_SERIES_DECODER_SHARE_OF,
     DEFAULT_SERIES_QAT_SHARE_OF,
     TUNED_BYTES_MARGIN,
     SeriesPacking,
+    default_series_decoder,
     default_series_qat,
     pack_series,
     packed_series_field,
@@ -272,7 +276,8 @@ def test_train_fine_tunes_towards_the_packing_as_long_as_the_room_allows(pattern
     monkeypatch.setattr(series_qat, "fine_tune_rounded", spy)
     assert main(["train", pattern, "--model", "hybrid", "--levels", "6", "--log2-table-size", "10", "--grids", "4",
                  "--resolution", "8", "--width", "16", "--iterations", "60", "--batch-size", "2048", "--device",
-                 "cpu", "--bits", "6", "--qat-iterations", "30", "--json", "--out", str(tmp_path / "s.apmgsrn")]) == 0
+                 "cpu", "--bits", "6", "--qat-iterations", "30", "--decoder-iterations", "0", "--json",
+                 "--out", str(tmp_path / "s.apmgsrn")]) == 0
     capsys.readouterr()
     description = apmgsrn.load(tmp_path / "s.apmgsrn").description
     assert calls == ([iterations] if iterations else [])
@@ -288,7 +293,8 @@ def test_train_with_qat_iterations_records_them_and_counts_them(pattern, tmp_pat
     iterations, and 0 turns the fine-tune off."""
     common = [pattern, "--model", "hybrid", "--levels", "6", "--log2-table-size", "10", "--grids", "4",
               "--resolution", "8", "--width", "16", "--iterations", "100", "--batch-size", "2048", "--device", "cpu",
-              "--bits", "6", "--step-iterations", "10", "--json"]  # the base: no spare budget shared to the steps
+              "--bits", "6", "--step-iterations", "10", "--decoder-iterations", "0",
+              "--json"]  # the base: no spare budget shared to the steps
     assert main(["train", *common, "--qat-iterations", "0", "--out", str(tmp_path / "plain.apmgsrn")]) == 0
     plain = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert apmgsrn.load(tmp_path / "plain.apmgsrn").description.packing.report["qat_iterations"] == 0
@@ -328,7 +334,8 @@ def test_a_long_series_shortens_its_fine_tune_towards_the_packing_with_its_steps
     monkeypatch.setattr(series_steps, "STEPS_BUDGET_CAP", (30 + 4 * series_steps.STEP_FIXED_COST) / 100 + extra)
     assert main(["train", pattern, "--model", "hybrid", "--levels", "6", "--log2-table-size", "10", "--grids", "4",
                  "--resolution", "8", "--width", "16", "--iterations", "100", "--batch-size", "2048", "--device",
-                 "cpu", "--bits", "6", "--qat-iterations", "40", "--json", "--out", str(tmp_path / "s.apmgsrn")]) == 0
+                 "cpu", "--bits", "6", "--qat-iterations", "40", "--decoder-iterations", "0", "--json",
+                 "--out", str(tmp_path / "s.apmgsrn")]) == 0
     capsys.readouterr()
     description = apmgsrn.load(tmp_path / "s.apmgsrn").description
     stepwise = description.training["stepwise"]
@@ -399,3 +406,149 @@ def test_pack_with_qat_iterations_refuses_a_joint_series_in_one_line(pattern, tm
     err = capsys.readouterr().err
     assert "a joint series has no grids of its own per step" in err and err.count("\n") == 1
     assert not out.exists()
+
+
+def test_the_decoder_fine_tuned_to_the_coded_grids_fits_the_real_steps_closer(hybrid_series, prepared, pattern):
+    """The shared decoder alone trained on all four packed steps at once: the series fits them closer (every
+    step's error relative to before falls, on the mean), and every grid, level table and placement is what the
+    file gives back, untouched."""
+    truth = open_series(pattern)
+    field = copy.deepcopy(hybrid_series)
+    packed = pack_series(field, 5)
+    field.load_state_dict(packed.state)
+    before = evaluate_series(field.step_field, truth)
+    ran, seconds = fine_tune_decoder(field, prepared.values, CONFIG, 60)
+    assert ran == 60 and seconds > 0
+    after = evaluate_series(field.step_field, truth)
+    gains = [a.psnr - b.psnr for a, b in zip(after.steps, before.steps)]
+    assert sum(gains) / len(gains) > 0.05, gains
+    for name, value in packed.state.items():
+        if not name.startswith("decoder."):
+            assert torch.equal(value, field.state_dict()[name]), name
+    assert any(not torch.equal(packed.state[name], value) for name, value in field.state_dict().items()
+               if name.startswith("decoder."))
+
+
+def test_a_decoder_fine_tune_that_fits_worse_is_put_back(hybrid_series, prepared):
+    """At a learning rate far too large the fine-tune ends with a larger error: the decoder is put back exactly
+    and no iteration is counted."""
+    field = copy.deepcopy(hybrid_series)
+    kept = copy.deepcopy(field.state_dict())
+    ran, _ = fine_tune_decoder(field, prepared.values, replace(CONFIG, lr=50.0), 20)
+    assert ran == 0
+    assert all(torch.equal(value, field.state_dict()[name]) for name, value in kept.items())
+    assert all(p.requires_grad for p in field.parameters())  # as it came
+
+
+def test_tune_decoder_packs_the_same_integers_with_the_new_decoder(hybrid_series, prepared):
+    """SeriesPacking.tune_decoder: the field holds the packing's values, the fine-tune changes only the decoder, and
+    the new packing codes every quantised tensor to the same bytes; nothing runs without decoder_iterations."""
+    field = copy.deepcopy(hybrid_series)
+    packing = SeriesPacking(5, min_bits=5, decoder_iterations=40)
+    packed = packing.pack(field)
+    calls = []
+
+    def tune(iterations):
+        calls.append(iterations)
+        return fine_tune_decoder(field, prepared.values, CONFIG, iterations)[0]
+
+    again, ran = packing.tune_decoder(field, packed, tune)
+    assert calls == [40] and ran == 40
+    quantized = {t.name: t.data for t in packed.tensors if t.encoding == "quantized"}
+    assert quantized and {t.name: t.data for t in again.tensors if t.name in quantized} == quantized
+    assert all(torch.equal(again.state[name], value) for name, value in field.state_dict().items())
+    assert not torch.equal(again.state["decoder.0.weight"], packed.state["decoder.0.weight"])
+    assert abs(again.parameter_bytes - packed.parameter_bytes) < 0.01 * packed.parameter_bytes
+    untouched = copy.deepcopy(hybrid_series)
+    same, none = replace(packing, decoder_iterations=0).tune_decoder(untouched, packed, tune)
+    assert same is packed and none == 0 and calls == [40]
+    assert all(torch.equal(packed.state[name], value) for name, value in untouched.state_dict().items())
+
+
+def test_a_packing_past_its_target_still_takes_the_fine_tuned_decoder(hybrid_series, prepared):
+    """The default cap is not strict: where not even min_bits fits, the series is packed there anyway, and the
+    decoder's fine-tune is kept if its weights code within the room a packing inside the target would leave."""
+    field = copy.deepcopy(hybrid_series)
+    packing = SeriesPacking(5, 4000, min_bits=5, strict=False, decoder_iterations=40)
+    packed = packing.pack(field)
+    assert packed.parameter_bytes > parameter_budget(4000, 4)
+    again, ran = packing.tune_decoder(field, packed,
+                                      lambda n: fine_tune_decoder(field, prepared.values, CONFIG, n)[0])
+    assert ran == 40 and again is not packed
+    assert not torch.equal(again.state["decoder.0.weight"], packed.state["decoder.0.weight"])
+
+
+def test_a_packing_whose_decoder_is_fine_tuned_after_coding_leaves_it_room(hybrid_series, monkeypatch):
+    """With decoder_iterations the coded parameters fit DECODER_BYTES_MARGIN of the decoder's float32 bytes inside
+    the target (its fine-tuned weights code a few bytes larger or smaller), here a margin made large enough to
+    cost a finer bit width; the model kind's default is a share of the iterations."""
+    from apmgsrn.training import series_packing
+
+    monkeypatch.setattr(series_packing, "DECODER_BYTES_MARGIN", 3.0)
+    decoder_bytes = 4 * sum(p.numel() for p in hybrid_series.decoder.parameters())
+    eight = pack_series(hybrid_series, 8, series_sensitivity(hybrid_series))
+    target = eight.parameter_bytes + 1024 + 64 * 4  # 8 bits fit, to the byte
+    budget = parameter_budget(target, 4)
+    plain = SeriesPacking(8, target, 2).pack(hybrid_series)
+    room = SeriesPacking(8, target, 2, decoder_iterations=10).pack(hybrid_series)
+    assert plain.bit_width == 8 and plain.parameter_bytes <= budget
+    assert room.bit_width < 8 and room.parameter_bytes <= budget - 3 * decoder_bytes
+    assert default_series_decoder("hybrid", 2000) == round(2000 * DEFAULT_SERIES_DECODER_SHARE_OF["hybrid"]) > 0
+    assert default_series_decoder("apmgsrn", 2000) == 0
+    with pytest.raises(InvalidArgument):
+        SeriesPacking(decoder_iterations=-1)
+
+
+def test_train_fine_tunes_the_decoder_to_the_coded_grids_and_counts_it(pattern, tmp_path, capsys, monkeypatch):
+    """``train`` of a hybrid series fine-tunes the decoder by default (its share of --iterations),
+    ``--decoder-iterations N`` sets how long and 0 turns it off; the file records the iterations kept (none where
+    the decoder was put back) and ``info`` names them, the training counts them, and the series fits its steps
+    closer in about the same bytes."""
+    from apmgsrn.training import series_qat
+
+    calls = []
+
+    def spy(*args, **kwargs):
+        ran, seconds = fine_tune_decoder(*args, **kwargs)
+        calls.append((args[3], ran))
+        return ran, seconds
+
+    monkeypatch.setattr(series_qat, "fine_tune_decoder", spy)
+    common = [pattern, "--model", "hybrid", "--levels", "6", "--log2-table-size", "10", "--grids", "4",
+              "--resolution", "8", "--width", "16", "--iterations", "100", "--batch-size", "2048", "--device", "cpu",
+              "--bits", "6", "--step-iterations", "10", "--qat-iterations", "10", "--json"]
+    runs = {}
+    for name, option in (("plain", ["--decoder-iterations", "0"]), ("default", []),
+                         ("tuned", ["--decoder-iterations", "60"])):
+        assert main(["train", *common, *option, "--out", str(tmp_path / f"{name}.apmgsrn")]) == 0
+        runs[name] = (json.loads(capsys.readouterr().out.strip().splitlines()[-1]),
+                      apmgsrn.load(tmp_path / f"{name}.apmgsrn").description)
+    default = default_series_decoder("hybrid", 100)
+    assert [asked for asked, _ in calls] == [default, 60]
+    report = {name: description.packing.report["decoder_iterations"] for name, (_, description) in runs.items()}
+    assert report == {"plain": 0, "default": calls[0][1], "tuned": 60}
+    iterations = {name: description.training["iterations"] for name, (_, description) in runs.items()}
+    assert iterations["tuned"] == iterations["plain"] + 60
+    assert runs["tuned"][0]["psnr"] > runs["plain"][0]["psnr"]
+    assert abs(runs["tuned"][0]["model_bytes"] - runs["plain"][0]["model_bytes"]) < 0.01 * runs["plain"][0][
+        "model_bytes"]
+    assert main(["info", str(tmp_path / "tuned.apmgsrn")]) == 0
+    assert "decoder fine-tuned 60 iterations" in capsys.readouterr().out
+
+
+def test_decoder_iterations_are_refused_where_no_decoder_is_fine_tuned(pattern, tmp_path, capsys):
+    """--decoder-iterations on a float series file, a joint series, one volume, or below 0: a one-line error
+    naming it, exit code 2, no file."""
+    common = [pattern, "--model", "hybrid", "--iterations", "10", "--device", "cpu"]
+    for extra, named in ((["--storage", "float32"], "--storage"), (["--series-training", "joint"], "joint"),
+                         (["--bits", "6"], "--decoder-iterations")):
+        value = "-1" if named == "--decoder-iterations" else "5"
+        assert main(["train", *common, *extra, "--decoder-iterations", value,
+                     "--out", str(tmp_path / "s.apmgsrn")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "--decoder-iterations" in err and named in err, err
+    one_step = sorted(Path(pattern).parent.glob("*.vti"))[0]
+    assert main(["train", str(one_step), "--iterations", "10", "--decoder-iterations", "5",
+                 "--out", str(tmp_path / "v.apmgsrn")]) == 2
+    assert "--decoder-iterations applies to a time series" in capsys.readouterr().err
+    assert not list(tmp_path.glob("*.apmgsrn"))

@@ -65,6 +65,7 @@ FLAGS = {
     "start": "--start-step",
     "step_iterations": "--step-iterations",
     "step_sparsity": "--step-sparsity",
+    "decoder_iterations": "--decoder-iterations",
     # packing
     "bits": "--bits",
     "psnr_loss": "--psnr-loss",

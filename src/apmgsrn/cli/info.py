@@ -125,7 +125,9 @@ def packing_lines(packing: dict) -> list[str]:
              f"{report.get('float32_psnr', float('nan')):.2f} dB float32 (cost {report.get('psnr_cost', float('nan')):.3f}"
              f" dB, measured when packed), fine-tune {report.get('qat_iterations') or 0} iterations"
              + (f" (undone on {report['qat_restored_steps']} step(s) to fit the size)"
-                if isinstance(report.get("qat_restored_steps"), int) and report["qat_restored_steps"] > 0 else "")]
+                if isinstance(report.get("qat_restored_steps"), int) and report["qat_restored_steps"] > 0 else "")
+             + (f", decoder fine-tuned {report['decoder_iterations']} iterations"
+                if isinstance(report.get("decoder_iterations"), int) and report["decoder_iterations"] > 0 else "")]
     if packing["max_error"] is not None:
         lines.append(f"error bound     |model - data| <= {packing['max_error']:.6g} at every voxel: "
                      f"{packing['corrected_voxels']:,} voxels corrected, {packing['correction_bytes']:,} bytes")

@@ -22,7 +22,7 @@ STEP_FIELD = "{step}"
 #: Options of a joint series model (refused for stepwise training).
 JOINT_OPTIONS = ("basis", "coefficients", "residual", "steps_per_iteration")
 #: Options of a stepwise series (refused for a joint one).
-STEPWISE_OPTIONS = ("start_step", "step_iterations", "step_sparsity")
+STEPWISE_OPTIONS = ("start_step", "step_iterations", "step_sparsity", "decoder_iterations")
 
 
 def add_series_arguments(parser: argparse.ArgumentParser) -> None:
@@ -50,6 +50,11 @@ def add_series_arguments(parser: argparse.ArgumentParser) -> None:
                        help="stepwise: pull every step's features back to its neighbour's while it is fine-tuned "
                             "(an L1 proximal step of S x the learning rate per iteration; default 0.01 for a hybrid "
                             "series, 0 for APMGSRN): fewer bytes per step in the packed file, a looser fit "
+                            "(docs/time_series.md)")
+    group.add_argument("--decoder-iterations", type=int, metavar="N",
+                       help="stepwise, packed: iterations of a fine-tune of the shared decoder alone to the grids as "
+                            "the file stores them, on all steps at once (default: 0.15 x --iterations for a hybrid "
+                            "series, none for APMGSRN; 0 turns it off): no extra bytes, about 10 s more on a CPU "
                             "(docs/time_series.md)")
     group.add_argument("--basis", type=int, metavar="K",
                        help=f"joint: basis grids shared by the steps (default {SERIES_DEFAULTS['basis']}, at most "
@@ -197,20 +202,21 @@ def series_training(args: argparse.Namespace, config, raw_bytes: int, shape: tup
         config: the series model (sizes the default packing).
         raw_bytes: the series' bytes as float32 (``--ratio`` divides them).
         shape: ``(D, H, W)`` of every step (sizes a hybrid's tables, hence the default packing).
-        iterations: the start model's (the default quantisation-aware fine-tune is a share of them).
+        iterations: the start model's (the default quantisation-aware and decoder fine-tunes are shares of them).
 
     Raises:
         ApmgsrnError: a packing option a series does not take, packing with --storage, or a bad --start-step.
     """
     from apmgsrn.cli.pack import JOINT_SERIES_QAT, series_packing
-    from apmgsrn.training.series_packing import default_series_packing, default_series_qat
+    from apmgsrn.training.series_packing import default_series_decoder, default_series_packing, default_series_qat
     from apmgsrn.training.series_steps import StepwiseConfig
 
     packing = series_packing(args, raw_bytes)
     qat = args.qat_iterations  # None: the model kind's default
-    if (packing is not None or qat) and args.storage is not None:
-        raise ApmgsrnError("--bits, --size, --ratio and --qat-iterations pack the grids, --storage keeps them "
-                           "unpacked: give one")
+    decoder = args.decoder_iterations  # None: the model kind's default
+    if (packing is not None or qat or decoder) and args.storage is not None:
+        raise ApmgsrnError("--bits, --size, --ratio, --qat-iterations and --decoder-iterations pack the grids, "
+                           "--storage keeps them unpacked: give one")
     if args.series_training == "joint":
         if qat:
             raise ApmgsrnError(JOINT_SERIES_QAT)
@@ -224,9 +230,11 @@ def series_training(args: argparse.Namespace, config, raw_bytes: int, shape: tup
     stepwise = StepwiseConfig(start=start, step_iterations=args.step_iterations, step_sparsity=args.step_sparsity)
     if qat is None:
         qat = default_series_qat(config.field.model, iterations)
+    if decoder is None:
+        decoder = default_series_decoder(config.field.model, iterations)
     if packing is None and args.storage is None:
         packing = default_series_packing(config, shape, iterations)
-    return stepwise, packing if packing is None else replace(packing, qat_iterations=qat)
+    return stepwise, packing if packing is None else replace(packing, qat_iterations=qat, decoder_iterations=decoder)
 
 
 def build_series_config(args: argparse.Namespace, field_config, steps: int):

@@ -279,12 +279,14 @@ def _fit_region(job: BrickJob, region: np.ndarray, device: torch.device, worker:
         steps = [SeriesStepInfo(label, job.volume.step_name(t), (float(region[t].min()), float(region[t].max())))
                  for t, label in enumerate(job.volume.labels)]
     # A series trained stepwise: its steps' fine-tunes and the one towards the packing share one budget.
-    stepwise, packing, tune_packed = budgeted(job.stepwise, job.packing, job.train_config, region.shape[0],
-                                              job.field_config, device, show_progress=False)
+    stepwise, packing, tune_packed, tune_decoder = budgeted(job.stepwise, job.packing, job.train_config,
+                                                            region.shape[0], job.field_config, device,
+                                                            show_progress=False)
     # A brick always resumes its own checkpoint: the job may be a retry after a crash.
     result = fit(prepared, region, job.field_config, job.train_config, Path(job.model_path), job.source,
                  fingerprint, resume=True, psnr_voxels=job.psnr_voxels, summary_extra={"brick": box}, steps=steps,
-                 train=series_trainer(stepwise, show_progress=False), packing=packing, tune_packed=tune_packed)
+                 train=series_trainer(stepwise, show_progress=False), packing=packing, tune_packed=tune_packed,
+                 tune_decoder=tune_decoder)
     peak_device = int(torch.cuda.max_memory_allocated(device)) if device.type == "cuda" else 0
     return BrickResult(
         name=brick.name,

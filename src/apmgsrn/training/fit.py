@@ -249,6 +249,7 @@ def fit(
     train: Callable[..., TrainedField] = train_prepared,
     packing: SeriesPacking | None = None,
     tune_packed: Callable[..., tuple[int, float]] | None = None,
+    tune_decoder: Callable[..., tuple[int, float]] | None = None,
 ) -> FitResult:
     """Train a field on prepared values, measure it against the truth and save it to ``out``.
 
@@ -274,6 +275,8 @@ def fit(
             config's storage dtype).
         tune_packed: a series packed with ``qat_iterations``: fine-tunes the field towards its first packing
             (:func:`~apmgsrn.training.series_qat.fine_tune_rounded`'s signature, less ``show_progress``).
+        tune_decoder: a series packed with ``decoder_iterations``: fine-tunes its decoder to the coded grids
+            (:func:`~apmgsrn.training.series_decoder.fine_tune_decoder`'s signature, less ``show_progress``).
 
     Raises:
         TrainingInterrupted: Ctrl-C in training or in a series' packing, with a checkpoint to resume from.
@@ -297,12 +300,20 @@ def fit(
                 packed = packing.pack(trained.field)
                 if packing.qat_iterations and tune_packed is None:
                     raise ValueError("packing.qat_iterations needs tune_packed")
+                if packing.decoder_iterations and tune_decoder is None:
+                    raise ValueError("packing.decoder_iterations needs tune_decoder")
 
                 def tune(to: PackedSeries, iterations: int) -> None:  # towards the packing's steps
                     ran, _ = tune_packed(trained.field, prepared.values, to, train_config, iterations)
                     trained.state.iteration += ran
 
                 packed, tuned = packing.fine_tune(trained.field, packed, tune)
+
+                def decoder(iterations: int) -> int:  # to the grids as coded
+                    return tune_decoder(trained.field, prepared.values, train_config, iterations)[0]
+
+                packed, decoder_tuned = packing.tune_decoder(trained.field, packed, decoder)
+                trained.state.iteration += decoder_tuned
             except KeyboardInterrupt:  # the checkpoint holds the training: a resume packs again
                 if not checkpoint.exists():
                     raise
@@ -312,7 +323,7 @@ def fit(
         evaluation = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
         if packed is not None:
             report = series_packing_report(trained.field, packed.bit_width, before, evaluation, packing.target_bytes,
-                                           tuned, len(packed.restored))
+                                           tuned, len(packed.restored), decoder_tuned)
         summary_extra = {"steps": [{"psnr": e.psnr, "max_abs_error": e.max_abs_error} for e in evaluation.steps],
                          **(summary_extra or {})}
     else:

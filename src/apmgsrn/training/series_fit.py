@@ -80,9 +80,9 @@ def fit_series(
     fingerprint = {"data": series_fingerprint(series), "field": field_config.to_dict(),
                    "transform": asdict(prepared.transform)}
     # Stepwise, the steps' fine-tunes and the one towards the packing share one budget.
-    stepwise, packing, tune_packed = budgeted(stepwise, packing, train_config, len(series), field_config, device,
-                                              progress)
+    stepwise, packing, tune_packed, tune_decoder = budgeted(stepwise, packing, train_config, len(series),
+                                                            field_config, device, progress)
     display = TrainingProgress("train" if stepwise is None else "start step", enabled=progress)
     return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
                callbacks=[display], steps=steps, packing=packing, train=series_trainer(stepwise, progress),
-               tune_packed=tune_packed)
+               tune_packed=tune_packed, tune_decoder=tune_decoder)

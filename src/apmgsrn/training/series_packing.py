@@ -306,6 +306,8 @@ class SeriesPacking:
             default cap of ``train`` does).
         qat_iterations: a quantisation-aware fine-tune of every step before coding, this many iterations each
             (:mod:`apmgsrn.training.series_qat`; 0: none). Needs the data: ``train`` runs it.
+        decoder_iterations: a fine-tune of the shared decoder to the grids as coded, on all steps at once, this
+            many iterations (:mod:`apmgsrn.training.series_decoder`; 0: none). Needs the data: ``train`` runs it.
     """
 
     bits: int = DEFAULT_SERIES_BITS
@@ -313,12 +315,14 @@ class SeriesPacking:
     min_bits: int = MIN_BITS
     strict: bool = True
     qat_iterations: int = 0
+    decoder_iterations: int = 0
 
     def __post_init__(self) -> None:
         """Refuse values packing cannot run with (:class:`~apmgsrn.errors.InvalidArgument`)."""
         check_int("bits", self.bits, MIN_BITS, MAX_BITS)
         check_int("min_bits", self.min_bits, MIN_BITS, self.bits)
         check_int("qat_iterations", self.qat_iterations, 0)
+        check_int("decoder_iterations", self.decoder_iterations, 0)
         if self.target_bytes is not None:
             check_int("target_bytes", self.target_bytes, 1)
 
@@ -371,6 +375,38 @@ class SeriesPacking:
             packed = self.repack(field, packed, before)
         return packed, iterations
 
+    def tune_decoder(self, field: SeriesField, packed: PackedSeries, tune: Callable[[int], int]
+                     ) -> tuple[PackedSeries, int]:
+        """``field`` set to what ``packed`` (its final packing) gives back, its decoder fine-tuned for
+        :attr:`decoder_iterations` by ``tune(iterations)`` (which returns the iterations it kept: 0 where it put
+        the decoder back), and packed again on the same integers with the new decoder.
+
+        The decoder is stored exactly, so the file changes by no more than LZMA's coding of other float32 weights
+        may differ (:meth:`pack` leaves room for it); should that take it past the target (or, where ``packed``
+        was past it already, at :attr:`min_bits` of a packing that is not strict, past ``packed`` by more than
+        that room), the decoder is put back.
+
+        Returns:
+            (the packing, the decoder's iterations: 0, and ``packed`` itself, where none were kept).
+        """
+        field.load_state_dict(packed.state)
+        if not self.decoder_iterations:
+            return packed, 0
+        kept = {name: value.clone() for name, value in field.decoder.state_dict().items()}
+        iterations = tune(self.decoder_iterations)
+        if not iterations:
+            return packed, 0
+        again = replace(pack_series(field, packed.bits, finer=packed.finer, steps=packed.steps,
+                                    predictors=chosen_predictors(packed)), restored=packed.restored)
+        if self.target_bytes is not None:
+            # a packing already past the target (at min_bits, not strict) may grow by as much as one within it
+            limit = max(parameter_budget(self.target_bytes, field.steps),
+                        packed.parameter_bytes + self._decoder_margin(field))
+            if again.parameter_bytes > limit:
+                field.decoder.load_state_dict(kept)
+                return packed, 0
+        return again, iterations
+
     def repack(self, field: SeriesField, packed: PackedSeries,
                before: dict[str, torch.Tensor] | None = None) -> PackedSeries:
         """``field`` packed on the steps of ``packed`` (an earlier packing of it, which a quantisation-aware
@@ -385,7 +421,7 @@ class SeriesPacking:
         packed anew (:meth:`pack`, the fine-tune lost)."""
         predictors = chosen_predictors(packed)
         again = pack_series(field, packed.bits, finer=packed.finer, steps=packed.steps, predictors=predictors)
-        budget = None if self.target_bytes is None else parameter_budget(self.target_bytes, field.steps)
+        budget = None if self.target_bytes is None else self._coded_budget(self.target_bytes, field)
         if budget is None or again.parameter_bytes <= budget:
             return again
         if before is None:
@@ -423,10 +459,23 @@ class SeriesPacking:
         restore(high)  # the field holds what was packed
         return best
 
+    def _coded_budget(self, target_bytes: int, field: SeriesField) -> int:
+        """Bytes the coded parameters of ``field`` may take in a file of ``target_bytes``
+        (:func:`parameter_budget`), less, where the decoder is fine-tuned after coding (:meth:`tune_decoder`),
+        :data:`DECODER_BYTES_MARGIN` of its float32 bytes: its new weights code a few bytes larger or smaller."""
+        return max(1, parameter_budget(target_bytes, field.steps) - self._decoder_margin(field))
+
+    def _decoder_margin(self, field: SeriesField) -> int:
+        """:data:`DECODER_BYTES_MARGIN` of ``field``'s decoder's float32 bytes where it is fine-tuned after coding,
+        else 0."""
+        if not self.decoder_iterations:
+            return 0
+        return math.ceil(DECODER_BYTES_MARGIN * 4 * sum(p.numel() for p in field.decoder.parameters()))
+
     def _pack(self, field: SeriesField, target_bytes: int | None, final: bool) -> PackedSeries:
         """:meth:`pack` to ``target_bytes``; ``final``: the width a search kept coded with every predictor
         (else with those of its trials)."""
-        budget = None if target_bytes is None else parameter_budget(target_bytes, field.steps)
+        budget = None if target_bytes is None else self._coded_budget(target_bytes, field)
         sensitivity = series_sensitivity(field)
         packed = pack_series(field, self.bits, sensitivity)
         if budget is None or packed.parameter_bytes <= budget:
@@ -517,6 +566,23 @@ def default_series_qat(model: str, iterations: int) -> int:
     return max(1, round(share * iterations)) if share > 0 else 0
 
 
+#: Share of the decoder's float32 bytes a packing whose decoder is fine-tuned after coding leaves free
+#: (:attr:`SeriesPacking.decoder_iterations`): the hybrid series' decoder (6,208 weights, 24.8 kB) coded 4 bytes
+#: larger after its fine-tune; a packing filled to the last byte would have had to keep the old one.
+DECODER_BYTES_MARGIN = 0.01
+#: Iterations of the shared decoder's fine-tune to the coded grids (:attr:`SeriesPacking.decoder_iterations`) with
+#: which ``train`` packs a stepwise series of a model kind by default, as a share of the start model's iterations
+#: (elsewhere none; :mod:`apmgsrn.training.series_decoder` gives what 300 after 2,000 gained).
+DEFAULT_SERIES_DECODER_SHARE_OF = {"hybrid": 0.15}
+
+
+def default_series_decoder(model: str, iterations: int) -> int:
+    """Decoder fine-tune iterations of a stepwise ``model`` series whose start model trains ``iterations``
+    (:data:`DEFAULT_SERIES_DECODER_SHARE_OF`; at least one where the kind has a share)."""
+    share = DEFAULT_SERIES_DECODER_SHARE_OF.get(model, 0.0)
+    return max(1, round(share * iterations)) if share > 0 else 0
+
+
 def default_series_packing(field_config, volume_shape: tuple[int, int, int], iterations: int) -> SeriesPacking:
     """How ``train`` packs a stepwise series of ``field_config`` (a :class:`SeriesFieldConfig`) of
     ``(D, H, W)`` steps by default: within :data:`DEFAULT_SERIES_MODELS` single-step files of its preset, each
@@ -528,7 +594,8 @@ def default_series_packing(field_config, volume_shape: tuple[int, int, int], ite
     model = field_config.field.model
     lowest = DEFAULT_SERIES_MIN_BITS_OF.get(model, DEFAULT_SERIES_MIN_BITS)
     return SeriesPacking(DEFAULT_SERIES_BITS, DEFAULT_SERIES_MODELS * single, lowest, strict=False,
-                         qat_iterations=default_series_qat(model, iterations))
+                         qat_iterations=default_series_qat(model, iterations),
+                         decoder_iterations=default_series_decoder(model, iterations))
 
 
 def parameter_budget(file_bytes: int, steps: int) -> int:
@@ -566,7 +633,7 @@ def write_packed_series(path: str | os.PathLike, field: SeriesField, packed: Pac
 
 def series_packing_report(field: SeriesField, bits: float, before: SeriesEvaluation, after: SeriesEvaluation,
                           target_bytes: int | None = None, qat_iterations: int = 0,
-                          qat_restored_steps: int = 0) -> dict:
+                          qat_restored_steps: int = 0, decoder_iterations: int = 0) -> dict:
     """What packing a series at ``bits`` cost, as the file's ``packing`` entry (``info`` shows it).
 
     Args:
@@ -577,12 +644,13 @@ def series_packing_report(field: SeriesField, bits: float, before: SeriesEvaluat
         qat_iterations: each step's quantisation-aware fine-tune (``before`` is the field before it).
         qat_restored_steps: steps packed with their values from before that fine-tune, to fit the target
             (:attr:`PackedSeries.restored`).
+        decoder_iterations: the fine-tune of the decoder to the coded grids (:meth:`SeriesPacking.tune_decoder`).
     """
     bits = int(bits) if float(bits).is_integer() else bits
     report = {"mode": "bits" if target_bytes is None else "size", "bits": bits, "target_bytes": target_bytes,
               "float32_psnr": before.psnr, "float32_max_abs_error": before.max_abs_error,
               "float32_parameter_bytes": 4 * field.parameter_count(), "qat_iterations": qat_iterations,
-              "qat_restored_steps": qat_restored_steps,
+              "qat_restored_steps": qat_restored_steps, "decoder_iterations": decoder_iterations,
               "psnr": after.psnr, "max_abs_error": after.max_abs_error, "psnr_cost": _cost(before.psnr, after.psnr),
               "worst_step_psnr_cost": max(_cost(b.psnr, a.psnr) for b, a in zip(before.steps, after.steps))}
     return {k: float(f"{v:.6g}") if isinstance(v, float) else v for k, v in report.items()}

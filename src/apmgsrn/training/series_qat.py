@@ -37,6 +37,7 @@ from apmgsrn.io.quantization import group_ids
 from apmgsrn.models.series_field import SeriesField
 from apmgsrn.progress import Progress
 from apmgsrn.threads import work_threads
+from apmgsrn.training.series_decoder import fine_tune_decoder
 from apmgsrn.training.series_packing import SHARED_STEP_TENSORS, PackedSeries, SeriesPacking, packed_group
 from apmgsrn.training.series_steps import (
     StepwiseConfig,
@@ -194,20 +195,25 @@ def qat_lanes(steps: int, device: torch.device) -> int:
 
 def budgeted(stepwise: StepwiseConfig | None, packing: SeriesPacking | None, config: TrainConfig, steps: int,
              field_config, device: torch.device, show_progress: bool = True
-             ) -> tuple[StepwiseConfig | None, SeriesPacking | None, Callable[..., tuple[int, float]]]:
+             ) -> tuple[StepwiseConfig | None, SeriesPacking | None, Callable[..., tuple[int, float]],
+                        Callable[..., tuple[int, float]]]:
     """What ``fit`` trains a model of ``field_config`` on ``steps`` steps with. A series trained stepwise: its
     steps' fine-tunes and the quantisation-aware one after them under one budget
     (:meth:`~apmgsrn.training.series_steps.StepwiseConfig.budget_scale`): the stepwise config that counts the
     packing's fine-tune, the packing with that fine-tune shortened with the steps', and the fine-tune (``fit``'s
     ``tune_packed``) measuring as often per iteration as an unshortened one. Anything else (no ``stepwise``: a
-    joint series, one volume): as given, with the fine-tune as it is."""
+    joint series, one volume): as given, with the fine-tune as it is. Last, the decoder's fine-tune to the coded
+    grids (``fit``'s ``tune_decoder``, :func:`~apmgsrn.training.series_decoder.fine_tune_decoder`), outside the
+    budget: 300 iterations take about 10 s, the steps' fine-tunes shortened by as many points lost more than it
+    gains (docs/time_series.md)."""
     measurements = QAT_MEASUREMENTS
     if stepwise is not None and packing is not None and packing.qat_iterations:
         stepwise = replace(stepwise, qat_iterations=packing.qat_iterations)
         shares = step_shares(field_config.field.model, device)
         packing = replace(packing, qat_iterations=stepwise.shortened_qat(config, steps - 1, *shares))
         measurements = shortened_measurements(measurements, stepwise.budget_scale(config, steps - 1, *shares))
-    return stepwise, packing, partial(fine_tune_rounded, show_progress=show_progress, measurements=measurements)
+    return (stepwise, packing, partial(fine_tune_rounded, show_progress=show_progress, measurements=measurements),
+            partial(fine_tune_decoder, show_progress=show_progress))
 
 
 def stored_train_config(training: dict, where: str) -> TrainConfig:
