@@ -27,9 +27,9 @@ import time
 import torch
 
 from apmgsrn.models.series_field import SeriesField
-from apmgsrn.ops.trilinear import voxel_coordinates
 from apmgsrn.progress import Progress
-from apmgsrn.training.points import draw_batch, voxel_points
+from apmgsrn.training.points import draw_batch
+from apmgsrn.training.series_steps import check_sample
 from apmgsrn.training.trainer import TrainConfig
 
 #: Steps every iteration trains on (all of a shorter series); the start model's batch is split among them.
@@ -46,9 +46,6 @@ DECODER_LR_SHARE = 0.1
 #: between them (t010 of three steps 40 apart +0.59 and +0.08; step 0 of the 30 steps at 128^3 +0.08 and +0.07).
 #: At 0.75 or the start model's 0.5 no step's weighted error fell, and the decoder was put back.
 DECODER_VOXEL_FRACTION = 0.9
-#: Voxels of each step the weights and the final check are measured on: every voxel of a smaller step, else
-#: this many drawn at random (seeded by the step).
-DECODER_CHECK_VOXELS = 1 << 16
 
 
 def fine_tune_decoder(series: SeriesField, values: torch.Tensor, config: TrainConfig, iterations: int,
@@ -71,7 +68,7 @@ def fine_tune_decoder(series: SeriesField, values: torch.Tensor, config: TrainCo
     steps = values.shape[0]
     if iterations < 1:
         return 0, 0.0
-    checks = [_check_sample(values[t], t) for t in range(steps)]
+    checks = [check_sample(values[t], t) for t in range(steps)]
     before = torch.tensor([_step_error(series, t, check) for t, check in enumerate(checks)])
     if not bool((before > 0).all()):
         return 0, time.perf_counter() - began  # a step fitted exactly: nothing to weigh the others against
@@ -108,15 +105,6 @@ def fine_tune_decoder(series: SeriesField, values: torch.Tensor, config: TrainCo
         series.decoder.load_state_dict(kept)
         return 0, time.perf_counter() - began
     return iterations, time.perf_counter() - began
-
-
-def _check_sample(values: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Voxel points and targets of one step the fine-tune is weighed and checked on."""
-    if values.numel() <= DECODER_CHECK_VOXELS:
-        return voxel_coordinates(tuple(values.shape)).to(values.device), values.reshape(-1)
-    chosen = torch.randperm(values.numel(), generator=torch.Generator().manual_seed(step))[:DECODER_CHECK_VOXELS]
-    chosen = chosen.to(values.device)
-    return voxel_points(chosen, values.shape), values.reshape(-1)[chosen]
 
 
 @torch.no_grad()

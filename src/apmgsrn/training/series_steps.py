@@ -562,7 +562,7 @@ def _fine_tune(worker: NeuralField, values: torch.Tensor, config: TrainConfig, t
                features: tuple[str, ...], check: tuple[torch.Tensor, torch.Tensor], sparsity: float = 0.0) -> float:
     """Fine-tune the worker's ``features`` (grids, or the hybrid's tables; with ``track`` its placement too)
     on one step, from where they are, pulled back towards there with ``sparsity`` (:class:`PullTowardsStart`);
-    its RMS error then on the step's ``check`` sample (:func:`_check_sample`)."""
+    its RMS error then on the step's ``check`` sample (:func:`check_sample`)."""
     for name in features:
         getattr(worker.encoder, name).requires_grad_(True)
     for parameter in worker.encoder.placement_parameters():
@@ -572,7 +572,7 @@ def _fine_tune(worker: NeuralField, values: torch.Tensor, config: TrainConfig, t
     return math.sqrt(_voxel_error(worker, check))
 
 
-def _check_sample(values: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
+def check_sample(values: torch.Tensor, step: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Points and targets a step's fine-tune is checked on: every voxel of a step of at most
     :data:`CHECK_VOXELS`, else that many drawn at random (seeded by the step)."""
     if values.numel() > CHECK_VOXELS:
@@ -600,7 +600,7 @@ def _train_step(worker: NeuralField, series: SeriesField, values: torch.Tensor, 
         how many fine-tunes ran (1 or 2).
     """
     features = series.encoder.step_features
-    check = _check_sample(values, t)
+    check = check_sample(values, t)
     load_step(worker, series, neighbour)
     start = _voxel_error(worker, check)
     first = _fine_tune(worker, values, config, track_first, features, check, sparsity)
@@ -688,7 +688,7 @@ def train_stepwise(
         worker = step_worker(series)
         # Its RMS error at the voxels, not its last batch's: a batch drawn where the model is wrong
         # (TrainConfig.error_sampling) overstates it.
-        error = math.sqrt(_voxel_error(first.field, _check_sample(values[start], start)))
+        error = math.sqrt(_voxel_error(first.field, check_sample(values[start], start)))
         progress = _Progress(start, [start], [0], [False], error, first.state)
         resumed_from = first.resumed_from
         if checkpoint is not None:  # the start model, before the polish below
