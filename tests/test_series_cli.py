@@ -231,8 +231,9 @@ def test_stepwise_options_that_do_not_apply_exit_2_with_one_line(pattern, tmp_pa
 def test_stepwise_series_unpacked_and_at_8_bits(pattern, tmp_path, capsys, truth):
     """--storage keeps a float series file; --bits 8 packs smaller than the default 10 at a measured cost."""
     # The base fine-tunes (a tenth of 150) pinned: the fine-tune towards the packing would otherwise take its
-    # iterations from what the budget leaves the steps, and the float32 and packed runs train alike.
-    base = ["--step-iterations", "15"]
+    # iterations from what the budget leaves the steps, and the float32 and packed runs train alike. The pull too:
+    # five files hold these four steps coded alone, so the default packing would train them unpulled.
+    base = ["--step-iterations", "15", "--step-sparsity", "0.01"]
     floats = run_json(capsys, ["train", pattern, "--out", str(tmp_path / "f.apmgsrn"), "--storage", "float32",
                                "--json", *FAST, *base])
     model = apmgsrn.load(tmp_path / "f.apmgsrn")
@@ -399,15 +400,16 @@ def test_info_says_when_a_long_series_shortened_its_steps(tmp_path, capsys, patt
 
 
 def test_a_series_of_hybrid_models_trains_evaluates_decodes_and_fits_in_python(pattern, tmp_path, capsys, truth):
-    """--model hybrid: one hybrid model per step, its tables pulled towards the neighbour's, packed at 10 bits (within
-    five files here); eval, decode and info read it like any series, and apmgsrn.fit builds the same kind."""
+    """--model hybrid: one hybrid model per step, packed at 10 bits (within five files here, which hold its four steps
+    coded alone, so its tables are not pulled towards their neighbours'); eval, decode and info read it like any
+    series, and apmgsrn.fit builds the same kind, pulled when told to."""
     out = tmp_path / "h.apmgsrn"
     trained = run_json(capsys, ["train", pattern, "--model", "hybrid", "--levels", "6", "--log2-table-size", "10",
                                 "--grids", "4", "--out", str(out), "--json", *FAST])
     model = apmgsrn.load(out)
     assert model.description.config.model == "hybrid" and model.description.kind == "packed-series"
     assert model.description.packing.report["bits"] == 10
-    assert model.description.training["stepwise"]["step_sparsity"] == STEP_SPARSITY_OF["hybrid"] > 0  # its pull
+    assert model.description.training["stepwise"]["step_sparsity"] == 0.0 < STEP_SPARSITY_OF["hybrid"]  # unpulled
     assert model.field.encoder.level_table.shape[0] == 4
     figures = run_json(capsys, ["eval", str(out), pattern, "--json"])
     for t, row in enumerate(figures["per_step"]):
@@ -419,15 +421,31 @@ def test_a_series_of_hybrid_models_trains_evaluates_decodes_and_fits_in_python(p
     info = run_json(capsys, ["info", str(out), "--json"])
     assert info["model"] == "hybrid" and info["series"]["steps"] == 4
     assert main(["info", str(out)]) == 0
-    pull = STEP_SPARSITY_OF["hybrid"]
-    assert f"iterations per other step, pulled towards its neighbour at {pull}" in capsys.readouterr().out
+    shown = capsys.readouterr().out
+    assert "iterations per other step" in shown and "pulled towards its neighbour" not in shown
     fitted = apmgsrn.fit(pattern, model="hybrid", iterations=60, batch_size=1024, levels=6, log2_table_size=10,
-                         grids=4, resolution=8, width=16, progress=False, step_sparsity=0.0, step_iterations=7)
+                         grids=4, resolution=8, width=16, progress=False, step_sparsity=0.02, step_iterations=7)
     assert fitted.field.encoder.level_table.shape[0] == 4
     stepwise = fitted.description.training["stepwise"]
     # 7 iterations at the start model's batch: at the hybrid's smaller CPU batch, its share of the same points.
     one = round(7 * STEP_POINT_SHARES["hybrid"] / STEP_BATCH_SHARES["hybrid"])
-    assert stepwise["step_sparsity"] == 0.0 and set(stepwise["step_iterations"]) <= {0, one, 2 * one}
+    assert stepwise["step_sparsity"] == 0.02 and set(stepwise["step_iterations"]) <= {0, one, 2 * one}
     with pytest.raises(ApmgsrnError, match="step_sparsity"):
         apmgsrn.fit(pattern, model="hybrid", iterations=5, progress=False, step_sparsity=-1.0)
     assert fitted.description.config.model == "hybrid" and fitted.description.kind == "packed-series"
+
+
+def test_info_says_where_long_fine_tunes_were_pulled_less(test_data, tmp_path, capsys):
+    """Two steps three apart, pulled hard: the second step's fine-tune is longer than twice the base, so it was
+    pulled less, and info says past how many iterations (series_steps.step_pull)."""
+    files = sorted(str(p) for p in (test_data / "viscous_fingers_run01").glob("*.vti"))
+    out = tmp_path / "far.apmgsrn"
+    assert main(["train", files[0], files[-1], "--model", "hybrid", "--levels", "6", "--log2-table-size", "10",
+                 "--grids", "4", "--step-sparsity", "0.5", "--out", str(out), *FAST]) == 0
+    stepwise = apmgsrn.load(out).description.training["stepwise"]
+    most = stepwise["step_pull_iterations"]
+    assert stepwise["step_sparsity"] == 0.5 and max(stepwise["step_iterations"]) > most > 0
+    assert stepwise["weaker_pull_steps"] == [1 - stepwise["start"]]  # the step that is not the start
+    capsys.readouterr()
+    assert main(["info", str(out)]) == 0
+    assert f"pulled towards its neighbour at 0.5 (less on 1 fine-tuned past {most} iterations)" in capsys.readouterr().out

@@ -552,3 +552,36 @@ def test_decoder_iterations_are_refused_where_no_decoder_is_fine_tuned(pattern, 
                  "--out", str(tmp_path / "v.apmgsrn")]) == 2
     assert "--decoder-iterations applies to a time series" in capsys.readouterr().err
     assert not list(tmp_path.glob("*.apmgsrn"))
+
+
+def test_a_series_whose_target_holds_every_step_coded_alone_is_trained_unpulled():
+    """The pull towards the neighbour only saves bytes: where the packing's target holds every step's tables and
+    grids at its bit width with nothing taken from the neighbour (a few steps of the small hybrid within five
+    single-step files), ``budgeted`` trains the steps unpulled; a longer series keeps the model kind's pull, a
+    pull asked for is kept, and a float series (no target) is left as it is."""
+    from apmgsrn.training.series_packing import SHARED_STEP_TENSORS, default_series_packing
+    from apmgsrn.training.series_qat import budgeted
+
+    shape = (64, 64, 64)
+
+    def trained_with(steps, stepwise=StepwiseConfig(), packed=True):
+        config = stepwise_config(preset_config("hybrid", "small"), steps)
+        packing = default_series_packing(config, shape, 2000) if packed else None
+        chosen, *_ = budgeted(stepwise, packing, TrainConfig(iterations=2000, batch_size=32768), steps, config,
+                              shape, torch.device("cpu"), show_progress=False)
+        return chosen, packing, config.fitted_to(shape)
+
+    def fresh_bytes(packing, config):  # every step coded alone at the packing's bits
+        shapes = config.parameter_shapes()
+        return sum(np.prod(shapes[name]) for name in SHARED_STEP_TENSORS) * packing.bits / 8
+
+    holding = [steps for steps in range(2, 40) if trained_with(steps)[0].step_sparsity == 0.0]
+    assert holding and holding == list(range(2, holding[-1] + 1))  # the shortest series, up to a length
+    last = holding[-1]
+    for steps in (last, last + 1):
+        chosen, packing, config = trained_with(steps)
+        holds = fresh_bytes(packing, config) <= parameter_budget(packing.target_bytes, steps)
+        assert holds == (steps == last) == (chosen.step_sparsity == 0.0)
+    assert trained_with(30)[0].step_sparsity is None  # the kind's pull (StepwiseConfig.sparsity)
+    assert trained_with(3, StepwiseConfig(step_sparsity=0.01))[0].step_sparsity == 0.01
+    assert trained_with(3, packed=False)[0].step_sparsity is None

@@ -519,6 +519,52 @@ def test_a_pull_towards_the_neighbour_keeps_entries_unchanged_and_packs_the_step
     assert pack_series(pulled.field, 10).parameter_bytes < 0.9 * pack_series(free.field, 10).parameter_bytes
 
 
+def test_a_longer_fine_tune_is_pulled_less_in_proportion():
+    """The pull's strength over a whole fine-tune stays that of a step that changes little: up to STEP_EVEN_BELOW
+    times the base it is the configured one, past it weaker by the ratio of their iterations."""
+    from apmgsrn.training.series_steps import STEP_EVEN_BELOW, step_pull
+
+    most = round(STEP_EVEN_BELOW * 480)
+    assert step_pull(0.01, 480, 480) == step_pull(0.01, 100, 480) == step_pull(0.01, most, 480) == 0.01
+    assert step_pull(0.01, 9000, 480) == pytest.approx(0.01 * most / 9000)
+    assert step_pull(0.0, 9000, 480) == 0.0
+
+
+def test_a_step_far_from_its_neighbour_is_pulled_less_and_fits_it_closer(prepared, truth, monkeypatch):
+    """Steps 3 and 0 as a series of two, pulled hard: step 0 differs much from step 3, so its fine-tune is
+    more than twice the base and its pull weaker (recorded as the iterations up to which the full pull applies). Held
+    at the full pull over all those iterations instead, it keeps more of its neighbour's entries and fits its own
+    data worse."""
+    far = replace(prepared, values=prepared.values[[3, 0]])
+    pulls = []
+    train_step = series_steps._train_step
+
+    def recorded(*args, sparsity=0.0, **kwargs):
+        pulls.append(sparsity)
+        return train_step(*args, sparsity=sparsity, **kwargs)
+
+    monkeypatch.setattr(series_steps, "_train_step", recorded)
+
+    def trained():
+        return train_stepwise(far, stepwise_config(TINY_HYBRID, 2), HYBRID_TRAIN, (32, 32, 32),
+                              stepwise=StepwiseConfig(start="first", step_sparsity=0.5), show_progress=False)
+
+    weaker = trained()
+    summary = weaker.summary["stepwise"]
+    most, iterations = summary["step_pull_iterations"], summary["step_iterations"][1]
+    assert iterations > most and pulls[-1] == pytest.approx(0.5 * most / iterations, rel=1e-3)
+    assert summary["weaker_pull_steps"] == [1]
+    monkeypatch.setattr(series_steps, "step_pull", lambda sparsity, iterations, base: sparsity)
+    full = trained()
+    assert pulls[-1] == 0.5 and full.summary["stepwise"]["step_iterations"] == summary["step_iterations"]
+
+    def unchanged(field):
+        return float((field.encoder.level_table[1] == field.encoder.level_table[0]).float().mean())
+
+    assert unchanged(weaker.field) < unchanged(full.field)
+    assert evaluate(weaker.field.step_field(1), truth[0]).psnr > evaluate(full.field.step_field(1), truth[0]).psnr
+
+
 def test_step_sparsity_must_be_a_number_not_below_zero():
     from apmgsrn.errors import InvalidArgument
 

@@ -48,8 +48,9 @@ def add_series_arguments(parser: argparse.ArgumentParser) -> None:
                             "at 0.375 of the batch)")
     group.add_argument("--step-sparsity", type=float, metavar="S",
                        help="stepwise: pull every step's features back to its neighbour's while it is fine-tuned "
-                            "(an L1 proximal step of S x the learning rate per iteration; default 0.01 for a hybrid "
-                            "series, 0 for APMGSRN): fewer bytes per step in the packed file, a looser fit "
+                            "(an L1 proximal step of S x the learning rate per iteration, weaker on fine-tunes over "
+                            "twice the base; default 0.01 for a hybrid series, 0 for APMGSRN and where the file's size "
+                            "holds every step packed alone): fewer bytes per step in the packed file, a looser fit "
                             "(docs/time_series.md)")
     group.add_argument("--decoder-iterations", type=int, metavar="N",
                        help="stepwise, packed: iterations of a fine-tune of the shared decoder alone to the grids as "
@@ -411,6 +412,10 @@ def print_series_info(info: dict) -> None:
         sparsity = stepwise.get("step_sparsity")
         pulled = (f", pulled towards its neighbour at {sparsity:g}" if isinstance(sparsity, (int, float)) and sparsity
                   else "")
+        full = stepwise.get("step_pull_iterations")  # longer fine-tunes are pulled less (series_steps.step_pull)
+        weaker = [t for t in stepwise.get("weaker_pull_steps") or [] if isinstance(t, int)]
+        if pulled and isinstance(full, int) and weaker:
+            pulled += f" (less on {len(weaker)} fine-tuned past {full} iterations)"
         start_iterations = stepwise.get("start_iterations")
         trained = (f" ({start_iterations} iterations)" if isinstance(start_iterations, int) and start_iterations > 0
                    else "")

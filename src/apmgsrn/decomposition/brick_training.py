@@ -280,8 +280,8 @@ def _fit_region(job: BrickJob, region: np.ndarray, device: torch.device, worker:
                  for t, label in enumerate(job.volume.labels)]
     # A series trained stepwise: its steps' fine-tunes and the one towards the packing share one budget.
     stepwise, packing, tune_packed, tune_decoder = budgeted(job.stepwise, job.packing, job.train_config,
-                                                            region.shape[0], job.field_config, device,
-                                                            show_progress=False)
+                                                            region.shape[0], job.field_config, region.shape[1:],
+                                                            device, show_progress=False)
     # A brick always resumes its own checkpoint: the job may be a retry after a crash.
     result = fit(prepared, region, job.field_config, job.train_config, Path(job.model_path), job.source,
                  fingerprint, resume=True, psnr_voxels=job.psnr_voxels, summary_extra={"brick": box}, steps=steps,

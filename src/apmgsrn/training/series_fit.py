@@ -81,7 +81,7 @@ def fit_series(
                    "transform": asdict(prepared.transform)}
     # Stepwise, the steps' fine-tunes and the one towards the packing share one budget.
     stepwise, packing, tune_packed, tune_decoder = budgeted(stepwise, packing, train_config, len(series),
-                                                            field_config, device, progress)
+                                                            field_config, data.shape[1:], device, progress)
     display = TrainingProgress("train" if stepwise is None else "start step", enabled=progress)
     return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
                callbacks=[display], steps=steps, packing=packing, train=series_trainer(stepwise, progress),

@@ -459,6 +459,18 @@ class SeriesPacking:
         restore(high)  # the field holds what was packed
         return best
 
+    def holds_every_step_alone(self, field_config, steps: int) -> bool:
+        """Whether the target holds the step tensors (:data:`SHARED_STEP_TENSORS`) of a series of ``field_config``
+        (a :class:`SeriesFieldConfig` fitted to its steps' shape) of ``steps`` steps at :attr:`bits` a value, each
+        step as if coded with nothing taken from its neighbour: then the packing never has to narrow the bits for
+        what consecutive steps do not share, and the steps need not be pulled towards each other
+        (:func:`~apmgsrn.training.series_qat.budgeted`). False without a target."""
+        if self.target_bytes is None:
+            return False
+        shapes = field_config.parameter_shapes()
+        values = sum(math.prod(shapes[name]) for name in SHARED_STEP_TENSORS if name in shapes)  # every step's
+        return values * self.bits / 8 <= parameter_budget(self.target_bytes, steps)
+
     def _coded_budget(self, target_bytes: int, field: SeriesField) -> int:
         """Bytes the coded parameters of ``field`` may take in a file of ``target_bytes``
         (:func:`parameter_budget`), less, where the decoder is fine-tuned after coding (:meth:`tune_decoder`),

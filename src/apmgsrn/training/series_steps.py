@@ -18,7 +18,8 @@ docs/time_series.md):
    that differ little share their iterations evenly, :func:`step_factors`; a series too short to spend the
    budget of :meth:`StepwiseConfig.budget_scale` so shares the rest out among its steps, :func:`spend_spare`); the
    decoder stays the start model's, frozen (with ``step_sparsity`` the features are pulled back towards
-   the neighbour's after every iteration, :class:`PullTowardsStart`, the default for a hybrid series), and so
+   the neighbour's after every iteration, :class:`PullTowardsStart`, the default for a hybrid series; less on a
+   fine-tune more than twice the base, :func:`step_pull`), and so
    does the placement, unless the fine-tuned step ends
    more than :data:`TRACK_DB` below the start model: then the step is fine-tuned again from its neighbour
    with the reconstruction error moving its grids' placement too (``placement_loss="reconstruction"``), and
@@ -122,7 +123,9 @@ START_POINT_COST = 1.5
 #: 0.02 lands at 7.6 bits and 0.01 at 7.2, and 0.02 ends higher on the first and last steps (+0.12, +0.33 dB),
 #: -0.07 to +0.13 on the others, the same mean (7 steps, trained with a guide variant not kept). But on a series
 #: whose structures travel (t050 shifted 4 voxels a step), where five files hold 10 bits either way, 0.02 lost
-#: 0.8-1.0 dB on 9 of its 10 steps: the pull stays at 0.01 (docs/time_series.md).
+#: 0.8-1.0 dB on 9 of its 10 steps: the pull stays at 0.01 (docs/time_series.md). A fine-tune longer than twice
+#: the base is pulled less (:func:`step_pull`), and a series whose packing target holds every step coded alone is
+#: not pulled at all (:func:`~apmgsrn.training.series_qat.budgeted`).
 STEP_SPARSITY_OF: dict[str, float] = {"hybrid": 0.01}
 #: A step that differs from its neighbour by more than this many times the start model's RMS error gets
 #: proportionally more iterations, up to ``STEP_ITERATION_CAP`` times the share above (the start model's whole
@@ -360,6 +363,26 @@ def shortened_measurements(measurements: int, scale: float) -> int:
     """A fine-tune's measurements of where it is wrong when a long series shortens it to ``scale`` of its share
     (:meth:`StepwiseConfig.budget_scale`): as many per iteration, at least one."""
     return max(1, round(measurements * min(scale, 1.0)))
+
+
+def step_pull(sparsity: float, iterations: int, base: int) -> float:
+    """The pull (:class:`PullTowardsStart`) of a step's fine-tune of ``iterations`` where a step that differs little
+    from its neighbour is fine-tuned for ``base`` (:meth:`StepwiseConfig.step_config` at factor and scale 1) and
+    pulled at ``sparsity``: that up to :data:`STEP_EVEN_BELOW` times the base (the steps that change little,
+    :func:`step_factors`), weaker in proportion on a longer fine-tune, so that its pull over all its iterations is
+    no stronger than theirs.
+
+    The pull acts at every iteration, so it adds up over a fine-tune, and a step that differs much from its
+    neighbour (up to :data:`STEP_ITERATION_CAP` times the base, more where a short series spends the budget its
+    steps leave) was held back hardest exactly where it has furthest to go. On three steps 40 apart, t010
+    fine-tuned from t050 for its 9,321 iterations reached 70.62 dB at 0.01 and 74.33 at a sixteenth of it (74.26
+    unpulled; its own model 72.90; docs/time_series.md). Ten steps of a volume shifted 4 voxels a step (4,800
+    iterations each, now pulled at 0.002) ended 0.40-0.95 dB higher on steps 2-9, above their own models on all 7
+    steps measured (two were below). The cost falls on a series whose packing is held at its target: the crop of
+    the 30 viscous-finger steps to half their height, whose later fine-tunes (1,086-1,467 iterations) now code larger,
+    lost 0.13-0.28 dB on every measured step. The 30 steps themselves (579 iterations each, the base 480) keep the
+    pull they were measured with."""
+    return sparsity * min(1.0, STEP_EVEN_BELOW * base / max(iterations, 1))
 
 
 def step_shares(model: str, device: torch.device) -> tuple[float, float, float]:
@@ -700,6 +723,8 @@ def train_stepwise(
     factors = spend_spare(factors, stepwise.spare_factor(train_config, factors, batch_share, point_share, start_share))
     factors = dict(zip((t for t, _ in order), factors))
     todo = [(t, n) for t, n in order if t not in progress.done]
+    base = stepwise.step_config(train_config, lr_share=lr_share, batch_share=batch_share,
+                                point_share=point_share).iterations  # a step's that changes little (step_pull)
     polish = train_config.error_guided and train_config.error_sampling != START_ERROR_SAMPLING
     display = Progress(steps, unit="step", description="steps", initial=steps - len(todo), enabled=show_progress)
     try:
@@ -710,7 +735,7 @@ def train_stepwise(
             config = stepwise.step_config(train_config, lr_share=lr_share, batch_share=batch_share,
                                           point_share=point_share)
             _train_step(worker, series, values[progress.start], progress.start, progress.start, config,
-                        progress.error, False, sparsity)
+                        progress.error, track_first=False, sparsity=sparsity)
             progress.iterations[0] = config.iterations
             state.iteration += config.iterations
             state.elapsed += time.perf_counter() - began
@@ -721,7 +746,8 @@ def train_stepwise(
             config = stepwise.step_config(train_config, factors[t], scale, lr_share, batch_share, point_share)
             moved = dict(zip(progress.done, progress.tracked))
             tracked, runs = _train_step(worker, series, values[t], t, neighbour, config, progress.error,
-                                        track_first=moved[neighbour], sparsity=sparsity)
+                                        track_first=moved[neighbour],
+                                        sparsity=step_pull(sparsity, config.iterations, base))
             iterations = config.iterations * runs
             progress.done.append(t)
             progress.iterations.append(iterations)
@@ -744,6 +770,10 @@ def train_stepwise(
                "step_iterations": [by_step[t] for t in range(steps)],
                "step_lr": stepwise.step_config(train_config, lr_share=lr_share).lr,
                "tracked_steps": sorted(t for t, moved in zip(progress.done, progress.tracked) if moved),
-               "budget_scale": round(scale, 6), "step_sparsity": sparsity}
+               "budget_scale": round(scale, 6), "step_sparsity": sparsity,
+               "step_pull_iterations": round(STEP_EVEN_BELOW * base),
+               "weaker_pull_steps": sorted(t for t, _ in order if sparsity and step_pull(
+                   sparsity, stepwise.step_config(train_config, factors[t], scale, lr_share, batch_share,
+                                                  point_share).iterations, base) < sparsity)}
     return TrainedField(series.eval(), state, resumed_from, summary={"stepwise": summary})
 
