@@ -723,8 +723,11 @@ def train_stepwise(
     factors = spend_spare(factors, stepwise.spare_factor(train_config, factors, batch_share, point_share, start_share))
     factors = dict(zip((t for t, _ in order), factors))
     todo = [(t, n) for t, n in order if t not in progress.done]
-    base = stepwise.step_config(train_config, lr_share=lr_share, batch_share=batch_share,
-                                point_share=point_share).iterations  # a step's that changes little (step_pull)
+    # A step's that changes little (the start step's own fine-tune below; step_pull's base), and every other one's.
+    base = stepwise.step_config(train_config, lr_share=lr_share, batch_share=batch_share, point_share=point_share)
+    configs = {t: stepwise.step_config(train_config, factors[t], scale, lr_share, batch_share, point_share)
+               for t, _ in order}
+    pulls = {t: step_pull(sparsity, config.iterations, base.iterations) for t, config in configs.items()}
     polish = train_config.error_guided and train_config.error_sampling != START_ERROR_SAMPLING
     display = Progress(steps, unit="step", description="steps", initial=steps - len(todo), enabled=show_progress)
     try:
@@ -732,23 +735,19 @@ def train_stepwise(
             # The start step's own grids fine-tuned like any step's, from themselves, with the model kind's draws
             # where the step is wrong (the shared decoder stays what uniform draws made it).
             began = time.perf_counter()
-            config = stepwise.step_config(train_config, lr_share=lr_share, batch_share=batch_share,
-                                          point_share=point_share)
-            _train_step(worker, series, values[progress.start], progress.start, progress.start, config,
+            _train_step(worker, series, values[progress.start], progress.start, progress.start, base,
                         progress.error, track_first=False, sparsity=sparsity)
-            progress.iterations[0] = config.iterations
-            state.iteration += config.iterations
+            progress.iterations[0] = base.iterations
+            state.iteration += base.iterations
             state.elapsed += time.perf_counter() - began
             if checkpoint is not None:
                 _save_steps(checkpoint, series, progress, fingerprint)
         for t, neighbour in todo:
             began = time.perf_counter()
-            config = stepwise.step_config(train_config, factors[t], scale, lr_share, batch_share, point_share)
             moved = dict(zip(progress.done, progress.tracked))
-            tracked, runs = _train_step(worker, series, values[t], t, neighbour, config, progress.error,
-                                        track_first=moved[neighbour],
-                                        sparsity=step_pull(sparsity, config.iterations, base))
-            iterations = config.iterations * runs
+            tracked, runs = _train_step(worker, series, values[t], t, neighbour, configs[t], progress.error,
+                                        track_first=moved[neighbour], sparsity=pulls[t])
+            iterations = configs[t].iterations * runs
             progress.done.append(t)
             progress.iterations.append(iterations)
             progress.tracked.append(tracked)
@@ -771,9 +770,7 @@ def train_stepwise(
                "step_lr": stepwise.step_config(train_config, lr_share=lr_share).lr,
                "tracked_steps": sorted(t for t, moved in zip(progress.done, progress.tracked) if moved),
                "budget_scale": round(scale, 6), "step_sparsity": sparsity,
-               "step_pull_iterations": round(STEP_EVEN_BELOW * base),
-               "weaker_pull_steps": sorted(t for t, _ in order if sparsity and step_pull(
-                   sparsity, stepwise.step_config(train_config, factors[t], scale, lr_share, batch_share,
-                                                  point_share).iterations, base) < sparsity)}
+               "step_pull_iterations": round(STEP_EVEN_BELOW * base.iterations),
+               "weaker_pull_steps": sorted(t for t, pull in pulls.items() if pull < sparsity)}
     return TrainedField(series.eval(), state, resumed_from, summary={"stepwise": summary})
 
