@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 from apmgsrn.cli.common import (
@@ -27,6 +28,9 @@ PACK_OPTIONS = ("bits", "psnr_loss", "size", "ratio", "max_error", "qat_iteratio
 #: Why ``--qat-iterations`` is refused for a joint series (``train`` and ``pack``).
 JOINT_SERIES_QAT = ("--qat-iterations: fine-tunes every step of a stepwise series; a joint series has no grids of "
                     "its own per step")
+#: Why ``pack --decoder-iterations`` is refused for a joint series.
+JOINT_SERIES_DECODER = ("--decoder-iterations: fine-tunes the decoder to every step's own packed grids; a joint "
+                        "series has no grids of its own per step")
 
 
 def add_pack_arguments(parser: argparse.ArgumentParser, title: str = "packing") -> None:
@@ -167,6 +171,11 @@ def register(subparsers) -> None:
                         help="packed model file to write (an existing apmgsrn model there is replaced atomically)")
     add_data_arguments(parser)
     add_pack_arguments(parser)
+    parser.add_argument("--decoder-iterations", type=int, metavar="N",
+                        help="a stepwise time series: iterations of a fine-tune of the shared decoder alone to the "
+                             "grids as the file stores them, on all steps at once, from the training settings the "
+                             "file recorded (default, as train: 0.15 x its --iterations for a hybrid series, none "
+                             "for APMGSRN or where no settings are recorded; 0 turns it off)")
     add_device_argument(parser)
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
     parser.set_defaults(func=run, paths=paths)
@@ -187,6 +196,9 @@ def run(args: argparse.Namespace) -> int:
         raise ApmgsrnError(f"{args.model}: is a brick model; pack a single model file")
     if model.description.series is not None:
         return run_series_pack(args, model)
+    if args.decoder_iterations is not None:
+        raise ApmgsrnError("--decoder-iterations: fine-tunes the decoder a time series' steps share; "
+                           f"{args.model} is a model of one volume")
     if len(args.data) != 1:
         raise ApmgsrnError(f"{len(args.data)} inputs given where one volume is read; name one file")
     volume = open_data(args, args.data[0])
@@ -212,20 +224,23 @@ def run(args: argparse.Namespace) -> int:
 def run_series_pack(args: argparse.Namespace, model) -> int:
     """``apmgsrn pack`` of a time-series model: every grid at ``--bits`` (or the largest bit width that fits
     ``--size`` / ``--ratio``), with ``--qat-iterations`` every step of a stepwise series fine-tuned towards its
-    packed grids first (from the training settings the file recorded), the PSNR cost measured on every step of
-    its series (per step in the file, which ``info`` shows).
+    packed grids first, then, as ``train`` packs it, the shared decoder fine-tuned to the grids as coded
+    (``--decoder-iterations``, by default :func:`~apmgsrn.training.series_packing.default_series_decoder`; both from
+    the training settings the file recorded), the PSNR cost measured on every step of its series (per step in the
+    file, which ``info`` shows).
 
     Imports nothing of :mod:`apmgsrn.cli.series`, which imports this module (the packing options).
     """
     from apmgsrn.data.series import open_series
     from apmgsrn.inference.evaluate import evaluate_series
+    from apmgsrn.training.packing import fitted_values
+    from apmgsrn.training.series_decoder import fine_tune_decoder
     from apmgsrn.training.series_packing import (
         SeriesPacking,
         packed_series_field,
         series_packing_report,
         write_packed_series,
     )
-    from apmgsrn.training.packing import fitted_values
     from apmgsrn.training.series_qat import fine_tune_rounded, stored_train_config
 
     layout = model.description.series
@@ -236,10 +251,12 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
     packing = series_packing(args, series.raw_bytes) or SeriesPacking(qat_iterations=args.qat_iterations or 0)
     field = model.field.cpu().eval()
     log = (lambda line: None) if args.json else print
-    if packing.qat_iterations:  # refused before any work: no settings, or no grids per step
+    packing = replace(packing, decoder_iterations=_decoder_iterations(args, model, field))
+    if packing.qat_iterations or packing.decoder_iterations:  # refused before any work: no settings, no steps' grids
         config = stored_train_config(model.description.training, str(args.model))
         if not field.config.series.per_step_grids:
-            raise ApmgsrnError(JOINT_SERIES_QAT)
+            raise ApmgsrnError(JOINT_SERIES_QAT if packing.qat_iterations else JOINT_SERIES_DECODER)
+    values = None
     packed = packing.pack(field)
     options = dict(trained_shape=model.description.volume_shape, progress=not args.json)
     log(f"measuring the float32 model on {len(series)} steps")
@@ -249,16 +266,29 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
         log(f"fine-tuning every step towards its packed grids, {iterations} iterations each"
             + (f" (of {packing.qat_iterations}: the packing left too few bytes free for more)"
                if iterations < packing.qat_iterations else ""))
-        fine_tune_rounded(field, fitted_values(field, series.to_numpy()), packed, config, iterations,
-                          show_progress=not args.json)
+        fine_tune_rounded(field, training_values(), packed, config, iterations, show_progress=not args.json)
+
+    def training_values():  # read once, for whichever fine-tune needs them first
+        nonlocal values
+        if values is None:
+            values = fitted_values(field, series.to_numpy())
+        return values
+
+    def decoder(iterations: int) -> int:
+        log(f"fine-tuning the shared decoder to the packed grids, {iterations} iterations")
+        return fine_tune_decoder(field, training_values(), config, iterations, show_progress=not args.json)[0]
 
     packed, tuned = packing.fine_tune(field, packed, tune)
     if packing.qat_iterations and not tuned:
         log("no fine-tune towards the packed grids: the packing left no bytes free for it")
+    packed, decoder_tuned = packing.tune_decoder(field, packed, decoder)
+    if packing.decoder_iterations and not decoder_tuned:
+        log("the decoder kept as it was: its fine-tune did not fit the packed grids closer, or its weights "
+            "coded past the size")
     log(f"measuring the packed model on {len(series)} steps")
     after = evaluate_series(packed_series_field(field, packed).step_field, series, **options)
     report = series_packing_report(field, packed.bit_width, before, after, packing.target_bytes,
-                                   tuned, len(packed.restored))
+                                   tuned, len(packed.restored), decoder_tuned)
     training = {**model.description.training,
                 "steps": [{"psnr": e.psnr, "max_abs_error": e.max_abs_error} for e in after.steps]}
     out = Path(args.out)
@@ -277,6 +307,23 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
         print(line)
     print(f"worst step  {report['worst_step_psnr_cost']:.3f} dB below its float32 PSNR")
     return 0
+
+
+def _decoder_iterations(args: argparse.Namespace, model, field) -> int:
+    """The decoder fine-tune of ``pack`` of a series ``model`` (its loaded ``field``): ``--decoder-iterations``,
+    else what ``train`` gives a stepwise series of its kind from the iterations the file recorded (none for a joint
+    series or a file that records no settings)."""
+    from apmgsrn.training.series_packing import default_series_decoder
+
+    if args.decoder_iterations is not None:
+        if args.decoder_iterations < 0:
+            raise ApmgsrnError(f"--decoder-iterations {args.decoder_iterations}: must be 0 or more")
+        return args.decoder_iterations
+    stored = model.description.training.get("config") if isinstance(model.description.training, dict) else None
+    iterations = stored.get("iterations") if isinstance(stored, dict) else None
+    if not field.config.series.per_step_grids or not isinstance(iterations, int) or iterations < 1:
+        return 0
+    return default_series_decoder(field.config.field.model, iterations)
 
 
 def _finite(value: float) -> float | None:
