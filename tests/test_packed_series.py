@@ -360,6 +360,7 @@ def test_pack_a_series_to_a_size_takes_the_finest_steps_that_fit(field, pattern,
     (["--bits", "1"], "--bits"),
     (["--bits", "32"], "--bits"),
     (["--qat-iterations", "20"], "does not record its training settings, which a quantisation-aware fine-tune"),
+    (["--decoder-iterations", "20"], "does not record its training settings, which the decoder's fine-tune"),
 ])
 def test_pack_options_that_do_not_apply_to_a_series_exit_2(field, pattern, tmp_path, capsys, options, message):
     float32 = tmp_path / "s.apmgsrn"

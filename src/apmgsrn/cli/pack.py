@@ -253,7 +253,9 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
     log = (lambda line: None) if args.json else print
     packing = replace(packing, decoder_iterations=_decoder_iterations(args, model, field))
     if packing.qat_iterations or packing.decoder_iterations:  # refused before any work: no settings, no steps' grids
-        config = stored_train_config(model.description.training, str(args.model))
+        config = stored_train_config(model.description.training, str(args.model),
+                                     "a quantisation-aware fine-tune" if packing.qat_iterations
+                                     else "the decoder's fine-tune")
         if not field.config.series.per_step_grids:
             raise ApmgsrnError(JOINT_SERIES_QAT if packing.qat_iterations else JOINT_SERIES_DECODER)
     values = None

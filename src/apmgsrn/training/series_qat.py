@@ -227,16 +227,17 @@ def budgeted(stepwise: StepwiseConfig | None, packing: SeriesPacking | None, con
             partial(fine_tune_decoder, show_progress=show_progress))
 
 
-def stored_train_config(training: dict, where: str) -> TrainConfig:
-    """The training settings a model file recorded (its summary's ``config``), as a :class:`TrainConfig`.
+def stored_train_config(training: dict, where: str, purpose: str = "a quantisation-aware fine-tune") -> TrainConfig:
+    """The training settings a model file recorded (its summary's ``config``), as a :class:`TrainConfig`, for
+    ``purpose`` (what the message names should they be missing).
 
     Raises:
         ApmgsrnError: missing, or not settings the loop can run with (a damaged or hostile file).
     """
     stored = training.get("config") if isinstance(training, dict) else None
     if not isinstance(stored, dict):
-        raise ApmgsrnError(f"{where}: the file does not record its training settings, which a quantisation-aware "
-                           "fine-tune starts from")
+        raise ApmgsrnError(f"{where}: the file does not record its training settings, which {purpose} starts from "
+                           "(a packed file keeps none: pack the float series file it was packed from)")
     known = {key: value for key, value in current_names(stored).items() if key in TrainConfig.__dataclass_fields__}
     try:
         return TrainConfig(**known)
