@@ -8,6 +8,7 @@ import json
 import signal
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -408,7 +409,7 @@ def test_a_series_of_hybrid_models_trains_evaluates_decodes_and_fits_in_python(p
                                 "--grids", "4", "--out", str(out), "--json", *FAST])
     model = apmgsrn.load(out)
     assert model.description.config.model == "hybrid" and model.description.kind == "packed-series"
-    assert model.description.packing.report["bits"] == 10
+    assert model.description.packing.report["bits"] == 10 and "over_target" not in trained
     assert model.description.training["stepwise"]["step_sparsity"] == 0.0 < STEP_SPARSITY_OF["hybrid"]  # unpulled
     assert model.field.encoder.level_table.shape[0] == 4
     figures = run_json(capsys, ["eval", str(out), pattern, "--json"])
@@ -433,6 +434,28 @@ def test_a_series_of_hybrid_models_trains_evaluates_decodes_and_fits_in_python(p
     with pytest.raises(ApmgsrnError, match="step_sparsity"):
         apmgsrn.fit(pattern, model="hybrid", iterations=5, progress=False, step_sparsity=-1.0)
     assert fitted.description.config.model == "hybrid" and fitted.description.kind == "packed-series"
+
+
+def test_a_series_too_large_for_the_default_size_says_so(pattern, tmp_path, capsys, monkeypatch):
+    """Where the default size (here cut to a twentieth, a quarter of one single-step file for the four steps)
+    cannot hold the steps even at the packing's least bit width, train packs at that width anyway and says that
+    the file is over, in the JSON summary and in one note line."""
+    from apmgsrn.training import series_packing
+
+    default = series_packing.default_series_packing
+    monkeypatch.setattr(series_packing, "default_series_packing",
+                        lambda *a: replace(default(*a), target_bytes=default(*a).target_bytes // 20))
+    common = ["train", pattern, "--model", "hybrid", "--levels", "6", "--log2-table-size", "10", "--grids", "4",
+              *FAST[2:], "--iterations", "40"]
+    summary = run_json(capsys, [*common, "--out", str(tmp_path / "h.apmgsrn"), "--json"])
+    over = summary["over_target"]
+    assert summary["model_bytes"] > over["target_bytes"] and over["bits"] == series_packing.DEFAULT_SERIES_MIN_BITS_OF[
+        "hybrid"]
+    assert apmgsrn.load(tmp_path / "h.apmgsrn").description.packing.report["bits"] == over["bits"]
+    assert main([*common, "--out", str(tmp_path / "t.apmgsrn")]) == 0
+    notes = [line for line in capsys.readouterr().out.splitlines() if "over the default size" in line]
+    assert len(notes) == 1 and f"{over['bits']} bits; --size or --bits" in notes[0]
+    assert "the 4 steps' grids take more even at" in notes[0]
 
 
 def test_info_says_where_long_fine_tunes_were_pulled_less(test_data, tmp_path, capsys):

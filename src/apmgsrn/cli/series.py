@@ -148,6 +148,8 @@ def run_series_train(args: argparse.Namespace, series, field_config, train_confi
         "grids_frozen_at": result.frozen_at,
         "per_step": step_rows(series.labels, [series.step_name(t) for t in range(len(series))], evaluation),
     }
+    if packing is not None and packing.target_bytes is not None and result.model_bytes > packing.target_bytes:
+        summary["over_target"] = {"target_bytes": packing.target_bytes, "bits": packing.min_bits}
     stepwise = result.training.get("stepwise") or {}
     start = stepwise.get("start")
     if start is not None:
@@ -165,6 +167,13 @@ def run_series_train(args: argparse.Namespace, series, field_config, train_confi
     if result.iterations:
         print(f"training    {result.iterations} iterations in {result.seconds:.1f} s "
               f"({summary['ms_per_iteration']:.1f} ms/iteration), grids frozen at {result.frozen_at}")
+    if summary.get("over_target"):
+        from apmgsrn.training.series_packing import DEFAULT_SERIES_MODELS
+
+        over = summary["over_target"]
+        print(f"note        the file is over the default size, {DEFAULT_SERIES_MODELS} single-step files "
+              f"({format_bytes(over['target_bytes'])}): the {len(series)} steps' grids take more even at "
+              f"{over['bits']} bits; --size or --bits sets the size yourself (docs/time_series.md)")
     if summary.get("placement_moved_steps"):
         from apmgsrn.training.series_steps import TRACK_DB
 
