@@ -767,7 +767,7 @@ def train_stepwise(
     by_step = dict(zip(progress.done, progress.iterations))
     summary = {"start": progress.start, "start_iterations": start_iterations,
                "step_iterations": [by_step[t] for t in range(steps)],
-               "step_lr": stepwise.step_config(train_config, lr_share=lr_share).lr,
+               "step_lr": base.lr,
                "tracked_steps": sorted(t for t, moved in zip(progress.done, progress.tracked) if moved),
                "budget_scale": round(scale, 6), "step_sparsity": sparsity,
                "step_pull_iterations": round(STEP_EVEN_BELOW * base.iterations),
