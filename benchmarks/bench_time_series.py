@@ -297,6 +297,27 @@ def write_upsampled(args: argparse.Namespace) -> None:
     print(f"wrote {len(files)} steps of {args.size}^3 to {args.out}")
 
 
+def write_midpoints(args: argparse.Namespace) -> None:
+    """Every step of a series folder (``--series``) and, between each two, their mean, written as ``step_NNN.npy``
+    files to ``--out`` (30 steps give 59): the same run as if written out twice as often, each step changing
+    about half as much from the one before (the mean is a linear stand-in for the state in between)."""
+    import numpy as np
+
+    from apmgsrn.data import open_volume
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    files = _series_files(args.series)
+    previous, written = None, 0
+    for path in files:
+        values = np.ascontiguousarray(open_volume(path).to_numpy(), dtype=np.float32)
+        if previous is not None:
+            np.save(args.out / f"step_{written:03d}.npy", ((previous + values) / 2).astype(np.float32))
+            written += 1
+        np.save(args.out / f"step_{written:03d}.npy", values)
+        previous, written = values, written + 1
+    print(f"wrote {written} steps of {previous.shape} to {args.out}: {len(files)} steps and the means between them")
+
+
 def run_timing(args: argparse.Namespace) -> None:
     """Train one step's small model under the protocol and record how long it took (for the 5x comparison,
     measured right before and right after the series model, on the same machine and threads)."""
@@ -584,13 +605,16 @@ def main() -> None:
     upsample.add_argument("--series", type=Path, default=SERIES)
     upsample.add_argument("--size", type=int, default=128)
     upsample.add_argument("--out", type=Path, required=True)
+    midpoints = sub.add_parser("midpoints", help="write every step of a series and the mean between each two")
+    midpoints.add_argument("--series", type=Path, default=SERIES)
+    midpoints.add_argument("--out", type=Path, required=True)
     report = sub.add_parser("report", help="the per-step table and chart in docs/")
     report.add_argument("--out", type=Path)
     for p in (base, series, timing):
         p.add_argument("--data", type=Path, default=SERIES, help="a folder of volume files, one per step")
         p.add_argument("--iterations", type=int, default=2000)
         p.add_argument("--batch-size", type=int, default=32768)
-    for p in (base, series, timing, moving, upsample, report):
+    for p in (base, series, timing, moving, upsample, midpoints, report):
         p.add_argument("--threads", type=int, default=1)
     for p in (base, series, timing, report):
         p.add_argument("--kind", choices=KINDS, default="apmgsrn", help="the model kind (default apmgsrn)")
@@ -616,6 +640,8 @@ def main() -> None:
         write_moving(args)
     elif args.command == "upsample":
         write_upsampled(args)
+    elif args.command == "midpoints":
+        write_midpoints(args)
     else:
         write_report(args.out, [int(t) for t in args.timing_steps.split(",")] if args.timing_steps else None,
                      args.kind)
