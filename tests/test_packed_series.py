@@ -538,8 +538,8 @@ def shared_steps_of(field, name):
 
 def test_the_default_packing_is_sized_by_the_stored_single_step_file_and_keeps_a_hybrid_at_7_bits():
     """``train``'s default: within five single-step files of the preset as stored (a hybrid's float16 tables at
-    2 bytes a value), lowering the bit width to 6 for APMGSRN, never below 7 for the hybrid (its pulled tables
-    lose about 0.45 dB at 7 bits on the viscous-finger steps and 1.7 at 6)."""
+    2 bytes a value) up to 30 steps, in proportion beyond, lowering the bit width to 6 for APMGSRN, never below 7
+    for the hybrid (its pulled tables lose about 0.45 dB at 7 bits on the viscous-finger steps and 1.7 at 6)."""
     import math
 
     from apmgsrn.models.registry import stored_bytes
@@ -555,6 +555,9 @@ def test_the_default_packing_is_sized_by_the_stored_single_step_file_and_keeps_a
         assert packing.min_bits == lowest and not packing.strict
         # fine-tuned towards the packing first: the hybrid's steps, 250 iterations after the start model's 2,000
         assert packing.qat_iterations == (250 if kind == "hybrid" else 0)
+        assert default_series_packing(stepwise_config(single, 3), shape, 2000).target_bytes == packing.target_bytes
+        assert default_series_packing(stepwise_config(single, 60), shape, 2000).target_bytes == \
+            10 * stored_bytes(fitted)
     hybrid = preset_config("hybrid", "small").fitted_to(shape)
     values = sum(math.prod(s) for s in hybrid.parameter_shapes().values())
     assert 2 * values < stored_bytes(hybrid) < 3 * values  # float16 tables, float32 decoder and placement

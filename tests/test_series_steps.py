@@ -164,45 +164,46 @@ def test_a_short_series_spends_the_budget_its_steps_leave():
 
 def test_a_long_series_shortens_every_step_to_stay_within_the_budget():
     """The steps after the start (at the base share), every step's quantisation-aware fine-tune and every step's
-    own costs together take at most STEPS_BUDGET_CAP times the start model's points: 29 steps at 200 alone are
-    under it, 99 are shortened in proportion; counting the fine-tune towards the packing (250 iterations at 0.375
-    of the batch) leaves 29 steps as they are (the 30-step default) and shortens 39, both fine-tunes and their
-    measurements alike; a series too long for the budget gets the least share; steps that change much keep their
-    extra share; iterations a caller set are kept."""
+    own costs together take at most STEPS_BUDGET_CAP times the start model's points, in proportion to the steps
+    beyond SHARE_STEPS: 29 steps at 200 alone are under it, and so are 99; counting the fine-tune towards the
+    packing (250 iterations at 0.375 of the batch) leaves 29 steps as they are (the 30-step default) and shortens
+    39 and 99 alike, by the same share, both fine-tunes and their measurements with them; a fine-tune towards the
+    packing too long for the budget gets the least share; steps that change much keep their extra share;
+    iterations a caller set are kept."""
+    from apmgsrn.training.series_packing import SHARE_STEPS, series_growth
+
     start = TrainConfig(iterations=2000, batch_size=32768)
     cap = series_steps.STEPS_BUDGET_CAP * 2000
     fixed = series_steps.STEP_FIXED_COST
     stepwise = StepwiseConfig()
+    assert series_growth(SHARE_STEPS) == series_growth(2) == 1.0 and series_growth(3 * SHARE_STEPS) == 3.0
     assert stepwise.budget_scale(start, 29) == 1.0  # 29 x 200 + 30 x 16 = 6,280 <= 8,520
-    scale = stepwise.budget_scale(start, 99)
-    assert scale == pytest.approx((cap - 100 * fixed) / (99 * 200))
-    assert 99 * stepwise.step_config(start, 1.0, scale).iterations + 100 * fixed <= cap + 99
-    assert stepwise.step_config(start, series_steps.change_factor(0.5, 0.001), scale).iterations == \
-        round(2000 * scale)  # 10 x the base
+    assert stepwise.budget_scale(start, 99) == 1.0  # 99 x 200 + 100 x 16 = 21,400 <= 8,520 x 100 / 30
     assert StepwiseConfig(step_iterations=200).budget_scale(start, 99) == 1.0
     tuned = StepwiseConfig(qat_iterations=250)
     assert tuned.budget_scale(start, 29, 0.375, 0.9) == 1.0  # 5,220 + 2,812.5 + 480 <= 8,520: the 30-step default
     assert tuned.step_config(start, 1.0, 1.0, batch_share=0.375, point_share=0.9).error_measurements == \
         series_steps.STEP_ERROR_MEASUREMENTS
+    scales = []
     for steps in (39, 99):
+        allowed = cap * (steps + 1) / SHARE_STEPS - (steps + 1) * fixed
         scale = tuned.budget_scale(start, steps, 0.375, 0.9)
-        assert scale == pytest.approx((cap - (steps + 1) * fixed) / (steps * 200 * 0.9 + (steps + 1) * 250 * 0.375))
+        assert scale == pytest.approx(allowed / (steps * 200 * 0.9 + (steps + 1) * 250 * 0.375)) and scale < 1
+        scales.append(scale)
         step = tuned.step_config(start, 1.0, scale, batch_share=0.375, point_share=0.9)
         qat = tuned.shortened_qat(start, steps, 0.375, 0.9)
         assert qat == round(250 * scale)
         points = steps * step.iterations * step.batch_size + (steps + 1) * qat * step.batch_size
-        assert (cap - (steps + 1) * fixed) * 32768 * 0.99 < points <= (cap - (steps + 1) * fixed) * 32768 * 1.01
+        assert allowed * 32768 * 0.99 < points <= allowed * 32768 * 1.01
         # measured as often per iteration as the unshortened fine-tune
         assert step.error_measurements == series_steps.shortened_measurements(
             series_steps.STEP_ERROR_MEASUREMENTS, scale) == round(series_steps.STEP_ERROR_MEASUREMENTS * scale)
-    assert tuned.budget_scale(start, 999, 0.375, 0.9) == series_steps.LEAST_BUDGET_SCALE
+        # a step that changes much keeps its extra share
+        assert tuned.step_config(start, 4.0, scale).iterations == round(200 * 4.0 * scale)
+    assert scales[1] == pytest.approx(scales[0], rel=0.02)  # a longer series: the same share of each step's
+    assert StepwiseConfig(qat_iterations=100000).budget_scale(start, 99, 0.375, 0.9) == series_steps.LEAST_BUDGET_SCALE
     assert series_steps.shortened_measurements(20, series_steps.LEAST_BUDGET_SCALE) == 1
     assert StepwiseConfig(step_iterations=200, qat_iterations=250).shortened_qat(start, 99, 0.375, 0.9) == 250
-    assert StepwiseConfig().shortened_qat(start, 99) == 0
-    # A start model trained 1.4 times as long takes its extra points, at START_POINT_COST each, from the steps' budget
-    longer = (cap - series_steps.START_POINT_COST * 0.4 * 2000 - 30 * fixed) / (29 * 200 * 0.9 + 30 * 250 * 0.375)
-    assert tuned.budget_scale(start, 29, 0.375, 0.9, 1.4) == pytest.approx(longer) and longer < 1
-    assert tuned.shortened_qat(start, 29, 0.375, 0.9, 1.4) == round(250 * longer)
 
 
 def test_stepwise_training_applies_the_budget(prepared, monkeypatch):

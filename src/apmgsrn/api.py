@@ -378,7 +378,7 @@ def series_setup(data, preset: str = "small", model: str | None = None, iteratio
                  dtype: str | None = None, **options) -> SeriesSetup:
     """What :func:`fit` of a time series trains (its arguments as there; ``options`` as there, the stepwise
     ones included; ``shape`` and ``dtype`` of raw files): stepwise, packed within five single-step files of the
-    preset (``apmgsrn bench series`` trains exactly this).
+    preset, a sixth of its steps' beyond 30 steps (``apmgsrn bench series`` trains exactly this).
 
     Raises:
         ApmgsrnError: unreadable data, a model kind a series cannot extend, an invalid option.

@@ -37,7 +37,8 @@ def add_series_arguments(parser: argparse.ArgumentParser) -> None:
                        help="stepwise (default): a model of the step with the most detail, then every other step's "
                             "own grids fine-tuned from its neighbour's, decoder shared, placement shared unless a "
                             "step drifts, stored packed (--bits, default 10, lowered to 6 at most to stay within 5 "
-                            "single-step models; or --size, --ratio; with --bricks, every brick and group of steps "
+                            "single-step models, or a sixth of the steps' beyond 30 steps; or --size, --ratio; with "
+                            "--bricks, every brick and group of steps "
                             "so, at the default packing); joint: one model of all steps trained at once (the "
                             "options below)")
     group.add_argument("--start-step", metavar="auto|first|last|K",
@@ -168,10 +169,11 @@ def run_series_train(args: argparse.Namespace, series, field_config, train_confi
         print(f"training    {result.iterations} iterations in {result.seconds:.1f} s "
               f"({summary['ms_per_iteration']:.1f} ms/iteration), grids frozen at {result.frozen_at}")
     if summary.get("over_target"):
-        from apmgsrn.training.series_packing import DEFAULT_SERIES_MODELS
+        from apmgsrn.training.series_packing import DEFAULT_SERIES_MODELS, series_growth
 
         over = summary["over_target"]
-        print(f"note        the file is over the default size, {DEFAULT_SERIES_MODELS} single-step files "
+        files = DEFAULT_SERIES_MODELS * series_growth(len(series))
+        print(f"note        the file is over the default size, {files:.3g} single-step files "
               f"({format_bytes(over['target_bytes'])}): the {len(series)} steps' grids take more even at "
               f"{over['bits']} bits; --size or --bits sets the size yourself (docs/time_series.md)")
     if summary.get("placement_moved_steps"):

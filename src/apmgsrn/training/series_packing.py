@@ -553,6 +553,15 @@ class SeriesPacking:
 #: line says otherwise (``--bits`` or ``--size``), lowering the bit width from 10 to at most 6 if it must: the 30
 #: viscous-finger steps take 4.2 at 10 bits; steps that change more code less well along time.
 DEFAULT_SERIES_MODELS, DEFAULT_SERIES_MIN_BITS = 5, 6
+#: The longest series whose default size (:data:`DEFAULT_SERIES_MODELS` single-step files) and whose steps' training
+#: budget (:data:`~apmgsrn.training.series_steps.STEPS_BUDGET_CAP`) are the same whatever its length: the 30
+#: viscous-finger steps, in a sixth of what own models of them take. A longer series gets both in proportion to its
+#: steps (:func:`series_growth`), a sixth of its own models still. Held fixed, they left 59 steps (the 30 and the
+#: mean between each two) 0.40 of each step's share of iterations, 7.13 files at the packing's 7-bit floor, and
+#: every data step 0.7-2.5 dB below the 30-step series (1.21 dB below its own model at worst); grown, every measured
+#: step is 1.70-3.48 dB above its own model, in 9.27 files and 6.8-7.2 times one step's training, and 60 steps (the 30,
+#: then the same backwards) 1.21-3.35 dB above in 9.46 files and 9.21 times (docs/time_series.md).
+SHARE_STEPS = 30
 #: The lowest bit width of the default packing for a model kind whose steps lose more than APMGSRN's at lower
 #: ones: a hybrid series' tables (pulled towards their neighbours', ``STEP_SPARSITY_OF``) cost about 0.1 dB at
 #: 8 bits, 0.45 at 7 and 1.7 at 6 with steps that follow the output (with uniform steps: 0.50 at 8; unpulled
@@ -569,6 +578,12 @@ DEFAULT_SERIES_MIN_BITS_OF = {"hybrid": 7}
 #: (:data:`~apmgsrn.training.series_steps.STEP_ERROR_PARTS`; docs/time_series.md); 250 at the steps' smaller
 #: batch, measured on quarters, as much in 12-17 % less time (:data:`~apmgsrn.training.series_qat.QAT_ERROR_PARTS`).
 DEFAULT_SERIES_QAT_SHARE_OF = {"hybrid": 0.125}
+
+
+def series_growth(steps: int) -> float:
+    """How many times the default size and the steps' training budget of a series of up to :data:`SHARE_STEPS`
+    steps a series of ``steps`` gets: 1 up to that length, in proportion beyond it."""
+    return max(1.0, steps / SHARE_STEPS)
 
 
 def default_series_qat(model: str, iterations: int) -> int:
@@ -597,15 +612,16 @@ def default_series_decoder(model: str, iterations: int) -> int:
 
 def default_series_packing(field_config, volume_shape: tuple[int, int, int], iterations: int) -> SeriesPacking:
     """How ``train`` packs a stepwise series of ``field_config`` (a :class:`SeriesFieldConfig`) of
-    ``(D, H, W)`` steps by default: within :data:`DEFAULT_SERIES_MODELS` single-step files of its preset, each
-    counted at the bytes its parameters are stored in (float16 tables of the hybrid presets), lowering the bit
-    width to fit down to :data:`DEFAULT_SERIES_MIN_BITS` (a hybrid series: :data:`DEFAULT_SERIES_MIN_BITS_OF`),
-    every step fine-tuned towards its packing first where the kind does so (:func:`default_series_qat` of the
-    start model's ``iterations``)."""
+    ``(D, H, W)`` steps by default: within :data:`DEFAULT_SERIES_MODELS` single-step files of its preset (times
+    :func:`series_growth` of its steps), each counted at the bytes its parameters are stored in (float16 tables of
+    the hybrid presets), lowering the bit width to fit down to :data:`DEFAULT_SERIES_MIN_BITS` (a hybrid series:
+    :data:`DEFAULT_SERIES_MIN_BITS_OF`), every step fine-tuned towards its packing first where the kind does so
+    (:func:`default_series_qat` of the start model's ``iterations``)."""
     single = stored_bytes(field_config.field.fitted_to(volume_shape))
     model = field_config.field.model
     lowest = DEFAULT_SERIES_MIN_BITS_OF.get(model, DEFAULT_SERIES_MIN_BITS)
-    return SeriesPacking(DEFAULT_SERIES_BITS, DEFAULT_SERIES_MODELS * single, lowest, strict=False,
+    target = round(DEFAULT_SERIES_MODELS * single * series_growth(field_config.series.steps))
+    return SeriesPacking(DEFAULT_SERIES_BITS, target, lowest, strict=False,
                          qat_iterations=default_series_qat(model, iterations),
                          decoder_iterations=default_series_decoder(model, iterations))
 

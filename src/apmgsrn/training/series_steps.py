@@ -62,6 +62,7 @@ from apmgsrn.training.checkpoint import CHECKPOINT_KIND, TrainingState, check_te
 from apmgsrn.training.fit import PreparedValues, TrainedField, build_field, train_prepared
 from apmgsrn.training.optimizer import pull_towards
 from apmgsrn.training.points import draw_batch
+from apmgsrn.training.series_packing import series_growth
 from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, TrainingInterrupted, as_json
 
 STEPS_CHECKPOINT_KIND = "series-steps"
@@ -144,10 +145,12 @@ STEP_EVEN_BELOW = 2.0
 #: The fine-tunes after the start model, the steps' at their base share and every step's quantisation-aware one
 #: (:attr:`StepwiseConfig.qat_iterations`), together with what every step costs besides (:data:`STEP_FIXED_COST`) take
 #: at most this many times the start model's points (iterations times batch; a fine-tune's point, its share of the
-#: measurements of where it is wrong included, costs about what a start model's does). A long series' fine-tunes are
-#: shortened in proportion, their measurements with them, so a series of steps that change little trains in about the
-#: time the 30 viscous-finger steps take (4.8-4.9 times one step's model) whatever its length; steps that change much
-#: still get more. Those 30 steps (29 x 200 x 0.9 + 30 x 250 x 0.375 + 30 x 16 = 8,513 start-model iterations' points)
+#: measurements of where it is wrong included, costs about what a start model's does), for a series of up to
+#: :data:`~apmgsrn.training.series_packing.SHARE_STEPS` steps; a longer one gets it in proportion to its steps
+#: (:func:`~apmgsrn.training.series_packing.series_growth`). Fine-tunes that take more are shortened in proportion,
+#: their measurements with them, so a series of steps that change little trains in about the time the 30
+#: viscous-finger steps take (4.1-4.9 times one step's model), or that in proportion; steps that change much still
+#: get more. Those 30 steps (29 x 200 x 0.9 + 30 x 250 x 0.375 + 30 x 16 = 8,513 start-model iterations' points)
 #: are just within it (the hybrid's start model, trained 1.4 times as long, takes 0.6 of it, :data:`START_POINT_COST`:
 #: they get 0.85 of their share). Before the fine-tune towards the packing and the steps' own costs counted, and the
 #: measurements shortened with the fine-tunes, the cap (4, on the steps alone) let 60 steps train in 8.1 times one step
@@ -279,7 +282,8 @@ class StepwiseConfig:
         they are wrong) every step gets so that the ``steps`` steps after the start (at ``point_share`` of the
         base's points), the quantisation-aware fine-tune of all ``steps + 1`` (at ``batch_share`` of the start
         model's batch) and what every step costs besides (:data:`STEP_FIXED_COST`) together take at most
-        :data:`STEPS_BUDGET_CAP` times the configured start model's points, less what a start model trained
+        :data:`STEPS_BUDGET_CAP` times the configured start model's points (in proportion to the steps beyond
+        :data:`~apmgsrn.training.series_packing.SHARE_STEPS`), less what a start model trained
         ``start_share`` times as long (:data:`START_ITERATION_SHARES`) takes beyond them at
         :data:`START_POINT_COST` (1 for a series short enough, and when ``step_iterations`` was given; at least
         :data:`LEAST_BUDGET_SCALE`). Steps that change much keep their extra iterations in proportion
@@ -290,8 +294,9 @@ class StepwiseConfig:
         return min(1.0, max(self._allowed(config, steps, start_share) / points, LEAST_BUDGET_SCALE))
 
     def _allowed(self, config: TrainConfig, steps: int, start_share: float) -> float:
-        """The points :meth:`budget_scale` lets the fine-tunes of ``steps`` steps after the start take."""
-        cap = STEPS_BUDGET_CAP - START_POINT_COST * (start_share - 1)
+        """The points :meth:`budget_scale` lets the fine-tunes of ``steps`` steps after the start take
+        (:data:`STEPS_BUDGET_CAP` times the series' :func:`~apmgsrn.training.series_packing.series_growth`)."""
+        cap = STEPS_BUDGET_CAP * series_growth(steps + 1) - START_POINT_COST * (start_share - 1)
         return cap * config.iterations - (steps + 1) * STEP_FIXED_COST
 
     def spare_factor(self, config: TrainConfig, factors: list[float], batch_share: float = 1.0,
