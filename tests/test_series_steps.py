@@ -199,11 +199,21 @@ def test_a_long_series_shortens_every_step_to_stay_within_the_budget():
         assert step.error_measurements == series_steps.shortened_measurements(
             series_steps.STEP_ERROR_MEASUREMENTS, scale) == round(series_steps.STEP_ERROR_MEASUREMENTS * scale)
         # a step that changes much keeps its extra share
-        assert tuned.step_config(start, 4.0, scale).iterations == round(200 * 4.0 * scale)
-    assert scales[1] == pytest.approx(scales[0], rel=0.02)  # a longer series: the same share of each step's
+        assert tuned.step_config(start, series_steps.change_factor(0.5, 0.001), scale).iterations == \
+            round(2000 * scale)  # 10 x the base
+    assert scales[1] == pytest.approx(scales[0], rel=0.02)  # a longer series: about the same share a step
     assert StepwiseConfig(qat_iterations=100000).budget_scale(start, 99, 0.375, 0.9) == series_steps.LEAST_BUDGET_SCALE
     assert series_steps.shortened_measurements(20, series_steps.LEAST_BUDGET_SCALE) == 1
     assert StepwiseConfig(step_iterations=200, qat_iterations=250).shortened_qat(start, 99, 0.375, 0.9) == 250
+    assert StepwiseConfig().shortened_qat(start, 99) == 0
+    # A start model trained 1.4 times as long takes its extra points, at START_POINT_COST each, from the steps' budget
+    longer = (cap - series_steps.START_POINT_COST * 0.4 * 2000 - 30 * fixed) / (29 * 200 * 0.9 + 30 * 250 * 0.375)
+    assert tuned.budget_scale(start, 29, 0.375, 0.9, 1.4) == pytest.approx(longer) and longer < 1
+    assert tuned.shortened_qat(start, 29, 0.375, 0.9, 1.4) == round(250 * longer)
+    # and as much from a longer series' grown budget: 59 steps (the 30 and the means between them)
+    grown = (cap * 59 / SHARE_STEPS - series_steps.START_POINT_COST * 0.4 * 2000 - 59 * fixed) / (
+        58 * 200 * 0.9 + 59 * 250 * 0.375)
+    assert tuned.budget_scale(start, 58, 0.375, 0.9, 1.4) == pytest.approx(grown) and longer < grown < 1
 
 
 def test_stepwise_training_applies_the_budget(prepared, monkeypatch):
