@@ -84,7 +84,7 @@ def child(case: str, mode: str, model: str) -> dict:
         start = time.perf_counter()
         evaluate(model_obj, values)
     else:
-        from apmgsrn.render import Camera, RendererConfig, VolumeRenderer, extent_from_shape, make_transfer_function
+        from apmgsrn.rendering import Camera, RendererConfig, VolumeRenderer, extent_from_shape, make_transfer_function
 
         tf = make_transfer_function("Cool to Warm", (0.0, 255.0), opacity=((0.0, 0.0), (0.3, 0.0), (1.0, 0.6)))
         extent = extent_from_shape(values.shape)

@@ -91,7 +91,7 @@ def _train(data: Path, out: Path, size: str, iterations: int, device: str) -> No
 def bench_volume(args, spec: BenchVolume, device: torch.device, batch_size: int, first_batch: bool) -> list[dict]:
     import apmgsrn
     from apmgsrn.data import open_volume
-    from apmgsrn.render import (
+    from apmgsrn.rendering import (
         Camera,
         RendererConfig,
         VolumeRenderer,
@@ -176,7 +176,7 @@ def _save_panel(images: dict, path: Path, tf_name: str) -> None:
     import numpy as np
     from PIL import Image, ImageDraw
 
-    from apmgsrn.render.images import as_uint8
+    from apmgsrn.rendering.images import as_uint8
 
     tiles = []
     for label, image in images.items():

@@ -349,7 +349,7 @@ def run_speed(args: argparse.Namespace) -> None:
     """
     import apmgsrn
     from apmgsrn.io import SourceInfo, save_field
-    from apmgsrn.render import Camera, RendererConfig, VolumeRenderer, make_transfer_function
+    from apmgsrn.rendering import Camera, RendererConfig, VolumeRenderer, make_transfer_function
 
     series_model = apmgsrn.load(args.model)
     step = args.step

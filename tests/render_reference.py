@@ -65,8 +65,8 @@ def make_inputs() -> None:
 def library_images() -> dict[str, np.ndarray]:
     """Renders through the Python API: the raw volume (exact bounds) and the models (sampled bounds)."""
     import apmgsrn
-    from apmgsrn.render import Camera, RendererConfig, VolumeRenderer, render_progressive
-    from apmgsrn.render.transfer_function import ColorMap, OpacityMap, TransferFunction
+    from apmgsrn.rendering import Camera, RendererConfig, VolumeRenderer, render_progressive
+    from apmgsrn.rendering.transfer_function import ColorMap, OpacityMap, TransferFunction
 
     tf = TransferFunction(
         color_map=ColorMap(((0.0, 0.1, 0.2, 0.8), (120.0, 0.9, 0.9, 0.3), (255.0, 0.8, 0.1, 0.1))),

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from apmgsrn.cli.fit_options import build_configs
-from apmgsrn.cli.main import build_parser, main
+import apmgsrn
+from apmgsrn.cli.main import main
 from apmgsrn.data import open_volume
 from apmgsrn.errors import InvalidArgument
 from apmgsrn.models.field import NeuralField
@@ -92,16 +92,15 @@ def test_info_says_how_many_grids_were_anchored(neghip_crop, tmp_path, capsys):
         assert len(frozen) == 1 and ("(2 anchored over the domain)" in frozen[0]) == (anchored == "2")
 
 
-@pytest.mark.parametrize(("argv", "steps", "expected"), [
-    ([], None, 0),  # one volume: the paper's training
-    ([], 30, 1),  # a time series anchors one
-    (["--anchored-grids", "0"], 30, 0),
-    (["--anchored-grids", "2"], None, 2),
+@pytest.mark.parametrize(("options", "series", "expected"), [
+    ({}, False, 0),  # one volume: the paper's training
+    ({"series_training": "joint"}, True, 1),  # a time series of APMGSRN anchors one
+    ({"series_training": "joint", "anchored_grids": 0}, True, 0),
+    ({"anchored_grids": 2}, False, 2),
 ])
-def test_a_time_series_anchors_one_grid_unless_told_otherwise(argv, steps, expected):
-    args = build_parser().parse_args(["train", "data.npy", "--out", "m.apmgsrn", *argv])
-    _, train_config = build_configs(args, torch.device("cpu"), steps=steps)
-    assert train_config.anchored_grids == expected
+def test_a_time_series_anchors_one_grid_unless_told_otherwise(test_data, options, series, expected):
+    data = str(test_data / "viscous_fingers_run01" / ("*.vti" if series else "030_density_030_064_2.0.vti"))
+    assert apmgsrn.plan(data, model="apmgsrn", device="cpu", **options).training.anchored_grids == expected
 
 
 def test_checkpoints_from_before_the_option_resume_with_every_grid_moving():

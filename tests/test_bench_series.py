@@ -118,6 +118,9 @@ def test_a_series_along_a_time_dimension_measures_as_its_files_do(tmp_path, caps
         assert a.psnr == pytest.approx(b.psnr, abs=1e-4) and a.file_bytes == pytest.approx(b.file_bytes, rel=0.01)
 
 
+# Slow tier: three seeds' runs of two models; the benchmark's measurement and its resume are checked in the default
+# tier by test_series_benchmark_measures_the_model_files_and_resumes.
+@pytest.mark.slow
 def test_several_seeds_compare_their_means_and_a_rerun_trains_only_the_new_seed(tmp_path, capsys):
     out = tmp_path / "bench"
     data = str(RUN / "*.vti")

@@ -62,15 +62,17 @@ def test_choice_lists_are_the_librarys():
     from apmgsrn.models.encoders.adaptive_multigrid import GRID_INITS
     from apmgsrn.models.encoders.hash_grid import HASH_BACKENDS
     from apmgsrn.models.encoders.hybrid_grid import GRID_INITS as HYBRID_GRID_INITS
-    from apmgsrn.models.registry import ENCODERS, PRESETS
+    from apmgsrn.models.registry import ENCODERS
+    from apmgsrn.recipes import MODELS
     from apmgsrn.models.value_transform import TRANSFORMS
     from apmgsrn.ops.multigrid import BACKENDS
-    from apmgsrn.render.paraview import PRESET_UNITS
+    from apmgsrn.rendering.paraview import PRESET_UNITS
     from apmgsrn.training.trainer import DECODER_PRECISIONS, DENSITY_NORMALIZATIONS, LR_SCHEDULES
 
     # The torch-free lists are what the library validates against (the encoders keep two copies: equal).
     assert tuple(ENCODERS) == choices.MODEL_KINDS
-    assert all(tuple(PRESETS[kind]) == choices.SIZE_PRESETS for kind in choices.MODEL_KINDS)
+    assert tuple(MODELS) == choices.MODEL_KINDS
+    assert all(tuple(MODELS[kind].presets) == choices.SIZE_PRESETS for kind in choices.MODEL_KINDS)
     assert GRID_INITS == choices.GRID_INITS and BACKENDS == choices.MULTIGRID_BACKENDS
     assert HYBRID_GRID_INITS == choices.HYBRID_GRID_INITS
     assert choices.BACKENDS["ngp"] == HASH_BACKENDS
@@ -128,7 +130,6 @@ LIBRARY_ONLY = {
     "stop_after_lr_cuts", "samples_per_cell", "table_size", "points", "qat_lr", "sensitivity_points",
     "measure_voxels",
     "steps", "mixing",  # a series' step count comes from its data; weight lattices are a library option
-    "step_lr",  # a stepwise series' fine-tune rate: 0.3 x --lr unless a Python caller sets it
     "min_bits",  # the smallest bit width a series' size target may lower to
     "finer",  # the fraction of a bit a series' size target refines its bit width by (the packer chooses it)
     "placement",  # a series' placement per step: what stepwise training fills, not a choice on the command line

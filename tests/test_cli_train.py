@@ -146,6 +146,9 @@ def _wait_for(path: Path, process: subprocess.Popen, seconds: float = 120) -> No
         time.sleep(0.05)
 
 
+# Slow tier: a real kill of a training process; the checkpoint and --resume are checked in the default tier by
+# test_ctrl_c_saves_then_resume_reaches_the_same_model.
+@pytest.mark.slow
 def test_resume_after_kill_reaches_the_same_model(test_data, tmp_path, uninterrupted):
     out = tmp_path / "killed.apmgsrn"
     checkpoint = Path(str(out) + ".ckpt")

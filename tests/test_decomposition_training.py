@@ -440,16 +440,15 @@ def test_kill_9_of_the_cli_then_the_same_command_finishes_the_same_model(test_da
     assert_same_model(apmgsrn.load(out), apmgsrn.load(fresh))
 
 
-def test_memory_mapped_bricks_are_read_in_slabs_and_the_map_released(test_data, monkeypatch):
+def test_memory_mapped_bricks_are_read_in_slabs_and_the_map_released(test_data):
     from apmgsrn.decomposition import brick_training
 
     volume = RawVolume(test_data / "c60_80x64x48_uint8.raw")
     brick = plan_bricks(volume.shape, DecompositionConfig((2, 2, 2), 1)).bricks[5]
     assert brick.shape == (26, 34, 42)  # (z, y, x) with its ghost cells
-    monkeypatch.setattr(brick_training, "MAPPED_SLAB_BYTES", 3 * 80 * 34)  # 3 z-slices of the box's rows
     READS.clear()
     recording = RecordingRawVolume(test_data / "c60_80x64x48_uint8.raw")
-    region = brick_training.read_brick(recording, brick)
+    region = brick_training.read_brick(recording, brick, slab_bytes=3 * 80 * 34)  # 3 z-slices of the box's rows
     assert region.shape == brick.shape
     assert (region == volume.read(*brick.slices())).all()
     assert len(READS) == -(-brick.shape[0] // 3) and recording._handle is None

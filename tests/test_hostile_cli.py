@@ -35,7 +35,7 @@ from apmgsrn.inference.query import query
 from apmgsrn.io import SourceInfo, save_field
 from apmgsrn.models.registry import preset_config
 from apmgsrn.models.value_transform import fit_value_transform
-from apmgsrn.render import Camera, RendererConfig
+from apmgsrn.rendering import Camera, RendererConfig
 from apmgsrn.training import fit as fit_module
 from apmgsrn.training.trainer import TrainConfig, TrainingCallback
 

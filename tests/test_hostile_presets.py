@@ -10,7 +10,7 @@ import pytest
 
 from apmgsrn.cli.main import main
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render.paraview import parse_presets, read_presets
+from apmgsrn.rendering.paraview import parse_presets, read_presets
 
 DEEP = "[" * 100_000 + "]" * 100_000
 

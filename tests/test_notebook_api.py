@@ -120,7 +120,7 @@ def test_render_returns_an_rgba_image(fitted: apmgsrn.Model) -> None:
     alpha = image[..., 3]
     assert alpha[0, 0] == 0 and alpha[15, 20] > 0  # the corner misses the box, the centre looks through it
     # Colour over white equals the RGB render over the (default white) background.
-    from apmgsrn.render import Camera, RendererConfig, VolumeRenderer, extent_from_shape, make_transfer_function
+    from apmgsrn.rendering import Camera, RendererConfig, VolumeRenderer, extent_from_shape, make_transfer_function
 
     extent = extent_from_shape(fitted.description.volume_shape)
     tf = make_transfer_function("Cool to Warm", fitted.description.value_range)

@@ -15,7 +15,7 @@ from apmgsrn.inference.evaluate import evaluate
 from apmgsrn.io import SourceInfo
 from apmgsrn.models.corrected_field import CorrectedField
 from apmgsrn.models.registry import preset_config
-from apmgsrn.ops.sparse_trilinear import SNAP, sample_sparse_volume
+from apmgsrn.ops.sparse_trilinear import sample_sparse_volume
 from apmgsrn.ops.trilinear import sample_volume, voxel_coordinates
 from apmgsrn.training.fit import fit_volume
 from apmgsrn.training.packing import PackConfig, fitted_values, pack_field, write_packed
@@ -55,8 +55,10 @@ def test_sparse_interpolation_is_trilinear_interpolation_of_the_zero_filled_volu
     values = dense.reshape(-1)[indices]
     points = torch.cat([torch.rand(20_000, 3) * 2.4 - 1.2, voxel_coordinates(truth.shape)])  # also outside
     sparse = sample_sparse_volume(indices, values, truth.shape, points)
-    # Points within SNAP (voxel units) of a voxel take the voxel's value: off by at most SNAP of a step per axis.
-    assert torch.allclose(sparse, sample_volume(dense, points), rtol=0, atol=3 * SNAP * float(dense.max()))
+    # Points within the snap (1e-4 voxel units) of a voxel take the voxel's value: off by at most that much of a
+    # step per axis.
+    snap = 1e-4
+    assert torch.allclose(sparse, sample_volume(dense, points), rtol=0, atol=3 * snap * float(dense.max()))
     # At the voxels: exactly the stored values, zero elsewhere (no blend with a neighbour).
     at_voxels = sample_sparse_volume(indices, values, truth.shape, voxel_coordinates(truth.shape))
     assert torch.equal(at_voxels, dense.reshape(-1))

@@ -32,6 +32,7 @@ from apmgsrn.training.packing import group_means
 from apmgsrn.training.series_packing import (
     pack_series,
     packed_series_field,
+    parameter_budget,
     sensitivity_steps,
     series_sensitivity,
     shared_steps,
@@ -335,20 +336,22 @@ def test_pack_info_and_eval_of_a_series_model(field, pattern, tmp_path, capsys):
 
 def test_pack_a_series_to_a_size_takes_the_finest_steps_that_fit(field, pattern, tmp_path, capsys):
     """A size between what 7 and 8 bits take: the largest whole width that fits (7), its steps then made finer
-    by a fraction of a bit, as far as the size allows; the file lands closer to its target, and fits."""
+    by sixteenths of a bit as far as the size allows (how many follows the values' coding); the file fits, and the
+    next sixteenth would not."""
     float32 = tmp_path / "s.apmgsrn"
     save_series(float32, field, SourceInfo(), {}, step_entries(4))
     sensitivity = series_sensitivity(field)
     sizes = {bits: pack_series(field, bits, sensitivity).parameter_bytes for bits in (7, 8)}
-    overhead = 1024 + 64 * 4  # the description and framing a target allows for
+    large = 1 << 40
+    overhead = large - parameter_budget(large, 4)  # the description and framing a target allows for
     budget = (sizes[7] + sizes[8]) // 2 + overhead
     code, packed = run_json(["pack", str(float32), pattern, "--out", str(tmp_path / "p.apmgsrn"),
                              "--size", str(budget)], capsys)
-    assert code == 0 and 7 < packed["bits"] < 8 and packed["file_bytes"] <= budget
+    assert code == 0 and 7 <= packed["bits"] < 8 and packed["file_bytes"] <= budget
     report = apmgsrn.load(tmp_path / "p.apmgsrn").description.packing.report
     assert report["target_bytes"] == budget and report["bits"] == packed["bits"]
     refined = pack_series(field, 7, sensitivity, packed["bits"] - 7)
-    assert sizes[7] < refined.parameter_bytes <= budget - overhead
+    assert sizes[7] <= refined.parameter_bytes <= budget - overhead
     # Within a sixteenth of a bit of the finest that fits.
     assert pack_series(field, 7, sensitivity, packed["bits"] - 7 + 1 / 16).parameter_bytes > budget - overhead
 
@@ -481,10 +484,11 @@ def test_a_size_search_codes_its_trials_with_the_first_ones_predictors_and_keeps
     forced = pack_series(field, 6, sensitivity, predictors={"encoder.level_table": ("none",)})
     table = {t.name: t for t in forced.tensors}["encoder.level_table"]
     assert table.predictor == "none" and forced.parameter_bytes > free.parameter_bytes
+    large = 1 << 40
     target = (pack_series(field, 6, sensitivity).parameter_bytes + pack_series(field, 7, sensitivity).parameter_bytes
-              ) // 2 + 1024 + 64 * field.steps
+              ) // 2 + large - parameter_budget(large, field.steps)
     kept = SeriesPacking(8, target, 4).pack(field)
-    assert kept.bits == 6 and 0 < kept.finer < 1
+    assert kept.bits == 6 and 0 <= kept.finer < 1  # 6 fits, 7 does not; the sixteenths follow the coding
     again = pack_series(field, kept.bits, sensitivity, kept.finer)
     assert kept.parameter_bytes == again.parameter_bytes <= parameter_budget(target, field.steps)
     assert [t.predictor for t in kept.tensors] == [t.predictor for t in again.tensors]
@@ -503,7 +507,8 @@ def test_a_size_search_takes_the_finest_sixteenth_of_a_bit_that_fits_in_few_tria
     sensitivity = series_sensitivity(field)
     lower, upper, share = between
     sizes = [pack_series(field, bits, sensitivity).parameter_bytes for bits in (lower, upper)]
-    target = round(sizes[0] + share * (sizes[1] - sizes[0])) + 1024 + 64 * field.steps
+    large = 1 << 40
+    target = round(sizes[0] + share * (sizes[1] - sizes[0])) + large - parameter_budget(large, field.steps)
     budget = parameter_budget(target, field.steps)
     trials = []
     original = series_packing.pack_series

@@ -23,6 +23,7 @@ from apmgsrn.io.quantization import (
     round_steps,
     steps_for_bits,
 )
+from apmgsrn.recipes import RUNTIME
 from apmgsrn.threads import map_in_threads
 
 
@@ -118,7 +119,7 @@ def test_fewer_compressions_run_side_by_side_where_each_would_take_much_memory(m
     assert codec.coding_threads(small) == 64
     long_series = [300 * 42_000, 1_000]  # 300 steps of a small hybrid's level table, and a decoder
     fitting = codec.coding_threads(long_series)
-    assert 1 < fitting < 64 and fitting * codec.coding_memory(long_series[0]) <= codec.PARALLEL_CODING_MEMORY
+    assert 1 < fitting < 64 and fitting * codec.coding_memory(long_series[0]) <= RUNTIME.parallel_coding_memory
     assert codec.coding_threads([10 ** 9]) == 1
 
 

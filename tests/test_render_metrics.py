@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from apmgsrn.render.metrics import image_psnr, image_ssim
+from apmgsrn.rendering.metrics import image_psnr, image_ssim
 
 
 def _image(seed: int, height: int = 40, width: int = 48) -> torch.Tensor:

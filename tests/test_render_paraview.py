@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render.color_spaces import rgb_to_lab
-from apmgsrn.render.colormaps import make_transfer_function
-from apmgsrn.render.paraview import load_transfer_function, read_presets, save_transfer_function
+from apmgsrn.rendering.color_spaces import rgb_to_lab
+from apmgsrn.rendering.colormaps import make_transfer_function
+from apmgsrn.rendering.paraview import load_transfer_function, read_presets, save_transfer_function
 
 # A preset file as ParaView's preset dialog exports it: tab-indented list, nodes on [0, 1].
 PRESET_FILE = """[

@@ -21,8 +21,8 @@ import pytest
 import torch
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render.colormaps import builtin_colormap
-from apmgsrn.render.paraview import apply_preset, load_transfer_function, read_presets
+from apmgsrn.rendering.colormaps import builtin_colormap
+from apmgsrn.rendering.paraview import apply_preset, load_transfer_function, read_presets
 
 pytestmark = pytest.mark.paraview
 

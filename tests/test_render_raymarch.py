@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from apmgsrn.render.camera import Camera, extent_from_shape
-from apmgsrn.render.colormaps import make_transfer_function
-from apmgsrn.render.bounds import ValueBounds
-from apmgsrn.render.progressive import ProgressiveRender, pass_pixels, render_progressive, upsample
-from apmgsrn.render.raymarch import RendererConfig, VolumeRenderer
-from apmgsrn.render.transfer_function import ColorMap, OpacityMap, TransferFunction
+from apmgsrn.rendering.camera import Camera, extent_from_shape
+from apmgsrn.rendering.colormaps import make_transfer_function
+from apmgsrn.rendering.bounds import ValueBounds
+from apmgsrn.rendering.progressive import ProgressiveRender, pass_pixels, render_progressive, upsample
+from apmgsrn.rendering.raymarch import RendererConfig, VolumeRenderer
+from apmgsrn.rendering.transfer_function import ColorMap, OpacityMap, TransferFunction
 
 COLOUR = (0.9, 0.3, 0.1)
 BACKGROUND = (0.2, 0.4, 1.0)

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render.color_spaces import hsv_to_rgb, lab_to_rgb, rgb_to_hsv, rgb_to_lab
-from apmgsrn.render.colormaps import COOL_TO_WARM, builtin_colormap, make_transfer_function
-from apmgsrn.render.transfer_function import (
+from apmgsrn.rendering.color_spaces import hsv_to_rgb, lab_to_rgb, rgb_to_hsv, rgb_to_lab
+from apmgsrn.rendering.colormaps import COOL_TO_WARM, builtin_colormap, make_transfer_function
+from apmgsrn.rendering.transfer_function import (
     ColorMap,
     OpacityMap,
     TransferFunction,

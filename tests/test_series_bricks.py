@@ -156,6 +156,9 @@ def test_a_stepwise_brick_rerun_trains_only_the_missing_pairs_and_reaches_the_sa
         train_series_bricks(series, GRID, CONFIG, TRAIN, copy, DaskJobQueue(client, threads_per_job=1), group_steps=3)
 
 
+# Slow tier: the command line on two worker processes; stepwise bricks (every group from its own start, every
+# brick packed) are checked in the default tier in process.
+@pytest.mark.slow
 def test_train_with_bricks_is_stepwise_by_default(test_data, tmp_path, capsys):
     from apmgsrn.cli.main import main
 

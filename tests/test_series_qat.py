@@ -18,13 +18,12 @@ from apmgsrn.cli.main import main
 from apmgsrn.data.series import open_series
 from apmgsrn.errors import ApmgsrnError, InvalidArgument
 from apmgsrn.inference.evaluate import evaluate_series
-from apmgsrn.models.registry import preset_config
+from apmgsrn.models.registry import preset_config, training_defaults
+from apmgsrn.recipes import HYBRID, PACKING, SERIES
 from apmgsrn.training.fit import prepare_values
 from apmgsrn.training.series_decoder import fine_tune_decoder
+from apmgsrn.training.series_fit import fit_series
 from apmgsrn.training.series_packing import (
-    DEFAULT_SERIES_DECODER_SHARE_OF,
-    DEFAULT_SERIES_QAT_SHARE_OF,
-    TUNED_BYTES_MARGIN,
     SeriesPacking,
     default_series_decoder,
     default_series_qat,
@@ -65,6 +64,13 @@ def hybrid_series(prepared):
     tiny = preset_config("hybrid", "small", **TINY_HYBRID)
     return train_stepwise(prepared, stepwise_config(tiny, 4), CONFIG, (32, 32, 32), stepwise=StepwiseConfig(start=1),
                           show_progress=False).field
+
+
+def file_bytes_for(parameter_bytes: int, steps: int) -> int:
+    """The file size whose packing budget (parameter_budget: what the description and framing leave) of a series of
+    ``steps`` steps is ``parameter_bytes``."""
+    large = 1 << 40
+    return parameter_bytes + large - parameter_budget(large, steps)
 
 
 def test_packing_on_the_steps_a_packing_used_gives_the_same_file(hybrid_series):
@@ -199,7 +205,8 @@ def test_repack_undoes_the_fine_tune_of_as_few_steps_as_make_the_file_fit(hybrid
     grown = pack_series(tuned, 6, finer=to_tune.finer, steps=to_tune.steps).parameter_bytes
     assert grown > to_tune.parameter_bytes
     budget = (grown + to_tune.parameter_bytes) // 2
-    packing = SeriesPacking(6, target_bytes=budget + 1024 + 64 * 4, min_bits=4)
+    packing = SeriesPacking(6, target_bytes=file_bytes_for(budget, tuned.steps), min_bits=4)
+    assert parameter_budget(packing.target_bytes, tuned.steps) == budget
     repacked = packing.repack(tuned, to_tune, before)
     assert repacked.parameter_bytes <= budget
     assert repacked.restored and set(repacked.restored) <= {1, 3} and repacked.bit_width == to_tune.bit_width
@@ -210,24 +217,30 @@ def test_repack_undoes_the_fine_tune_of_as_few_steps_as_make_the_file_fit(hybrid
             assert torch.equal(held[name][t], (before if t in repacked.restored else moved)[name][t])
     again = pack_series(tuned, 6, finer=to_tune.finer, steps=to_tune.steps)
     assert all(torch.equal(again.state[k], repacked.state[k]) for k in again.state)
-    # Without the values from before, the field is packed anew instead (a width that fits, other steps).
+    # Without the values from before, the field is packed anew instead: the packing's own search from its top width
+    # down, on steps of its own, to a file that fits (which width fits follows the trained values' coding: at most
+    # the top, not necessarily below it).
     anew = copy.deepcopy(tuned)
     with torch.no_grad():
         anew.encoder.level_table.copy_(moved["encoder.level_table"])
     packed_anew = packing.repack(anew, to_tune)
-    assert packed_anew.restored == () and packed_anew.bit_width < 6 and packed_anew.parameter_bytes <= budget
+    assert packed_anew.restored == () and packed_anew.bit_width <= packing.bits
+    assert packed_anew.parameter_bytes <= budget
+    assert [t.data for t in packed_anew.tensors] == [t.data for t in packing.pack(anew).tensors]
 
 
 def test_the_packing_to_tune_towards_leaves_room_for_the_fine_tuned_values(hybrid_series, prepared):
-    """With a size target the packing a fine-tune trains towards keeps TUNED_BYTES_MARGIN of the target free, so
+    """With a size target the packing a fine-tune trains towards keeps PACKING.tuned_bytes_margin of the target free, so
     the fine-tuned field, packed on the same steps, still fits (without the margin, a target the bisection
     filled would send it back to packing anew on other steps)."""
-    tight = SeriesPacking(8, target_bytes=pack_series(hybrid_series, 6).parameter_bytes + 1024 + 64 * 4, min_bits=4,
-                          qat_iterations=20)
+    steps = hybrid_series.steps
+    tight = SeriesPacking(8, target_bytes=file_bytes_for(pack_series(hybrid_series, 6).parameter_bytes, steps),
+                          min_bits=4, qat_iterations=20)
     plain, to_tune = replace(tight, qat_iterations=0).pack(hybrid_series), tight.pack(hybrid_series)
-    budget = parameter_budget(tight.target_bytes, 4)
-    assert plain.parameter_bytes <= budget and to_tune.parameter_bytes <= (1 - TUNED_BYTES_MARGIN) * tight.target_bytes
-    assert to_tune.bit_width < plain.bit_width
+    budget = parameter_budget(tight.target_bytes, steps)
+    assert plain.parameter_bytes <= budget and to_tune.parameter_bytes <= (1 - PACKING.tuned_bytes_margin) * tight.target_bytes
+    # a smaller budget, a width no finer (how many sixteenths finer the margin costs follows the values' coding)
+    assert to_tune.bit_width <= plain.bit_width
     tuned = copy.deepcopy(hybrid_series)
     fine_tune_rounded(tuned, prepared.values, to_tune, CONFIG, 20, show_progress=False)
     repacked = tight.repack(tuned, to_tune)
@@ -237,11 +250,11 @@ def test_the_packing_to_tune_towards_leaves_room_for_the_fine_tuned_values(hybri
 
 
 def test_a_packing_that_leaves_less_room_than_the_margin_shortens_the_fine_tune_in_proportion(hybrid_series):
-    """Where the bit width is at its floor and the packing cannot leave TUNED_BYTES_MARGIN of the target free, the
+    """Where the bit width is at its floor and the packing cannot leave PACKING.tuned_bytes_margin of the target free, the
     fine-tune towards it runs in proportion to the room left (what it would code larger does not fit, and would be
     undone); with the margin left, or no target, it runs whole; with no room, not at all."""
     floor = SeriesPacking(6, min_bits=6).pack(hybrid_series).parameter_bytes
-    framing = 1024 + 64 * hybrid_series.steps  # parameter_budget's allowance
+    framing = file_bytes_for(0, hybrid_series.steps)  # parameter_budget's allowance
 
     def tuned(target: int) -> tuple[int, int]:
         packing = SeriesPacking(6, target_bytes=target, min_bits=6, strict=False, qat_iterations=40)
@@ -249,9 +262,9 @@ def test_a_packing_that_leaves_less_room_than_the_margin_shortens_the_fine_tune_
         assert packed.bit_width == 6  # at its floor whatever the target
         return packing.tune_iterations(packed, hybrid_series.steps), packed.parameter_bytes
 
-    roomy = int((floor + framing) / (1 - TUNED_BYTES_MARGIN)) + 8
+    roomy = int((floor + framing) / (1 - PACKING.tuned_bytes_margin)) + 8
     assert tuned(roomy) == (40, floor)
-    half = int((floor + framing) / (1 - TUNED_BYTES_MARGIN / 2))
+    half = int((floor + framing) / (1 - PACKING.tuned_bytes_margin / 2))
     iterations, _ = tuned(half)
     assert 19 <= iterations <= 21
     assert tuned(floor + framing - 1)[0] == 0  # over the target already
@@ -287,6 +300,9 @@ def test_train_fine_tunes_towards_the_packing_as_long_as_the_room_allows(pattern
                                                   + 4 * iterations)
 
 
+# Slow tier: three series trained; that train runs the fine-tune for the iterations it is given and counts them is
+# checked in the default tier by test_train_fine_tunes_towards_the_packing_as_long_as_the_room_allows.
+@pytest.mark.slow
 def test_train_with_qat_iterations_records_them_and_counts_them(pattern, tmp_path, capsys):
     """``train --qat-iterations N`` on a series: the file's packing entry and ``info`` name them, and the training
     counts them (iterations and seconds); without the option a hybrid series gets its default share of the
@@ -301,7 +317,7 @@ def test_train_with_qat_iterations_records_them_and_counts_them(pattern, tmp_pat
     assert main(["train", *common, "--out", str(tmp_path / "default.apmgsrn")]) == 0
     capsys.readouterr()
     default = default_series_qat("hybrid", 100)
-    assert default == round(100 * DEFAULT_SERIES_QAT_SHARE_OF["hybrid"]) > 0
+    assert default == round(100 * HYBRID.series_qat_share) > 0
     assert apmgsrn.load(tmp_path / "default.apmgsrn").description.packing.report["qat_iterations"] == default
     assert main(["train", *common, "--qat-iterations", "30", "--out", str(tmp_path / "qat.apmgsrn")]) == 0
     tuned = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
@@ -312,13 +328,11 @@ def test_train_with_qat_iterations_records_them_and_counts_them(pattern, tmp_pat
     assert tuned["psnr"] > plain["psnr"]
 
 
-def test_a_long_series_shortens_its_fine_tune_towards_the_packing_with_its_steps(pattern, tmp_path, capsys,
-                                                                                 monkeypatch):
-    """The quantisation-aware fine-tune shares the steps' budget: where the budget is short, ``train`` shortens
-    both by one share, their measurements of where they are wrong with them, and the file records the iterations
-    that ran."""
-    from apmgsrn.training import series_qat, series_steps
-    from apmgsrn.training.series_qat import QAT_MEASUREMENTS
+def test_a_long_series_shortens_its_fine_tune_towards_the_packing_with_its_steps(pattern, tmp_path, monkeypatch):
+    """The quantisation-aware fine-tune shares the steps' budget: where the budget is short, fitting the series
+    (what ``train`` runs) shortens both by one share, their measurements of where they are wrong with them, and the
+    file records the iterations that ran."""
+    from apmgsrn.training import series_qat
 
     seen = {}
 
@@ -329,24 +343,25 @@ def test_a_long_series_shortens_its_fine_tune_towards_the_packing_with_its_steps
     monkeypatch.setattr(series_qat, "fine_tune_rounded", spy)
 
     # 30 of 100 start iterations' points after the 4 steps' own costs and what the hybrid's longer start model
-    # (START_ITERATION_SHARES, on a CPU) takes
-    extra = series_steps.START_POINT_COST * (series_steps.START_ITERATION_SHARES["hybrid"] - 1)
-    monkeypatch.setattr(series_steps, "STEPS_BUDGET_CAP", (30 + 4 * series_steps.STEP_FIXED_COST) / 100 + extra)
-    assert main(["train", pattern, "--model", "hybrid", "--levels", "6", "--log2-table-size", "10", "--grids", "4",
-                 "--resolution", "8", "--width", "16", "--iterations", "100", "--batch-size", "2048", "--device",
-                 "cpu", "--bits", "6", "--qat-iterations", "40", "--decoder-iterations", "0", "--json",
-                 "--out", str(tmp_path / "s.apmgsrn")]) == 0
-    capsys.readouterr()
+    # (its start_iteration_share, on a CPU) takes
+    extra = SERIES.start_point_cost * (HYBRID.start_iteration_share - 1)
+    short = replace(SERIES, steps_budget_cap=(30 + 4 * SERIES.step_fixed_cost) / 100 + extra)
+    series = open_series(pattern)
+    config = stepwise_config(preset_config("hybrid", "small", **TINY_HYBRID), len(series))
+    train = TrainConfig(iterations=100, batch_size=2048,
+                        **training_defaults("hybrid", voxel_fraction=SERIES.voxel_fraction))
+    fit_series(series, config, train, tmp_path / "s.apmgsrn", torch.device("cpu"), progress=False,
+               stepwise=StepwiseConfig(recipe=short), packing=SeriesPacking(6, min_bits=6, qat_iterations=40))
     description = apmgsrn.load(tmp_path / "s.apmgsrn").description
     stepwise = description.training["stepwise"]
     # 3 steps x 10 x 0.9 + 4 steps x 40 x 0.375 = 87 points of the start's batch, 30 allowed
     assert stepwise["budget_scale"] == pytest.approx(30 / 87, abs=1e-6)
     qat = description.packing.report["qat_iterations"]
     assert qat == round(40 * 30 / 87) < 40
-    assert stepwise["start_iterations"] == round(100 * series_steps.START_ITERATION_SHARES["hybrid"])
+    assert stepwise["start_iterations"] == round(100 * HYBRID.start_iteration_share)
     start = stepwise["start_iterations"]
     assert description.training["iterations"] == start + sum(stepwise["step_iterations"]) + 4 * qat
-    assert seen["measurements"] == round(QAT_MEASUREMENTS * 30 / 87) < QAT_MEASUREMENTS
+    assert seen["measurements"] == round(PACKING.qat_measurements * 30 / 87) < PACKING.qat_measurements
 
 
 def test_a_packed_series_counts_its_packing_and_fine_tune_in_its_training_time(pattern, tmp_path, capsys, monkeypatch):
@@ -516,27 +531,28 @@ def test_a_packing_past_its_target_still_takes_the_fine_tuned_decoder(hybrid_ser
     assert not torch.equal(again.state["decoder.0.weight"], packed.state["decoder.0.weight"])
 
 
-def test_a_packing_whose_decoder_is_fine_tuned_after_coding_leaves_it_room(hybrid_series, monkeypatch):
-    """With decoder_iterations the coded parameters fit DECODER_BYTES_MARGIN of the decoder's float32 bytes inside
-    the target (its fine-tuned weights code a few bytes larger or smaller), here a margin made large enough to
-    cost a finer bit width; the model kind's default is a share of the iterations."""
-    from apmgsrn.training import series_packing
-
-    monkeypatch.setattr(series_packing, "DECODER_BYTES_MARGIN", 3.0)
+def test_a_packing_whose_decoder_is_fine_tuned_after_coding_leaves_it_room(hybrid_series):
+    """With decoder_iterations the coded parameters fit the recipe's decoder_bytes_margin of the decoder's float32
+    bytes inside the target (its fine-tuned weights code a few bytes larger or smaller), here a margin made large
+    enough to cost a finer bit width; the model kind's default is a share of the iterations."""
+    wide = replace(PACKING, decoder_bytes_margin=3.0)
     decoder_bytes = 4 * sum(p.numel() for p in hybrid_series.decoder.parameters())
     eight = pack_series(hybrid_series, 8, series_sensitivity(hybrid_series))
     target = eight.parameter_bytes + 1024 + 64 * 4  # 8 bits fit, to the byte
     budget = parameter_budget(target, 4)
-    plain = SeriesPacking(8, target, 2).pack(hybrid_series)
-    room = SeriesPacking(8, target, 2, decoder_iterations=10).pack(hybrid_series)
+    plain = SeriesPacking(8, target, 2, recipe=wide).pack(hybrid_series)
+    room = SeriesPacking(8, target, 2, decoder_iterations=10, recipe=wide).pack(hybrid_series)
     assert plain.bit_width == 8 and plain.parameter_bytes <= budget
     assert room.bit_width < 8 and room.parameter_bytes <= budget - 3 * decoder_bytes
-    assert default_series_decoder("hybrid", 2000) == round(2000 * DEFAULT_SERIES_DECODER_SHARE_OF["hybrid"]) > 0
+    assert default_series_decoder("hybrid", 2000) == round(2000 * HYBRID.series_decoder_share) > 0
     assert default_series_decoder("apmgsrn", 2000) == 0
     with pytest.raises(InvalidArgument):
         SeriesPacking(decoder_iterations=-1)
 
 
+# Slow tier: three series trained; the decoder's fine-tune to the coded grids is checked in the default tier by
+# test_pack_fine_tunes_the_decoder_of_a_float_series_file_as_train_does and the SeriesPacking tests.
+@pytest.mark.slow
 def test_train_fine_tunes_the_decoder_to_the_coded_grids_and_counts_it(pattern, tmp_path, capsys, monkeypatch):
     """``train`` of a hybrid series fine-tunes the decoder by default (its share of --iterations),
     ``--decoder-iterations N`` sets how long and 0 turns it off; the file records the iterations kept (none where

@@ -18,6 +18,7 @@ from apmgsrn.errors import ApmgsrnError
 from apmgsrn.inference.evaluate import evaluate
 from apmgsrn.io.container import read_header
 from apmgsrn.models.registry import preset_config
+from apmgsrn.recipes import HYBRID, SERIES
 from apmgsrn.training import series_steps
 from apmgsrn.training.fit import prepare_values, train_prepared
 from apmgsrn.training.series_steps import (
@@ -143,8 +144,8 @@ def test_a_short_series_spends_the_budget_its_steps_leave():
     less than the budget of budget_scale gets the rest, shared in proportion to the factors: the total then fills
     the budget exactly. A series the budget shortens, or one whose step iterations were given, gets none."""
     start = TrainConfig(iterations=2000, batch_size=32768)
-    cap = (series_steps.STEPS_BUDGET_CAP - series_steps.START_POINT_COST * 0.4) * 2000
-    fixed = series_steps.STEP_FIXED_COST
+    cap = (SERIES.steps_budget_cap - SERIES.start_point_cost * 0.4) * 2000
+    fixed = SERIES.step_fixed_cost
     tuned = StepwiseConfig(qat_iterations=250)
     for factors in ([10.0, 10.0], [1.0] * 14, [1.0, 4.0, 10.0]):
         steps = len(factors)
@@ -164,29 +165,31 @@ def test_a_short_series_spends_the_budget_its_steps_leave():
 
 def test_a_long_series_shortens_every_step_to_stay_within_the_budget():
     """The steps after the start (at the base share), every step's quantisation-aware fine-tune and every step's
-    own costs together take at most STEPS_BUDGET_CAP times the start model's points, in proportion to the steps
-    beyond SHARE_STEPS: 29 steps at 200 alone are under it, and so are 99; counting the fine-tune towards the
+    own costs together take at most steps_budget_cap times the start model's points, in proportion to the steps
+    beyond share_steps: 29 steps at 200 alone are under it, and so are 99; counting the fine-tune towards the
     packing (250 iterations at 0.375 of the batch) leaves 29 steps as they are (the 30-step default) and shortens
     39 and 99 alike, by the same share, both fine-tunes and their measurements with them; a fine-tune towards the
     packing too long for the budget gets the least share; steps that change much keep their extra share;
     iterations a caller set are kept."""
-    from apmgsrn.training.series_packing import SHARE_STEPS, series_growth
+    from apmgsrn.training.series_packing import series_growth
+
+    share_steps = SERIES.share_steps
 
     start = TrainConfig(iterations=2000, batch_size=32768)
-    cap = series_steps.STEPS_BUDGET_CAP * 2000
-    fixed = series_steps.STEP_FIXED_COST
+    cap = SERIES.steps_budget_cap * 2000
+    fixed = SERIES.step_fixed_cost
     stepwise = StepwiseConfig()
-    assert series_growth(SHARE_STEPS) == series_growth(2) == 1.0 and series_growth(3 * SHARE_STEPS) == 3.0
+    assert series_growth(share_steps) == series_growth(2) == 1.0 and series_growth(3 * share_steps) == 3.0
     assert stepwise.budget_scale(start, 29) == 1.0  # 29 x 200 + 30 x 16 = 6,280 <= 8,520
     assert stepwise.budget_scale(start, 99) == 1.0  # 99 x 200 + 100 x 16 = 21,400 <= 8,520 x 100 / 30
     assert StepwiseConfig(step_iterations=200).budget_scale(start, 99) == 1.0
     tuned = StepwiseConfig(qat_iterations=250)
     assert tuned.budget_scale(start, 29, 0.375, 0.9) == 1.0  # 5,220 + 2,812.5 + 480 <= 8,520: the 30-step default
     assert tuned.step_config(start, 1.0, 1.0, batch_share=0.375, point_share=0.9).error_measurements == \
-        series_steps.STEP_ERROR_MEASUREMENTS
+        SERIES.step_error_measurements
     scales = []
     for steps in (39, 99):
-        allowed = cap * (steps + 1) / SHARE_STEPS - (steps + 1) * fixed
+        allowed = cap * (steps + 1) / share_steps - (steps + 1) * fixed
         scale = tuned.budget_scale(start, steps, 0.375, 0.9)
         assert scale == pytest.approx(allowed / (steps * 200 * 0.9 + (steps + 1) * 250 * 0.375)) and scale < 1
         scales.append(scale)
@@ -197,30 +200,30 @@ def test_a_long_series_shortens_every_step_to_stay_within_the_budget():
         assert allowed * 32768 * 0.99 < points <= allowed * 32768 * 1.01
         # measured as often per iteration as the unshortened fine-tune
         assert step.error_measurements == series_steps.shortened_measurements(
-            series_steps.STEP_ERROR_MEASUREMENTS, scale) == round(series_steps.STEP_ERROR_MEASUREMENTS * scale)
+            SERIES.step_error_measurements, scale) == round(SERIES.step_error_measurements * scale)
         # a step that changes much keeps its extra share
         assert tuned.step_config(start, series_steps.change_factor(0.5, 0.001), scale).iterations == \
             round(2000 * scale)  # 10 x the base
     assert scales[1] == pytest.approx(scales[0], rel=0.02)  # a longer series: about the same share a step
-    assert StepwiseConfig(qat_iterations=100000).budget_scale(start, 99, 0.375, 0.9) == series_steps.LEAST_BUDGET_SCALE
-    assert series_steps.shortened_measurements(20, series_steps.LEAST_BUDGET_SCALE) == 1
+    assert StepwiseConfig(qat_iterations=100000).budget_scale(start, 99, 0.375, 0.9) == SERIES.least_budget_scale
+    assert series_steps.shortened_measurements(20, SERIES.least_budget_scale) == 1
     assert StepwiseConfig(step_iterations=200, qat_iterations=250).shortened_qat(start, 99, 0.375, 0.9) == 250
     assert StepwiseConfig().shortened_qat(start, 99) == 0
-    # A start model trained 1.4 times as long takes its extra points, at START_POINT_COST each, from the steps' budget
-    longer = (cap - series_steps.START_POINT_COST * 0.4 * 2000 - 30 * fixed) / (29 * 200 * 0.9 + 30 * 250 * 0.375)
+    # A start model trained 1.4 times as long takes its extra points, at start_point_cost each, from the steps' budget
+    longer = (cap - SERIES.start_point_cost * 0.4 * 2000 - 30 * fixed) / (29 * 200 * 0.9 + 30 * 250 * 0.375)
     assert tuned.budget_scale(start, 29, 0.375, 0.9, 1.4) == pytest.approx(longer) and longer < 1
     assert tuned.shortened_qat(start, 29, 0.375, 0.9, 1.4) == round(250 * longer)
     # and as much from a longer series' grown budget: 59 steps (the 30 and the means between them)
-    grown = (cap * 59 / SHARE_STEPS - series_steps.START_POINT_COST * 0.4 * 2000 - 59 * fixed) / (
+    grown = (cap * 59 / share_steps - SERIES.start_point_cost * 0.4 * 2000 - 59 * fixed) / (
         58 * 200 * 0.9 + 59 * 250 * 0.375)
     assert tuned.budget_scale(start, 58, 0.375, 0.9, 1.4) == pytest.approx(grown) and longer < grown < 1
 
 
-def test_stepwise_training_applies_the_budget(prepared, monkeypatch):
+def test_stepwise_training_applies_the_budget(prepared):
     # 18 of the 3 x 12 base iterations, after the 4 steps' own costs
-    monkeypatch.setattr(series_steps, "STEPS_BUDGET_CAP", (18 + 4 * series_steps.STEP_FIXED_COST) / 120)
-    run = train_stepwise(prepared, stepwise_config(TINY, 4), TRAIN, (32, 32, 32), stepwise=StepwiseConfig(start=1),
-                         show_progress=False)
+    recipe = replace(SERIES, steps_budget_cap=(18 + 4 * SERIES.step_fixed_cost) / 120)
+    run = train_stepwise(prepared, stepwise_config(TINY, 4), TRAIN, (32, 32, 32),
+                         stepwise=StepwiseConfig(start=1, recipe=recipe), show_progress=False)
     summary = run.summary["stepwise"]
     assert summary["budget_scale"] == pytest.approx(0.5)
     assert summary["step_iterations"] == [6, 0, 6, 6]
@@ -252,8 +255,9 @@ def test_steps_that_change_little_share_their_iterations_evenly():
 def test_a_run_gives_every_step_its_evened_factor(prepared, monkeypatch):
     """The run computes every step's change before the first fine-tune and trains each with its evened factor
     (the start is step 1: steps 0 and 2 change little, step 3 much)."""
-    monkeypatch.setattr(series_steps, "change", lambda values, t, neighbour: float(t))
-    monkeypatch.setattr(series_steps, "change_factor", lambda change, error: {0: 1.0, 2: 1.5, 3: 6.0}[int(change)])
+    monkeypatch.setattr(series_steps, "change", lambda values, t, neighbour, recipe: float(t))
+    monkeypatch.setattr(series_steps, "change_factor",
+                        lambda change, error, recipe: {0: 1.0, 2: 1.5, 3: 6.0}[int(change)])
     run = train_stepwise(prepared, stepwise_config(TINY, 4), TRAIN, (32, 32, 32), stepwise=StepwiseConfig(start=1),
                          show_progress=False)
     base = StepwiseConfig().base_iterations(TRAIN)
@@ -405,12 +409,11 @@ def test_a_fine_tune_whose_placement_follows_the_error_tracks_a_shifted_volume(t
     assert moved[True][0] == 0 and (moved[True][1:] > 1e-3).all()  # the anchored grid stays
 
 
-def test_a_step_that_drifts_is_fine_tuned_again_with_its_placement_moving(travelling, monkeypatch):
+def test_a_step_that_drifts_is_fine_tuned_again_with_its_placement_moving(travelling):
     truth, prepared = travelling
-    stepwise = StepwiseConfig(start="first", step_iterations=100)
     runs = {}
-    for name, track_db in (("tracked", series_steps.TRACK_DB), ("frozen", float("inf"))):
-        monkeypatch.setattr(series_steps, "TRACK_DB", track_db)
+    for name, track_db in (("tracked", SERIES.track_db), ("frozen", float("inf"))):
+        stepwise = StepwiseConfig(start="first", step_iterations=100, recipe=replace(SERIES, track_db=track_db))
         runs[name] = train_stepwise(prepared, stepwise_config(TINY, 3), WELL_TRAINED, (32, 32, 32),
                                     stepwise=stepwise, show_progress=False)
     tracked, frozen = runs["tracked"], runs["frozen"]
@@ -461,7 +464,7 @@ def test_hybrid_steps_share_the_decoder_and_each_fits_its_own_data(trained_hybri
     assert encoder.level_table.shape[0] == encoder.grids.shape[0] == 4
     counts = trained_hybrid.summary["stepwise"]["step_iterations"]
     start = trained_hybrid.summary["stepwise"]["start_iterations"]  # the hybrid's start model trains longer on a CPU
-    share = series_steps.START_ITERATION_SHARES["hybrid"]
+    share = HYBRID.start_iteration_share
     assert start == round(HYBRID_TRAIN.iterations * share) > HYBRID_TRAIN.iterations
     assert counts[1] == 0 and trained_hybrid.state.iteration == start + sum(counts)
     assert trained_hybrid.summary["stepwise"]["step_lr"] == pytest.approx(HYBRID_TRAIN.lr)  # the hybrid's share: 1
@@ -514,7 +517,7 @@ def test_a_pull_towards_the_neighbour_keeps_entries_unchanged_and_packs_the_step
 
     pulled, free = trained(0.5), trained(0.0)
     assert pulled.summary["stepwise"]["step_sparsity"] == 0.5 and free.summary["stepwise"]["step_sparsity"] == 0.0
-    assert trained_hybrid.summary["stepwise"]["step_sparsity"] == series_steps.STEP_SPARSITY_OF["hybrid"] > 0
+    assert trained_hybrid.summary["stepwise"]["step_sparsity"] == HYBRID.step_sparsity > 0
 
     def unchanged(field, t):
         neighbour = t + 1 if t < 1 else t - 1
@@ -531,11 +534,11 @@ def test_a_pull_towards_the_neighbour_keeps_entries_unchanged_and_packs_the_step
 
 
 def test_a_longer_fine_tune_is_pulled_less_in_proportion():
-    """The pull's strength over a whole fine-tune stays that of a step that changes little: up to STEP_EVEN_BELOW
+    """The pull's strength over a whole fine-tune stays that of a step that changes little: up to step_even_below
     times the base it is the configured one, past it weaker by the ratio of their iterations."""
-    from apmgsrn.training.series_steps import STEP_EVEN_BELOW, step_pull
+    from apmgsrn.training.series_steps import step_pull
 
-    most = round(STEP_EVEN_BELOW * 480)
+    most = round(SERIES.step_even_below * 480)
     assert step_pull(0.01, 480, 480) == step_pull(0.01, 100, 480) == step_pull(0.01, most, 480) == 0.01
     assert step_pull(0.01, 9000, 480) == pytest.approx(0.01 * most / 9000)
     assert step_pull(0.0, 9000, 480) == 0.0
@@ -565,7 +568,7 @@ def test_a_step_far_from_its_neighbour_is_pulled_less_and_fits_it_closer(prepare
     most, iterations = summary["step_pull_iterations"], summary["step_iterations"][1]
     assert iterations > most and pulls[-1] == pytest.approx(0.5 * most / iterations, rel=1e-3)
     assert summary["weaker_pull_steps"] == [1]
-    monkeypatch.setattr(series_steps, "step_pull", lambda sparsity, iterations, base: sparsity)
+    monkeypatch.setattr(series_steps, "step_pull", lambda sparsity, iterations, base, recipe: sparsity)
     full = trained()
     assert pulls[-1] == 0.5 and full.summary["stepwise"]["step_iterations"] == summary["step_iterations"]
 
@@ -582,7 +585,7 @@ def test_step_sparsity_must_be_a_number_not_below_zero():
     for bad in (-0.1, float("nan"), "x"):
         with pytest.raises(InvalidArgument, match="step_sparsity"):
             StepwiseConfig(step_sparsity=bad)
-    assert StepwiseConfig().sparsity("hybrid") == series_steps.STEP_SPARSITY_OF.get("hybrid", 0.0)
+    assert StepwiseConfig().sparsity("hybrid") == HYBRID.step_sparsity
     assert StepwiseConfig(step_sparsity=0.0).sparsity("hybrid") == 0.0
 
 
@@ -603,7 +606,7 @@ def test_the_start_model_draws_its_voxel_points_uniformly_and_the_steps_where_th
     train = replace(HYBRID_TRAIN, iterations=40, error_sampling=1.0)
     trained = train_stepwise(prepared, stepwise_config(TINY_HYBRID, 4), train, (32, 32, 32),
                              stepwise=StepwiseConfig(start=1, step_iterations=10), show_progress=False)
-    assert built[0] == (series_steps.START_ERROR_SAMPLING, False) == (0.0, False)
+    assert built[0] == (SERIES.start_error_sampling, False) == (0.0, False)
     # Then the start step's own fine-tune (from itself), and one per other step, all drawn where they are wrong.
     assert len(built) >= 5 and all(entry == (1.0, True) for entry in built[1:])
     counts = trained.summary["stepwise"]["step_iterations"]

@@ -11,7 +11,7 @@ import torch
 
 import apmgsrn
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render import VolumeField, extent_from_shape, make_transfer_function
+from apmgsrn.rendering import VolumeField, extent_from_shape, make_transfer_function
 from apmgsrn.sources import SourceOptions, is_model_path, open_source, routing_boxes
 
 DATA = Path(__file__).resolve().parent / "data"

@@ -14,7 +14,8 @@ import torch
 
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config
-from apmgsrn.threads import SPIN_COUNT, ThreadGovernor, thread_candidates
+from apmgsrn.recipes import RUNTIME
+from apmgsrn.threads import ThreadGovernor, thread_candidates
 from apmgsrn.training.trainer import Trainer, TrainConfig
 
 
@@ -168,13 +169,13 @@ def _spin_count_in_fresh_process(code: str, **env) -> str:
 
 def test_import_sets_a_short_openmp_spin_unless_the_user_chose_or_torch_came_first():
     show = "import os; print(os.environ.get('GOMP_SPINCOUNT'))"
-    assert _spin_count_in_fresh_process(f"import apmgsrn; {show}") == str(SPIN_COUNT)
+    assert _spin_count_in_fresh_process(f"import apmgsrn; {show}") == str(RUNTIME.spin_count)
     assert _spin_count_in_fresh_process(f"import apmgsrn; {show}", GOMP_SPINCOUNT="77") == "77"
     assert _spin_count_in_fresh_process(f"import apmgsrn; {show}", OMP_WAIT_POLICY="active") == "None"
     assert _spin_count_in_fresh_process(f"import torch, apmgsrn; {show}") == "None"
 
 
-def test_inference_loops_on_the_cpu_try_thread_counts_and_restore_the_callers():
+def test_inference_loops_on_the_cpu_try_thread_counts_and_restore_the_callers(monkeypatch):
     """query() (decode, eval) runs its batches under the process's inference governor."""
     from apmgsrn.inference.query import query
     from apmgsrn.threads import INFERENCE_THREADS, inference_governor
@@ -187,6 +188,9 @@ def test_inference_loops_on_the_cpu_try_thread_counts_and_restore_the_callers():
             time.sleep(0.004)
             return points[:, :1] * 2
 
+    # As before its first probe: the governor is the process's, and a choice an earlier test's decode left it holding
+    # (for up to max_hold_seconds) would otherwise run every batch on that one count.
+    monkeypatch.setattr(INFERENCE_THREADS, "threads", None)
     before = torch.get_num_threads()
     torch.set_num_threads(2)
     try:

@@ -155,7 +155,7 @@ def test_a_preset_file_of_thousands_of_presets_is_capped(tmp_path):
     many = [{"Name": f"p{i}", "RGBPoints": [0, 0, 0, 0, 1, 1, 1, 1]} for i in range(50)]
     path = tmp_path / "many.json"
     path.write_text(json.dumps(many), encoding="utf-8")
-    from apmgsrn.render import read_presets
+    from apmgsrn.rendering import read_presets
 
     library = ColormapLibrary(max_choices=40)
     with pytest.raises(ApmgsrnError, match="limit of 40"):

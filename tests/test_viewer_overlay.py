@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from apmgsrn.render import Camera
+from apmgsrn.rendering import Camera
 from apmgsrn.viewer.overlay import BOX_EDGES, box_segments, clip_segment, draw_boxes, project
 from apmgsrn.sources import routing_boxes
 

@@ -11,7 +11,7 @@ import torch
 from viewer_data import make_viewer_folder
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render import Camera, RendererConfig
+from apmgsrn.rendering import Camera, RendererConfig
 from apmgsrn.viewer.catalog import Catalog
 from apmgsrn.viewer.orbit import OrbitView
 from apmgsrn.viewer.session import ViewerSession
@@ -220,7 +220,7 @@ UNEVEN_PRESETS = [
 def test_presets_apply_exactly_as_the_render_command_applies_them(folder):
     import json
 
-    from apmgsrn.render import make_transfer_function
+    from apmgsrn.rendering import make_transfer_function
 
     path = folder / "uneven.json"
     path.write_text(json.dumps(UNEVEN_PRESETS), encoding="utf-8")

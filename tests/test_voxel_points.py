@@ -11,8 +11,7 @@ import pytest
 import torch
 
 from apmgsrn.bench.results import QualityRow, read_rows
-from apmgsrn.cli.main import build_parser
-from apmgsrn.cli.fit_options import build_configs
+import apmgsrn
 from apmgsrn.data import open_volume
 from apmgsrn.errors import InvalidArgument
 from apmgsrn.models.field import NeuralField
@@ -100,10 +99,8 @@ def test_a_series_draws_each_group_on_its_own_step(channel):
     (["--model", "apmgsrn", "--voxel-fraction", "0.25"], 0.25),
     (["--model", "hybrid", "--voxel-fraction", "0"], 0.0),
 ])
-def test_each_model_kind_has_its_default_and_the_flag_overrides_it(argv, expected):
-    args = build_parser().parse_args(["train", "data.npy", "--out", "m.apmgsrn", *argv])
-    _, train_config = build_configs(args, torch.device("cpu"))
-    assert train_config.voxel_fraction == expected
+def test_each_model_kind_has_its_default_and_the_flag_overrides_it(test_data, argv, expected):
+    assert _dry_run(test_data, argv)["training"]["voxel_fraction"] == expected
 
 
 @pytest.mark.parametrize(("argv", "expected"), [
@@ -112,10 +109,23 @@ def test_each_model_kind_has_its_default_and_the_flag_overrides_it(argv, expecte
     (["--model", "hybrid", "--error-sampling", "0"], 0.0),
     (["--model", "apmgsrn", "--voxel-fraction", "0.5", "--error-sampling", "0.5"], 0.5),
 ])
-def test_the_hybrid_draws_its_voxel_points_where_it_is_wrong_unless_told_otherwise(argv, expected):
-    args = build_parser().parse_args(["train", "data.npy", "--out", "m.apmgsrn", *argv])
-    _, train_config = build_configs(args, torch.device("cpu"))
-    assert train_config.error_sampling == expected
+def test_the_hybrid_draws_its_voxel_points_where_it_is_wrong_unless_told_otherwise(test_data, argv, expected):
+    assert _dry_run(test_data, argv)["training"]["error_sampling"] == expected
+
+
+def _dry_run(test_data, argv: list[str]) -> dict:
+    """The plan ``train --dry-run --json`` prints for the bundled neghip volume."""
+    import contextlib
+    import io
+    import json
+
+    from apmgsrn.cli.main import main
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert main(["train", str(test_data / "neghip_32x32x32_uint8.npy"), "--device", "cpu", "--dry-run",
+                     "--json", *argv]) == 0
+    return json.loads(out.getvalue())
 
 
 def test_the_command_line_names_a_bad_share(tmp_path, neghip_crop, capsys):
@@ -236,19 +246,16 @@ def _with_error_in(channel: torch.Tensor, box: tuple[slice, slice, slice], error
     return predict
 
 
-def test_error_guided_voxels_land_where_the_model_is_wrong_in_proportion_to_the_error(channel, monkeypatch):
+def test_error_guided_voxels_land_where_the_model_is_wrong_in_proportion_to_the_error(channel):
     """Voxels are drawn as often as their share of the total absolute error says: none where the prediction is
     exact, twice as many where it is twice as far off."""
-    from apmgsrn.training import points as points_module
     from apmgsrn.training.points import ErrorGuide
-
-    monkeypatch.setattr(points_module, "ERROR_POOL", channel.numel())  # every voxel measured
 
     box = (slice(10, 30), slice(5, 25), slice(0, 48))
     error = torch.zeros(20, 20, 48)
     error[:, :, :24] = 0.01
     error[:, :, 24:] = 0.02  # twice as far off in the far half of the box
-    guide = ErrorGuide(channel)
+    guide = ErrorGuide(channel, pool=channel.numel())  # every voxel measured
     generator = torch.Generator().manual_seed(0)
     guide.measure(_with_error_in(channel, box, error), generator)
     index = guide.draw(30000, generator)
@@ -320,7 +327,8 @@ def test_a_guides_voxel_positions_are_those_voxel_points_computes_bit_for_bit(ch
     """The guide's table of every voxel's position (made by its measurement of every voxel) gives the positions
     the batch's voxel points always had, before a measurement (a resumed run) and after; a volume measured in
     blocks (48 x 64 x 96) has no table and computes them."""
-    from apmgsrn.training.points import ERROR_POOL, ErrorGuide, voxel_points
+    from apmgsrn.recipes import VOLUME
+    from apmgsrn.training.points import ErrorGuide, voxel_points
 
     channel = channel[:depth].contiguous()
     guide = ErrorGuide(channel)
@@ -329,7 +337,7 @@ def test_a_guides_voxel_positions_are_those_voxel_points_computes_bit_for_bit(ch
     expected = voxel_points(index, tuple(channel.shape))
     assert torch.equal(guide.voxel_points(index), expected)  # no table yet: computed
     guide.measure(_with_error_in(channel, (slice(0, 8), slice(None), slice(None)), 0.05), torch.Generator())
-    assert (guide._every_voxel is not None) == (channel.numel() <= ERROR_POOL)
+    assert (guide._every_voxel is not None) == (channel.numel() <= VOLUME.error_pool)
     assert torch.equal(guide.voxel_points(index), expected)  # from the table where there is one
     points, targets = draw_batch(channel, 4000, 1.0, torch.Generator().manual_seed(1), guide, 0.5)
     drawn = ((points + 1) / 2 * torch.tensor([channel.shape[2] - 1, channel.shape[1] - 1, channel.shape[0] - 1])
@@ -339,14 +347,12 @@ def test_a_guides_voxel_positions_are_those_voxel_points_computes_bit_for_bit(ch
     assert torch.equal(targets, channel.reshape(-1)[flat])
 
 
-def test_a_large_volume_is_measured_once_per_block_and_drawn_anywhere_in_the_blocks_that_are_wrong(
-        channel, monkeypatch):
-    """Above ERROR_POOL voxels the guide measures one random voxel of every block of b^3 and draws the batch's
+def test_a_large_volume_is_measured_once_per_block_and_drawn_anywhere_in_the_blocks_that_are_wrong(channel):
+    """Above its pool of voxels the guide measures one random voxel of every block of b^3 and draws the batch's
     voxels anywhere inside the blocks it picks: all of a wrong region gets fitted, not only the voxels measured."""
-    from apmgsrn.training import points as points_module
+    from apmgsrn.training.points import ErrorGuide
 
-    monkeypatch.setattr(points_module, "ERROR_POOL", 5000)
-    guide = points_module.ErrorGuide(channel)  # 48 x 64 x 96: blocks of 4^3, 12 x 16 x 24 = 4,608 of them
+    guide = ErrorGuide(channel, pool=5000)  # 48 x 64 x 96: blocks of 4^3, 12 x 16 x 24 = 4,608 of them
     assert guide.block == 4 and guide.blocks == (12, 16, 24)
     generator = torch.Generator().manual_seed(0)
     guide.measure(_with_error_in(channel, (slice(8, 16), slice(None), slice(None)), 0.01), generator)
@@ -356,13 +362,10 @@ def test_a_large_volume_is_measured_once_per_block_and_drawn_anywhere_in_the_blo
     assert len(torch.unique(index)) > 4 * 2 * 16 * 24  # many voxels of each of the 768 wrong blocks
 
 
-def test_a_model_exact_at_every_voxel_gets_uniform_voxel_draws(channel, monkeypatch):
-    from apmgsrn.training import points as points_module
+def test_a_model_exact_at_every_voxel_gets_uniform_voxel_draws(channel):
     from apmgsrn.training.points import ErrorGuide
 
-    monkeypatch.setattr(points_module, "ERROR_POOL", channel.numel())
-
-    guide = ErrorGuide(channel)
+    guide = ErrorGuide(channel, pool=channel.numel())
     guide.measure(_with_error_in(channel, (slice(0, 0),) * 3, 0.0), torch.Generator())
     counts = torch.bincount(guide.draw(channel.numel(), torch.Generator()), minlength=channel.numel())
     assert bool((counts == 1).all())
@@ -479,7 +482,7 @@ def test_a_guide_measured_in_parts_refreshes_one_part_at_a_time(channel):
     (even, then odd, ...), the other half keeping its errors; the draws follow the merged errors."""
     from apmgsrn.training.points import ErrorGuide
 
-    volume = channel[:64, :64, :64].contiguous()  # at most ERROR_POOL voxels: measured one by one, not by blocks
+    volume = channel[:64, :64, :64].contiguous()  # at most VOLUME.error_pool voxels: measured one by one, not by blocks
     guide = ErrorGuide(volume, parts=2)
     assert guide.block == 1
     count = volume.numel()

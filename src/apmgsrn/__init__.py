@@ -14,10 +14,11 @@ set_openmp_wait_policy()
 keep_freed_memory()
 
 __version__ = "0.1.0"
-__all__ = ["ApmgsrnError", "Model", "Region", "fit", "load", "render", "__version__"]
+__all__ = ["ApmgsrnError", "Model", "Region", "fit", "load", "plan", "render", "__version__"]
 
 #: Names resolved on first use: torch comes with them, not with `import apmgsrn` (the CLI's start-up path).
-_LAZY = {"Model": "apmgsrn.api", "fit": "apmgsrn.api", "load": "apmgsrn.api", "Region": "apmgsrn.data.grid"}
+_LAZY = {"Model": "apmgsrn.api", "fit": "apmgsrn.api", "load": "apmgsrn.api", "plan": "apmgsrn.api",
+         "render": "apmgsrn.api", "Region": "apmgsrn.data.grid"}
 
 
 def __getattr__(name: str):
@@ -25,9 +26,6 @@ def __getattr__(name: str):
 
     if name in _LAZY:
         return getattr(importlib.import_module(_LAZY[name]), name)
-    if name == "render":
-        # The subpackage apmgsrn.render, which is callable: apmgsrn.render(model, ...) renders (api.render).
-        return importlib.import_module("apmgsrn.render")
     raise AttributeError(f"module 'apmgsrn' has no attribute {name!r}")
 
 

@@ -7,19 +7,18 @@ back to the kernel once more than its *trim threshold* lies free there. Its thre
 follow the blocks freed, which the mixed sizes of a training step or a decoding pass defeat: the activations of
 a step (``[16384, 64]`` float32 hidden layers: 4 MB) keep landing in pages the kernel must find and zero on first
 touch. Measured with glibc's own settings (``benchmarks/bench_allocator.py``, docs/benchmarks_allocator.md): a
-training iteration 1.26-1.36x slower (5,000-6,500 page faults against 0-21), and a hybrid model's pass over every
-voxel of a 64^3 volume 1.67x slower (one run of the same script, before the hybrid got a fused CPU kernel; the
-fused kernels allocate nothing of size, so they do not care).
+training iteration 1.26-1.36x slower (5,000-6,500 page faults against 0-21); the fused kernels allocate nothing
+of size, so they do not care.
 
-:func:`keep_freed_memory` fixes both thresholds: blocks up to :data:`MMAP_THRESHOLD` come from the heap, and up
-to :data:`TRIM_THRESHOLD` of free memory at its top is kept for the next step. Larger blocks (a whole volume, a
+:func:`keep_freed_memory` fixes both thresholds (``RUNTIME.mmap_threshold`` and ``RUNTIME.trim_threshold``,
+:mod:`apmgsrn.recipes`): blocks up to the first come from the heap, and up to the second of free memory at its top
+is kept for the next step. Larger blocks (a whole volume, a
 decoded grid) are mapped and unmapped as before, so a process holds at most about that much more than it uses.
 It runs on ``import apmgsrn``, so the series' quantisation-aware fine-tune of ``pack``, a user's own training
-loop, and evaluation, decoding and rendering of models without a fused kernel get it too (training through
-:func:`~apmgsrn.training.fit.train_prepared` was the only path that set the allocator before, and its figures are
-unchanged); only where the C library is glibc, and not where the user set
+loop, and evaluation, decoding and rendering of models without a fused kernel get it too; only where the C
+library is glibc, and not where the user set
 either threshold (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``, ``GLIBC_TUNABLES``): theirs stands.
-Importing this module imports nothing but the standard library.
+Importing this module imports nothing but the standard library and :mod:`apmgsrn.recipes`.
 """
 
 from __future__ import annotations
@@ -27,10 +26,8 @@ from __future__ import annotations
 import ctypes
 import os
 
-#: Largest block served from the heap: glibc's own ceiling for the threshold on 64-bit machines (32 MB).
-MMAP_THRESHOLD = 32 << 20
-#: Free memory kept at the top of the heap before any goes back to the kernel.
-TRIM_THRESHOLD = 512 << 20
+from apmgsrn.recipes import RUNTIME
+
 #: ``mallopt`` parameters (glibc's malloc.h).
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
 #: Settings by which a user chooses the allocator's thresholds; when any is set, theirs stands.
@@ -54,8 +51,8 @@ def keep_freed_memory() -> bool:
             except (OSError, AttributeError):
                 return False
             mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
-            _applied = bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(mallopt(M_TRIM_THRESHOLD,
-                                                                                        TRIM_THRESHOLD))
+            _applied = (bool(mallopt(M_MMAP_THRESHOLD, RUNTIME.mmap_threshold))
+                        and bool(mallopt(M_TRIM_THRESHOLD, RUNTIME.trim_threshold)))
     return _applied
 
 

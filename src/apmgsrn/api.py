@@ -13,8 +13,7 @@ from __future__ import annotations
 import os
 import tempfile
 from collections.abc import Callable
-from dataclasses import dataclass
-from dataclasses import fields as dataclass_fields
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -24,34 +23,31 @@ from torch import nn
 
 import apmgsrn.decomposition.brick_model  # noqa: F401 - registers the brick-model loader
 import apmgsrn.decomposition.series_bricks  # noqa: F401 - registers the time-series brick-model loader
-from apmgsrn.choices import default_model
 from apmgsrn.data import ArrayVolume, Volume, open_volume
 from apmgsrn.data.grid import AxisCoordinates, Region, VolumeMetadata, plain_attributes
-from apmgsrn.data.series import VolumeSeries, is_series_input, open_series, parse_time
+from apmgsrn.data.series import parse_time
 from apmgsrn.device import inference_dtype, resolve_device
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.export import export_onnx
 from apmgsrn.inference.decode import decode_array, decode_volume
 from apmgsrn.inference.query import query
-from apmgsrn.inference.slabs import QUERY_BATCH
 from apmgsrn.io import ModelDescription, SourceInfo, open_model, save_field, save_series
 from apmgsrn.io.container import SERIES_FILE_KINDS, check_replaceable
 from apmgsrn.io.decode_plan import DecodePlan, plan_decode
 from apmgsrn.io.description import check_time
 from apmgsrn.io.field_file import FIELD_KIND
 from apmgsrn.models.field import NeuralField
-from apmgsrn.models.registry import preset_config, training_defaults
-from apmgsrn.models.series_field import SeriesFieldConfig
-from apmgsrn.render import Camera, RendererConfig, VolumeRenderer, extent_from_shape, make_transfer_function
-from apmgsrn.render.images import as_uint8
-from apmgsrn.render.raymarch import default_batch_size
+from apmgsrn.options import TrainOptions
+from apmgsrn.planning import Plan, resolve
+from apmgsrn.recipes import RUNTIME
+from apmgsrn.rendering import Camera, RendererConfig, VolumeRenderer, extent_from_shape, make_transfer_function
+from apmgsrn.rendering.images import as_uint8
+from apmgsrn.rendering.raymarch import default_batch_size
 from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.fit import fit as fit_prepared
 from apmgsrn.training.fit import prepare_values
+from apmgsrn.training.packing import pack_volume_model
 from apmgsrn.training.series_fit import fit_series
-from apmgsrn.training.series_packing import SeriesPacking, default_series_packing
-from apmgsrn.training.series_steps import STEPWISE_VOXEL_FRACTION, StepwiseConfig, stepwise_config
-from apmgsrn.training.trainer import SERIES_ANCHORED_GRIDS, TrainConfig, default_budget
 
 
 class Model(nn.Module):
@@ -105,7 +101,7 @@ class Model(nn.Module):
                 module.inference_dtype = None if precision == "auto" and module.fused_inference() else dtype
         return self
 
-    def predict(self, points, batch_size: int = QUERY_BATCH) -> np.ndarray:
+    def predict(self, points, batch_size: int = RUNTIME.query_batch) -> np.ndarray:
         """Values at points, without gradients, in bounded-memory batches.
 
         Args:
@@ -147,7 +143,7 @@ class Model(nn.Module):
         return plan_decode(self.description, _shape(shape), _region(region, region_units), time)
 
     def decode(self, shape: tuple[int, int, int] | None = None, region: Region | str | dict | None = None,
-               time: int | None = None, region_units: str = "index", batch_size: int = QUERY_BATCH) -> Any:
+               time: int | None = None, region_units: str = "index", batch_size: int = RUNTIME.query_batch) -> Any:
         """The model sampled on a lattice, with the names, attributes and coordinates of its source.
 
         Args:
@@ -180,7 +176,7 @@ class Model(nn.Module):
 
     def save_decoded(self, out: str | os.PathLike, shape: tuple[int, int, int] | None = None,
                      region: Region | str | dict | None = None, time: int | None = None,
-                     region_units: str = "index", batch_size: int = QUERY_BATCH, progress: bool = False) -> DecodePlan:
+                     region_units: str = "index", batch_size: int = RUNTIME.query_batch, progress: bool = False) -> DecodePlan:
         """Decode to a file (``.nc``, ``.vti``, ``.raw``, ``.npy``), slab by slab, written atomically.
 
         Args:
@@ -243,21 +239,34 @@ def load(path: str | os.PathLike, device: torch.device | str = "cpu", precision:
     return Model(loaded.field, loaded.description, path).eval().set_precision(precision)
 
 
-def fit(
-    data,
-    preset: str = "small",
-    model: str | None = None,
-    iterations: int | None = None,
-    batch_size: int | None = None,
-    device: torch.device | str = "auto",
-    transform: str = "none",
-    log_offset: float = 0.0,
-    variable: str | None = None,
-    time: int | None = None,
-    fill_nonfinite: float | None = None,
-    progress: bool = True,
-    **options,
-) -> Model:
+def plan(data, **options) -> Plan:
+    """What :func:`fit` (and ``apmgsrn train``) would do with ``data`` and ``options``, resolved and trained on
+    nothing: the model kind and size, the budget, the point draws, how a series trains and packs.
+
+    Args:
+        data: as :func:`fit`.
+        options: the options of :func:`fit` (every option of ``apmgsrn train``, named with underscores:
+            :class:`~apmgsrn.options.TrainOptions`).
+
+    Returns:
+        The frozen :class:`~apmgsrn.planning.Plan`; ``plan.to_dict()`` equals what
+        ``apmgsrn train DATA ... --dry-run --json`` prints for the same options.
+
+    Raises:
+        ApmgsrnError: unreadable data, an unknown option, options that contradict each other.
+    """
+    given = TrainOptions.from_kwargs(**options)
+    if isinstance(given.time, str):
+        given = replace(given, time=parse_time(given.time))  # "all" or "A:B[:S]": a series along a time axis
+    if isinstance(data, (str, os.PathLike)) or _is_path_list(data):
+        return resolve([str(data)] if isinstance(data, (str, os.PathLike)) else [str(d) for d in data], given)
+    return resolve(_as_volume(data, variable=given.variable, time=given.time, fill_nonfinite=given.fill_nonfinite),
+                   given)
+
+
+def fit(data, preset: str = "small", model: str | None = None, iterations: int | None = None,
+        batch_size: int | None = None, device: torch.device | str = "auto", progress: bool = True,
+        **options) -> Model:
     """Fit a model to a volume and return it, ready to query (nothing is written anywhere you see).
 
     Args:
@@ -267,44 +276,54 @@ def fit(
             ``"all"`` or ``"A:B[:S]"``), trained stepwise and packed as ``apmgsrn train`` does.
         preset: size preset, ``small``, ``medium`` or ``large``.
         model: model kind: ``hybrid`` (docs/models.md), ``apmgsrn`` (the paper's), ``fvsrn`` or ``ngp``; None:
-            ``hybrid`` (:func:`apmgsrn.choices.default_model`; a time series is trained step by step).
-        iterations: training iterations (default: 3000 on a CPU, 50000 on a GPU).
-        batch_size: points per iteration (default: 32768 on a CPU, 100000 on a GPU).
+            the plan's default (:func:`apmgsrn.choices.default_model`).
+        iterations: training iterations (default: the recipe's budget for the device).
+        batch_size: points per iteration (default: the recipe's for the device).
         device: ``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:I"`` or a torch device.
-        transform: value transform before fitting (``none``, ``log10``, ``zscore``).
-        log_offset: offset added before ``log10``.
-        variable: the variable of a file holding several.
-        time: the time step of a file or DataArray with a leading time dimension (``"all"`` or ``"A:B[:S]"``:
-            its steps as a series).
-        fill_nonfinite: replace NaN/Inf voxels by this value instead of refusing them.
         progress: show training progress (a widget in Jupyter).
-        options: model options (``grids``, ``features``, ``resolution`` as an integer or three,
-            ``hidden_layers``, ``width``, ...) and training options (``lr``, ``seed``, ``lr_schedule``, ...:
-            fields of :class:`~apmgsrn.training.trainer.TrainConfig`); for a time series also how its steps
-            are trained: ``start_step``, ``step_iterations``, ``step_lr``, ``step_sparsity``
-            (:class:`~apmgsrn.training.series_steps.StepwiseConfig`).
+        options: every other option of ``apmgsrn train``, named with underscores
+            (:class:`~apmgsrn.options.TrainOptions`): data (``variable``, ``time``, ``fill_nonfinite``), value
+            transform (``transform``, ``log_offset``), model (``grids``, ``features``, ``resolution`` as an
+            integer or three, ``hidden_layers``, ``width``, ...), training (``lr``, ``seed``, ``lr_schedule``,
+            ``voxel_fraction``, ...), packing (``bits``, ``ratio``, ``size``, ``max_error``, ...) and a time
+            series' steps (``start_step``, ``step_iterations``, ``step_lr``, ``step_sparsity``, ...).
+            :func:`plan` shows what they resolve to.
 
     Returns:
-        The fitted :class:`Model`; its ``description.training`` holds the PSNR and the largest error.
+        The fitted :class:`Model`; its ``description.training`` holds the PSNR, the largest error and the plan.
 
     Raises:
         ApmgsrnError: unreadable data, NaN/Inf voxels without ``fill_nonfinite``, an invalid option.
     """
-    device = _device(device)
-    if isinstance(time, str):
-        time = parse_time(time)  # "all" or "A:B[:S]": a series along a time dimension
-    series = (isinstance(data, (str, os.PathLike)) or _is_path_list(data)) and is_series_input(data, time)
-    model = model or default_model(series=series)
-    if series:
-        return _fit_series(data, preset, model, iterations, batch_size, device, transform, log_offset, variable,
-                           time, fill_nonfinite, progress, options)
-    volume = _as_volume(data, variable=variable, time=time, fill_nonfinite=fill_nonfinite)
-    field_config, train_config = _configs(model, preset, iterations, batch_size, device, options)
+    if isinstance(device, torch.device):
+        device = str(device)
+    resolved = plan(data, preset=preset, model=model, iterations=iterations, batch_size=batch_size, device=device,
+                    **options)
+    target = torch.device(resolved.device)
+    if resolved.bricks is not None:
+        raise ApmgsrnError("bricks=: a brick model trains one network per brick on workers, which the command "
+                           "line runs (apmgsrn train)", arguments=("bricks",))
+    if resolved.input == "series":
+        return _fitted(lambda out: fit_series(resolved.source, resolved.field, resolved.training, out, target,
+                                              transform=resolved.transform, log_offset=resolved.log_offset,
+                                              progress=progress, stepwise=resolved.stepwise,
+                                              packing=resolved.packing, plan=resolved.record()), target)
+    volume = resolved.source
     truth = volume.to_numpy()  # [D, H, W] float32, data units
-    prepared = prepare_values(truth, transform, log_offset, str(volume.path), device)
-    return _fitted(lambda out: fit_prepared(prepared, truth, field_config, train_config, out,
-                                            SourceInfo.of_volume(volume), {},
-                                            callbacks=[TrainingProgress(enabled=progress)]), device)
+    prepared = prepare_values(truth, resolved.transform, resolved.log_offset, str(volume.path), target)
+
+    def train(out: Path) -> None:
+        result = fit_prepared(prepared, truth, resolved.field, resolved.training, out, SourceInfo.of_volume(volume),
+                              {}, callbacks=[TrainingProgress(enabled=progress)],
+                              summary_extra={"plan": resolved.record()})
+        if resolved.packing is not None:
+            training = {"iterations": result.iterations, "batch_size": resolved.training.batch_size,
+                        "seconds": round(result.seconds, 3), "frozen_at": result.frozen_at,
+                        "stopped_early": result.stopped_early, "device": resolved.device, "plan": resolved.record()}
+            pack_volume_model(result.field, volume, resolved.packing, training, target, out,
+                              log=print if progress else (lambda line: None))
+
+    return _fitted(train, target)
 
 
 def _fitted(write: Callable[[Path], object], device: torch.device) -> Model:
@@ -322,96 +341,6 @@ def _is_path_list(data) -> bool:
     return isinstance(data, (list, tuple)) and bool(data) and all(isinstance(d, (str, os.PathLike)) for d in data)
 
 
-def _configs(model: str, preset: str, iterations, batch_size, device: torch.device, options: dict,
-             defaults: dict | None = None):
-    """(FieldConfig, TrainConfig) of :func:`fit`'s arguments: ``options`` split into model and training options,
-    over the model kind's training defaults and ``defaults``.
-
-    Raises:
-        ApmgsrnError: an invalid option.
-    """
-    train_names = {f.name for f in dataclass_fields(TrainConfig)}
-    train_options = {k: v for k, v in options.items() if k in train_names}
-    model_options = {k: v for k, v in options.items() if k not in train_names}
-    if isinstance(model_options.get("resolution"), (int, np.integer)):
-        model_options["resolution"] = (int(model_options["resolution"]),) * 3  # R -> (R, R, R), as --resolution
-    default_iterations, default_batch = default_budget(device)
-    train_options = {**training_defaults(model), **(defaults or {}), **train_options}  # what is given wins
-    train_config = TrainConfig(iterations=default_iterations if iterations is None else iterations,
-                               batch_size=default_batch if batch_size is None else batch_size, **train_options)
-    try:
-        return preset_config(model, preset, **model_options), train_config
-    except ApmgsrnError:
-        raise  # names the argument already
-    except (TypeError, ValueError) as exc:
-        raise ApmgsrnError(f"invalid model options: {exc}") from None
-
-
-#: Options of :func:`fit` of a time series that set how its steps are trained -> the
-#: :class:`~apmgsrn.training.series_steps.StepwiseConfig` field each sets.
-STEPWISE_OPTIONS = {"start_step": "start", "step_iterations": "step_iterations", "step_lr": "step_lr",
-                    "step_sparsity": "step_sparsity"}
-
-
-def volume_setup(preset: str = "small", model: str | None = None, iterations: int | None = None,
-                 batch_size: int | None = None, device: torch.device | str = "cpu", **options):
-    """(FieldConfig, TrainConfig) that :func:`fit` trains one volume with (its arguments and ``options`` as
-    there; the field config not yet fitted to the volume's lattice)."""
-    return _configs(model or default_model(series=False), preset, iterations, batch_size, _device(device), options)
-
-
-@dataclass(frozen=True)
-class SeriesSetup:
-    """How :func:`fit` trains a time series, as ``apmgsrn train`` does by default: the opened series, its model,
-    the start model's training, how the other steps are trained and how the file is packed."""
-
-    series: VolumeSeries
-    field_config: SeriesFieldConfig
-    train_config: TrainConfig
-    stepwise: StepwiseConfig
-    packing: SeriesPacking
-
-
-def series_setup(data, preset: str = "small", model: str | None = None, iterations: int | None = None,
-                 batch_size: int | None = None, device: torch.device | str = "cpu", variable: str | None = None,
-                 time=None, fill_nonfinite: float | None = None, shape: tuple[int, int, int] | None = None,
-                 dtype: str | None = None, **options) -> SeriesSetup:
-    """What :func:`fit` of a time series trains (its arguments as there; ``options`` as there, the stepwise
-    ones included; ``shape`` and ``dtype`` of raw files): stepwise, packed within five single-step files of the
-    preset, a sixth of its steps' beyond 30 steps (``apmgsrn bench series`` trains exactly this).
-
-    Raises:
-        ApmgsrnError: unreadable data, a model kind a series cannot extend, an invalid option.
-    """
-    device = _device(device)
-    if isinstance(time, str):
-        time = parse_time(time)
-    model = model or default_model(series=True)
-    series = open_series(data, variable=variable, time=time, shape=shape, dtype=dtype, fill_nonfinite=fill_nonfinite)
-    options = dict(options)
-    steps = {field: options.pop(name) for name, field in STEPWISE_OPTIONS.items() if name in options}
-    stepwise = StepwiseConfig(**steps)
-    anchored = {"anchored_grids": SERIES_ANCHORED_GRIDS} if model == "apmgsrn" else {}  # the hybrid's levels cover
-    field_config, train_config = _configs(model, preset, iterations, batch_size, device, options,
-                                          {"voxel_fraction": STEPWISE_VOXEL_FRACTION, **anchored})
-    try:
-        config = stepwise_config(field_config, len(series))
-    except ValueError as exc:  # a model kind a series cannot extend
-        raise ApmgsrnError(f"invalid time-series options: {exc}") from None
-    packing = default_series_packing(config, series.shape, train_config.iterations)
-    return SeriesSetup(series, config, train_config, stepwise, packing)
-
-
-def _fit_series(data, preset, model, iterations, batch_size, device, transform, log_offset, variable, time,
-                fill_nonfinite, progress, options) -> Model:
-    """:func:`fit` of a time series: trained stepwise and packed, as ``apmgsrn train`` does by default."""
-    setup = series_setup(data, preset, model, iterations, batch_size, device, variable, time, fill_nonfinite,
-                         **options)
-    return _fitted(lambda out: fit_series(setup.series, setup.field_config, setup.train_config, out, device,
-                                          transform=transform, log_offset=log_offset, progress=progress,
-                                          stepwise=setup.stepwise, packing=setup.packing), device)
-
-
 def render(
     model: Model,
     width: int = 512,
@@ -427,7 +356,7 @@ def render(
     preset_name: str | None = None,
     preset_units: str = "normalized",
 ) -> np.ndarray:
-    """Volume-render a model (SPEC section 7) to an RGBA image.
+    """Volume-render a model (docs/method.md §7) to an RGBA image.
 
     Args:
         model: the model (:func:`fit` or :func:`load`).

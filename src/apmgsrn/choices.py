@@ -5,7 +5,7 @@ module imports nothing (no torch, no numpy): ``apmgsrn --help`` lists the choice
 library behind them.
 """
 
-#: Model kinds (SPEC sections 2 and 5): keys of :data:`apmgsrn.models.registry.ENCODERS`. ``apmgsrn`` is the
+#: Model kinds (docs/method.md §2 and §5): keys of :data:`apmgsrn.models.registry.ENCODERS`. ``apmgsrn`` is the
 #: paper's (its presets and results unchanged), ``hybrid`` the default (docs/models.md).
 MODEL_KINDS = ("apmgsrn", "fvsrn", "ngp", "hybrid")
 
@@ -27,7 +27,7 @@ def default_model(series: bool = False, byte_target: bool = False, joint: bool =
 #: tables of docs/results.md); ``bench quality`` runs these and the default model.
 PAPER_MODELS = ("apmgsrn", "fvsrn", "ngp")
 
-#: Size presets of every model kind (:data:`apmgsrn.models.registry.PRESETS`).
+#: Size presets of every model kind (:attr:`apmgsrn.recipes.ModelRecipe.presets`).
 SIZE_PRESETS = ("small", "medium", "large")
 
 #: How an APMGSRN model places its grids at the start. The encoder
@@ -74,7 +74,7 @@ SERIES_STORAGE = ("float32", "float16")
 #: How ``train`` fits a time series (apmgsrn.training.series_fit).
 SERIES_TRAINING = ("stepwise", "joint")
 
-#: How a ParaView preset's node positions are read (:func:`apmgsrn.render.paraview.apply_preset`).
+#: How a ParaView preset's node positions are read (:func:`apmgsrn.rendering.paraview.apply_preset`).
 PRESET_UNITS = ("normalized", "data")
 
 #: Lossy compressors of ``bench compress`` (:data:`apmgsrn.bench.compressors.COMPRESSORS`).

@@ -21,7 +21,6 @@ from tqdm import tqdm as terminal_tqdm
 
 #: Environment variable: seconds between progress lines when stderr is not a terminal.
 INTERVAL_VARIABLE = "APMGSRN_PROGRESS_SECONDS"
-DEFAULT_INTERVAL_SECONDS = 10.0
 MODES = ("terminal", "notebook", "lines", "off")
 
 
@@ -52,12 +51,11 @@ def _in_jupyter_kernel() -> bool:
 
 def interval_seconds() -> float:
     """Seconds between plain progress lines (``APMGSRN_PROGRESS_SECONDS``, default 10)."""
-    text = os.environ.get(INTERVAL_VARIABLE, "")
     try:
-        value = float(text)
+        value = float(os.environ.get(INTERVAL_VARIABLE, ""))
     except ValueError:
-        return DEFAULT_INTERVAL_SECONDS
-    return value if value >= 0 and math.isfinite(value) else DEFAULT_INTERVAL_SECONDS
+        value = math.nan
+    return value if value >= 0 and math.isfinite(value) else 10.0
 
 
 class Progress:

@@ -20,7 +20,7 @@ from apmgsrn.api import load
 from apmgsrn.data import check_finite, open_volume
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.io import model_kind
-from apmgsrn.render import (
+from apmgsrn.rendering import (
     Field,
     RendererConfig,
     TransferFunction,
@@ -63,7 +63,7 @@ class RenderSource:
         name: what it was opened as (a path, or the viewer's catalog name).
         kind: ``"model"``, ``"brick model"`` or ``"volume"``.
         field: ``[N, 3] -> [N, 1]`` callable on ``device`` (points in [-1, 1]^3); a
-            :class:`~apmgsrn.render.VolumeField` for a volume.
+            :class:`~apmgsrn.rendering.VolumeField` for a volume.
         value_range: ``(min, max)`` of the data, data units.
         volume_shape: ``(D, H, W)``.
         device: where the field evaluates.

@@ -9,7 +9,8 @@ process. Two measures, both here so that training, decoding, evaluation and rend
    machine (37 ns per ``pause``). A spinning thread keeps its core busy, so the thread it waits for, queued
    behind another process on the other core, cannot move there. Measured with other jobs on both cores
    (docs/benchmarks_contention.md): 300 training iterations took 3-4x longer with the default spin and
-   two threads than with this module's settings. :func:`set_openmp_wait_policy` makes :data:`SPIN_COUNT` the default; it runs
+   two threads than with this module's settings. :func:`set_openmp_wait_policy` makes
+   ``RUNTIME.spin_count`` (:mod:`apmgsrn.recipes`) the default; it runs
    on ``import apmgsrn`` (libgomp reads its settings once, when torch loads it, so it has an effect only
    when apmgsrn is imported before torch, as the command line and a fresh script do).
 2. **Measure, keep the fastest.** :class:`ThreadGovernor` times a loop's work units (training iterations,
@@ -37,26 +38,25 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
 
-Item, Result = TypeVar("Item"), TypeVar("Result")
+from apmgsrn.recipes import RUNTIME
 
-#: Rounds an idle OpenMP thread spins before it sleeps (libgomp's ``GOMP_SPINCOUNT``; its default is
-#: 300,000). About 0.1 ms here: enough to bridge the gaps between the operations of one step, short
-#: enough to hand the core back when another process needs it.
-SPIN_COUNT = 3000
+Item, Result = TypeVar("Item"), TypeVar("Result")
 
 #: Settings by which a user chooses the wait policy; when any is set, theirs stands.
 WAIT_POLICY_VARIABLES = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
 
 
 def set_openmp_wait_policy() -> bool:
-    """Make :data:`SPIN_COUNT` libgomp's spin count, unless torch is loaded or the user chose one.
+    """Make ``RUNTIME.spin_count`` libgomp's spin count (``GOMP_SPINCOUNT``), unless torch is loaded or the user
+    chose one: about 0.1 ms, enough to bridge the gaps between the operations of one step, short enough to hand
+    the core back when another process needs it.
 
     Returns:
         True when the setting was made (it then applies to this process and the processes it starts).
     """
     if "torch" in sys.modules or any(name in os.environ for name in WAIT_POLICY_VARIABLES):
         return False
-    os.environ["GOMP_SPINCOUNT"] = str(SPIN_COUNT)
+    os.environ["GOMP_SPINCOUNT"] = str(RUNTIME.spin_count)
     return True
 
 

@@ -35,12 +35,8 @@ from apmgsrn.choices import COMPRESSORS, MODEL_KINDS, PAPER_MODELS, SIZE_PRESETS
 from apmgsrn.inference.decode import decode_array
 from apmgsrn.inference.evaluate import check_volume_shape, compare_arrays
 from apmgsrn.inference.query import query
-from apmgsrn.models.registry import PRESETS
 from apmgsrn.ops.trilinear import sample_volume
-
-DEFAULT_BOUNDS = (1e-1, 3e-2, 1e-2, 3e-3, 1e-3, 3e-4, 1e-4)
-#: Bit planes of ZFP's fixed-precision mode: about 200:1 down to 20-40:1.
-DEFAULT_PRECISIONS = (1, 2, 3, 4, 5, 6, 8)
+from apmgsrn.recipes import MODELS
 
 
 @dataclass(frozen=True)
@@ -64,8 +60,8 @@ class CompressPlan:
     sizes: tuple[str, ...] = ("small",)
     model_files: tuple[Path, ...] = ()
     compressors: tuple[str, ...] = COMPRESSORS
-    bounds: tuple[float, ...] = DEFAULT_BOUNDS
-    precisions: tuple[int, ...] = DEFAULT_PRECISIONS
+    bounds: tuple[float, ...] = (1e-1, 3e-2, 1e-2, 3e-3, 1e-3, 3e-4, 1e-4)
+    precisions: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 8)  # ZFP's fixed-precision bit planes: about 200:1 to 20-40:1
     iterations: int = 2000
     batch_size: int = 32768
     seed: int = 0
@@ -282,7 +278,8 @@ def measure_model(
 def _preset_of(field_config) -> str | None:
     """The size preset whose encoder config a field config has, if any."""
     config = dataclasses.asdict(field_config.encoder)
-    for preset, fields in PRESETS.get(field_config.model, {}).items():
+    recipe = MODELS.get(field_config.model)
+    for preset, fields in ({} if recipe is None else recipe.presets).items():
         if all(config.get(k) == (tuple(v) if isinstance(v, list) else v) for k, v in fields.items()):
             return preset
     return None

@@ -22,14 +22,12 @@ from apmgsrn.arguments import check_int, check_optional_int
 from apmgsrn.atomic import atomic_write, atomic_write_text
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.inference.evaluate import check_volume_shape
-from apmgsrn.inference.slabs import SLAB_VOXELS
 from apmgsrn.models.field import NeuralField
+from apmgsrn.recipes import RUNTIME
 from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.fit import prepare_values, train_prepared
 from apmgsrn.training.trainer import StepLosses, TrainConfig, Trainer, TrainingCallback
 
-# VTK_HEXAHEDRON lists the bottom face counter-clockwise, then the top face.
-_VTK_HEXAHEDRON_ORDER = (0, 1, 3, 2, 4, 5, 7, 6)
 # Panel -> (projected-out axis index in (z, y, x) array order, horizontal and vertical point coordinate).
 _PANELS = (("along z", 0, 0, 1), ("along y", 1, 0, 2), ("along x", 2, 1, 2))
 _AXIS_NAMES = "xyz"
@@ -60,7 +58,7 @@ def require_grids(field, path: Path | str = "model") -> torch.Tensor:
     return boxes
 
 
-def projections(volume, transform=None, slab_voxels: int = SLAB_VOXELS) -> Projections:
+def projections(volume, transform=None, slab_voxels: int = RUNTIME.slab_voxels) -> Projections:
     """MIPs along the three axes, streamed over z-slabs (one slab in memory at a time).
 
     Args:
@@ -177,7 +175,7 @@ def write_grid_vtk(
     lines = ["# vtk DataFile Version 3.0", "apmgsrn grid boxes", "ASCII", "DATASET UNSTRUCTURED_GRID"]
     lines.append(f"POINTS {8 * m} double")
     for box in corners:
-        for k in _VTK_HEXAHEDRON_ORDER:
+        for k in (0, 1, 3, 2, 4, 5, 7, 6):  # VTK_HEXAHEDRON: the bottom face counter-clockwise, then the top
             lines.append(" ".join(f"{c:.9g}" for c in box[k]))
     lines.append(f"CELLS {m} {9 * m}")
     for i in range(m):

@@ -33,7 +33,7 @@ class QualityRow:
         file_bytes: size of the saved model file (weights + metadata).
         data_dtype: the volume's stored data type.
         data_bytes: the volume as stored, in its own dtype (a uint8 volume is 1 byte a voxel).
-        compression_ratio: ``data_bytes / file_bytes`` (SPEC section 8).
+        compression_ratio: ``data_bytes / file_bytes`` (docs/method.md §8).
         compression_ratio_float32: the volume as float32 (4 bytes a voxel) / ``file_bytes``.
         psnr: over every voxel (dB).
         train_seconds: training loop wall time.
@@ -86,7 +86,7 @@ class CompressRow:
         method: ``sz3``, ``zfp`` or a model name.
         setting: the error bound relative to the value range (compressors) or the size preset (models).
         compressed_bytes: compressed stream or model file size.
-        compression_ratio: the volume's stored bytes (its own dtype) / ``compressed_bytes`` (SPEC section 8).
+        compression_ratio: the volume's stored bytes (its own dtype) / ``compressed_bytes`` (docs/method.md §8).
         compression_ratio_float32: the volume as float32 / ``compressed_bytes`` (what the compressors were
             given: every method compresses the float32 values).
         psnr: over every voxel (dB).

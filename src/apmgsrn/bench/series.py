@@ -1,10 +1,10 @@
 """``bench series``: one model for a whole time series against one model per step, on any series.
 
-Issue 16's criteria, measured on a series ``apmgsrn train`` reads (several files, a glob, a ``.pvd``, or one file
-with a time dimension):
+The series criteria (docs/time_series.md), measured on a series ``apmgsrn train`` reads (several files, a glob,
+a ``.pvd``, or one file with a time dimension):
 
 1. **The series model**, trained exactly as ``apmgsrn train`` and :func:`apmgsrn.fit` train a series by default
-   (:func:`apmgsrn.api.series_setup`: stepwise, packed within five single-step files), kept as a model file.
+   (:func:`apmgsrn.plan`: stepwise, packed within the recipe's size), kept as a model file.
 2. **Own models**: an independent model of each measured step (:func:`measured_steps`: by default seven steps
    evenly spaced, the first and last among them), trained on that step alone with the same budget, preset and
    seed; trained after the series, on the same machine, so their training time is the one-step time the series
@@ -34,7 +34,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from apmgsrn.api import SeriesSetup, load, series_setup, volume_setup
+from apmgsrn.api import load
+from apmgsrn.api import plan as resolve_plan
+from apmgsrn.planning import Plan, volume_configs
+from apmgsrn.options import TrainOptions
 from apmgsrn.arguments import MAX_BATCH_SIZE, check_choice, check_int
 from apmgsrn.atomic import atomic_write_text
 from apmgsrn.bench.charts import psnr_over_time_chart
@@ -48,10 +51,6 @@ from apmgsrn.ops.trilinear import sample_volume
 from apmgsrn.training.fit import fit_volume
 from apmgsrn.training.series_fit import fit_series
 
-#: Steps measured against their own models when none are named: evenly spaced, the first and last among them.
-DEFAULT_MEASURED_STEPS = 7
-#: Points at which :func:`between_psnr` measures a model between the voxels.
-BETWEEN_POINTS = 1 << 18
 #: The criteria's bounds: the series file within this many own-model files, its training within this many
 #: times one step's.
 FILE_BOUND, TIME_BOUND = 5, 5
@@ -70,6 +69,7 @@ class SeriesPlan:
         iterations, batch_size: the budget of an own model, and of the series' start model.
         seeds: every model is trained with seeds ``0 .. seeds - 1``.
         steps: the steps measured against their own models (None: :func:`measured_steps`).
+        between_points: points at which :func:`between_psnr` measures a model between the voxels.
     """
 
     data: tuple[str, ...]
@@ -84,6 +84,7 @@ class SeriesPlan:
     batch_size: int = 32768
     seeds: int = 1
     steps: tuple[int, ...] | None = None
+    between_points: int = 1 << 18
 
     def __post_init__(self) -> None:
         if self.model is not None:
@@ -94,7 +95,7 @@ class SeriesPlan:
         check_int("seeds", self.seeds, 1)
 
 
-def measured_steps(count: int, wanted: int = DEFAULT_MEASURED_STEPS) -> list[int]:
+def measured_steps(count: int, wanted: int = 7) -> list[int]:
     """``wanted`` step indices of ``count`` spread evenly, the first and the last among them (all of a shorter
     series)."""
     if count <= wanted:
@@ -109,7 +110,7 @@ def series_bench_paths(out: Path) -> dict[str, Path]:
 
 
 def between_psnr(field: Callable[[torch.Tensor], torch.Tensor], volume: np.ndarray, step: int,
-                 points: int = BETWEEN_POINTS) -> float:
+                 points: int = SeriesPlan.between_points) -> float:
     """PSNR of a network between the voxels: at ``points`` points drawn uniformly in the domain (seeded by
     ``step``, so the same for every model of that step) against the data's trilinear interpolation there, what a
     renderer that interpolates the data samples; over the step's value range, as the PSNR over the voxels.
@@ -145,31 +146,35 @@ def run_series_bench(plan: SeriesPlan, out: Path, device: torch.device, log: Cal
     Raises:
         ApmgsrnError: unreadable data, a step outside the series, an invalid option, another version's CSV.
     """
-    setup = series_setup(list(plan.data), plan.preset, plan.model, plan.iterations, plan.batch_size, device,
-                         plan.variable, plan.time, plan.fill_nonfinite, plan.shape, plan.dtype)
-    steps = list(plan.steps) if plan.steps is not None else measured_steps(len(setup.series))
-    outside = [t for t in steps if not 0 <= t < len(setup.series)]
+    setup = resolve_plan(list(plan.data), preset=plan.preset, model=plan.model, iterations=plan.iterations,
+                         batch_size=plan.batch_size, device=str(device), variable=plan.variable, time=plan.time,
+                         fill_nonfinite=plan.fill_nonfinite, shape=plan.shape, dtype=plan.dtype)
+    if setup.input != "series":
+        raise ApmgsrnError(f"{plan.data[0]}: one volume; bench series compares a series with its steps' own models")
+    steps = list(plan.steps) if plan.steps is not None else measured_steps(len(setup.source))
+    outside = [t for t in steps if not 0 <= t < len(setup.source)]
     if outside:
-        raise ApmgsrnError(f"step {outside[0]} is not in the series: it has steps 0 .. {len(setup.series) - 1}",
+        raise ApmgsrnError(f"step {outside[0]} is not in the series: it has steps 0 .. {len(setup.source) - 1}",
                            arguments=("steps",))
     prepare_folder(out)
     paths = series_bench_paths(Path(out))
     rows: list[SeriesStepRow] = []
     for seed in range(plan.seeds):  # the seed sets only the training (the series and its packing are the same)
-        seeded = replace(setup, train_config=replace(setup.train_config, seed=seed))
+        seeded = replace(setup, training=replace(setup.training, seed=seed))
         label = f"seed {seed}: " if plan.seeds > 1 else ""
         rows += _run_seed(plan, seeded, seed, steps, paths, device, lambda line, label=label: log(label + line),
                           progress)
-    atomic_write_text(paths["markdown"], series_report(rows, paths["chart"].name), "results table")
+    atomic_write_text(paths["markdown"], series_report(rows, paths["chart"].name, plan.between_points),
+                      "results table")
     series_chart(rows, paths["chart"])
     return rows
 
 
-def _run_seed(plan: SeriesPlan, setup: SeriesSetup, seed: int, steps: list[int], paths: dict[str, Path],
+def _run_seed(plan: SeriesPlan, setup: Plan, seed: int, steps: list[int], paths: dict[str, Path],
               device: torch.device, log: Callable[[str], None], progress: bool) -> list[SeriesStepRow]:
     """The rows of one seed: those ``paths["csv"]`` holds, the missing ones trained and appended."""
-    series = setup.series
-    model = setup.field_config.field.model
+    series = setup.source
+    model = setup.field.field.model
     dataset = series.describe()
     rows = [r for r in read_rows(paths["csv"], SeriesStepRow) if r.dataset == dataset and r.model == model
             and (r.preset, r.seed, r.iterations, r.batch_size) == (plan.preset, seed, plan.iterations,
@@ -180,11 +185,12 @@ def _run_seed(plan: SeriesPlan, setup: SeriesSetup, seed: int, steps: list[int],
     if not any(r.method == SERIES for r in rows):
         model_file = paths["models"] / f"series_{tag}.apmgsrn"
         log(f"series: {dataset}, trained as apmgsrn train does ({len(series)} steps)")
-        result = fit_series(series, setup.field_config, setup.train_config, model_file, device, resume=True,
-                            progress=progress, stepwise=setup.stepwise, packing=setup.packing)
+        result = fit_series(series, setup.field, setup.training, model_file, device, resume=True,
+                            progress=progress, stepwise=setup.stepwise, packing=setup.packing, plan=setup.record())
         trained = load(model_file)
         measured = [SeriesStepRow(**common, method=SERIES, step=t, file=series.step_name(t), psnr=evaluation.psnr,
-                                  psnr_between=between_psnr(trained.step_field(t), series.read(t), t),
+                                  psnr_between=between_psnr(trained.step_field(t), series.read(t), t,
+                                                            plan.between_points),
                                   max_abs_error=evaluation.max_abs_error, file_bytes=result.model_bytes,
                                   train_seconds=result.seconds, threads=torch.get_num_threads(),
                                   load_average=os.getloadavg()[0], cpu=_cpu(), model_file=str(model_file))
@@ -196,7 +202,8 @@ def _run_seed(plan: SeriesPlan, setup: SeriesSetup, seed: int, steps: list[int],
         log(f"series: {result.model_bytes:,} bytes, {result.seconds:.1f} s, steps {min(psnrs):.2f} .. "
             f"{max(psnrs):.2f} dB")
     done = {r.step for r in rows if r.method == OWN}
-    field_config, train_config = volume_setup(plan.preset, model, plan.iterations, plan.batch_size, device, seed=seed)
+    field_config, train_config = volume_configs(TrainOptions(preset=plan.preset, model=model, iterations=plan.iterations,
+                                                             batch_size=plan.batch_size, device=str(device), seed=seed))
     for number, t in enumerate(steps, 1):
         if t in done:
             continue
@@ -204,7 +211,8 @@ def _run_seed(plan: SeriesPlan, setup: SeriesSetup, seed: int, steps: list[int],
         with series.volume(t) as volume:
             result = fit_volume(volume, field_config, train_config, model_file, device, resume=True, progress=False)
         row = SeriesStepRow(**common, method=OWN, step=t, file=series.step_name(t), psnr=result.psnr,
-                            psnr_between=between_psnr(load(model_file).field, series.read(t), t),
+                            psnr_between=between_psnr(load(model_file).field, series.read(t), t,
+                                                      plan.between_points),
                             max_abs_error=result.evaluation.max_abs_error, file_bytes=result.model_bytes,
                             train_seconds=result.seconds, threads=torch.get_num_threads(),
                             load_average=os.getloadavg()[0], cpu=_cpu(), model_file=str(model_file))
@@ -218,7 +226,7 @@ def _run_seed(plan: SeriesPlan, setup: SeriesSetup, seed: int, steps: list[int],
 
 @dataclass(frozen=True)
 class SeriesCriteria:
-    """Issue 16's criteria on one series' rows (with several seeds, over the seeds' means).
+    """The series criteria on one series' rows (with several seeds, over the seeds' means).
 
     Attributes:
         steps: the measured steps (those with an own model and the series' figure of at least one seed).
@@ -302,7 +310,8 @@ def series_criteria(rows: list[SeriesStepRow]) -> SeriesCriteria:
                                          if (seed, steps[0]) in series))
 
 
-def series_report(rows: list[SeriesStepRow], chart_name: str) -> str:
+def series_report(rows: list[SeriesStepRow], chart_name: str,
+                  between_points: int = SeriesPlan.between_points) -> str:
     """Markdown: what was measured, the criteria, every measured step, and the chart."""
     criteria = series_criteria(rows)
     several = len(criteria.seeds) > 1
@@ -349,7 +358,7 @@ Written by `apmgsrn bench series`.
 | model file | <= {FILE_BOUND} own model files ({FILE_BOUND * criteria.own_bytes:,} bytes) | {criteria.series_bytes:,} bytes ({criteria.files:.2f} files) |
 | training time | <= {TIME_BOUND} x one step ({TIME_BOUND * criteria.step_seconds:.0f} s; one step: the median own model, {criteria.step_seconds:.1f} s) | {criteria.series_seconds:.1f} s ({criteria.times:.2f} x) |
 
-{verdict} Between the voxels, where a renderer samples (not a criterion; {BETWEEN_POINTS:,} points drawn
+{verdict} Between the voxels, where a renderer samples (not a criterion; {between_points:,} points drawn
 uniformly, against the data's trilinear interpolation), series minus own model: {min(b):+.2f} .. {max(b):+.2f} dB.
 
 ![PSNR over time]({chart_name})

@@ -6,31 +6,12 @@ import argparse
 
 from apmgsrn.choices import DECODER_PRECISIONS
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.options import INPUT, add_option_arguments
 
 
 def add_data_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options that say how to read a volume file."""
-    group = parser.add_argument_group("input volume")
-    group.add_argument("--variable", help="variable / dataset / array name (default: the only 3-D one)")
-    group.add_argument("--time", type=time_option, metavar="K|all|A:B[:S]",
-                       help="index along a leading time dimension, or of a time-series model's steps; all or "
-                            "A:B[:S] (stop exclusive) for several steps")
-    group.add_argument("--shape", help="X,Y,Z dimensions of a raw file (else parsed from NAME_XxYxZ_dtype.raw)")
-    group.add_argument("--dtype", help="element type of a raw file (uint8, int16, float32, ...)")
-    group.add_argument("--fill-nonfinite", type=float, metavar="VALUE",
-                       help="replace NaN/Inf voxels by VALUE instead of refusing the volume")
-
-
-def time_option(text: str):
-    """``--time``: an index, ``all`` or ``A:B[:S]`` (argparse type; a bad value is a usage error)."""
-    from apmgsrn.data.series import parse_time
-
-    from apmgsrn.cli.flags import cli_message
-
-    try:
-        return parse_time(text)
-    except ApmgsrnError as exc:
-        raise argparse.ArgumentTypeError(cli_message(exc)) from None
+    """Options that say how to read a volume file (:data:`apmgsrn.options.INPUT`)."""
+    add_option_arguments(parser, (INPUT,))
 
 
 def volume_options(args: argparse.Namespace, allow_series: bool = False) -> dict:
@@ -106,7 +87,7 @@ def percent_of_range(error: float, low: float, high: float) -> str:
 
 
 def compression_figures(voxels: int, dtype: str | None, itemsize: int | None, model_bytes: int) -> dict:
-    """Compression ratios of SPEC section 8: against the data as stored (its own dtype: a uint8 volume is 1
+    """Compression ratios of docs/method.md §8: against the data as stored (its own dtype: a uint8 volume is 1
     byte a voxel) and against float32.
 
     Args:

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import apmgsrn
 from apmgsrn.choices import REGION_UNITS
-from apmgsrn.cli.common import add_device_argument, add_precision_argument, parse_triple, time_option
+from apmgsrn.cli.common import add_device_argument, add_precision_argument, parse_triple
+from apmgsrn.options import time_value
 from apmgsrn.cli.paths import CommandPaths, Output
 from apmgsrn.errors import ApmgsrnError
 
@@ -33,7 +34,7 @@ def register(subparsers) -> None:
     parser.add_argument("--region-units", choices=REGION_UNITS, default="index",
                         help="index (default): --region in voxel indices; coordinates: a closed box in the "
                              "source's coordinates")
-    parser.add_argument("--time", type=time_option, metavar="K|all|A:B[:S]",
+    parser.add_argument("--time", type=time_value, metavar="K|all|A:B[:S]",
                         help="time step to decode (default: the first; required for a time-series model); "
                              "several steps of a time-series model go to one file with a time axis (.nc, .raw, "
                              ".npy), or one file per step when --out holds {step}")

@@ -63,6 +63,8 @@ FLAGS = {
     "steps_per_iteration": "--steps-per-iteration",
     "series_training": "--series-training",
     "start": "--start-step",
+    "start_step": "--start-step",
+    "step_lr": "--step-lr",
     "step_iterations": "--step-iterations",
     "step_sparsity": "--step-sparsity",
     "decoder_iterations": "--decoder-iterations",
@@ -70,6 +72,8 @@ FLAGS = {
     "bits": "--bits",
     "psnr_loss": "--psnr-loss",
     "target_bytes": "--size",
+    "size": "--size",
+    "ratio": "--ratio",
     "max_error": "--max-error",
     "qat_iterations": "--qat-iterations",
     # bricks
@@ -78,6 +82,8 @@ FLAGS = {
     "workers": "--workers",
     "scheduler": "--scheduler",
     "retries": "--retries",
+    "group_steps": "--group-steps",
+    "blend": "--blend",
     # rendering
     "width": "--width",
     "height": "--height",

@@ -196,6 +196,8 @@ def run(args: argparse.Namespace) -> int:
         anchored = config.get("anchored_grids")
         anchored = f" ({anchored} anchored over the domain)" if isinstance(anchored, int) and anchored > 0 else ""
         print(f"grids frozen at iteration {t.get('frozen_at')}{anchored}")
+        if isinstance(t.get("plan"), dict):
+            print(f"plan            {plan_line(t['plan'])} (info --json has all of it)")
     levels = info.get("levels")
     if levels:
         dense = sum(level["dense"] for level in levels)
@@ -208,6 +210,22 @@ def run(args: argparse.Namespace) -> int:
         c, e = grid["center"], grid["extent"]
         print(f"  grid {i:2d}  center ({c[0]:+.3f}, {c[1]:+.3f}, {c[2]:+.3f})  extent ({e[0]:.3f}, {e[1]:.3f}, {e[2]:.3f})")
     return 0
+
+
+def plan_line(plan: dict) -> str:
+    """One line of the plan a model was trained with (:meth:`apmgsrn.planning.Plan.record`)."""
+    training = plan.get("training") if isinstance(plan.get("training"), dict) else {}
+    packing = plan.get("packing") if isinstance(plan.get("packing"), dict) else None
+    steps = f" of {plan['steps']} steps" if isinstance(plan.get("steps"), int) else ""
+    parts = [f"{plan.get('model')} {plan.get('input')}{steps} on {plan.get('device')}",
+             f"{training.get('iterations')} iterations x {training.get('batch_size')} points, seed {training.get('seed')}"]
+    if plan.get("stepwise"):
+        parts.append("stepwise")
+    if packing is not None:
+        target = packing.get("target_bytes")
+        parts.append(f"packed ({plan.get('packing_kind')}" + (f", to {target:,} bytes)" if isinstance(target, int)
+                                                               else ")"))
+    return ", ".join(parts)
 
 
 def _print_source_metadata(description) -> None:

@@ -20,96 +20,11 @@ from apmgsrn.cli.common import (
 )
 from apmgsrn.cli.paths import CommandPaths, Output
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.options import PACKING, add_option_arguments
 
-#: The packing options (dest names); ``train`` packs when any of them is given.
-PACK_OPTIONS = ("bits", "psnr_loss", "size", "ratio", "max_error", "qat_iterations")
-
-
-#: Why ``--qat-iterations`` is refused for a joint series (``train`` and ``pack``).
-JOINT_SERIES_QAT = ("--qat-iterations: fine-tunes every step of a stepwise series; a joint series has no grids of "
-                    "its own per step")
 #: Why ``pack --decoder-iterations`` is refused for a joint series.
 JOINT_SERIES_DECODER = ("--decoder-iterations: fine-tunes the decoder to every step's own packed grids; a joint "
                         "series has no grids of its own per step")
-
-
-def add_pack_arguments(parser: argparse.ArgumentParser, title: str = "packing") -> None:
-    """``--bits``, ``--psnr-loss``, ``--size``, ``--ratio``, ``--max-error``, ``--qat-iterations``."""
-    group = parser.add_argument_group(title, "quantise and entropy-code the model (docs/packing.md); "
-                                             "the PSNR cost is measured on the data and stored in the file")
-    group.add_argument("--bits", type=int, metavar="B",
-                       help="bit width of every stored feature and weight (2..16; 32 keeps float32, coded "
-                            "losslessly, e.g. for --max-error alone)")
-    group.add_argument("--psnr-loss", type=float, metavar="DB",
-                       help="largest PSNR cost allowed: each tensor's steps follow its effect on the output "
-                            "(the default, at 0.1 dB, when no other packing option sets the size)")
-    group.add_argument("--size", type=int, metavar="BYTES", help="pack to at most this many bytes")
-    group.add_argument("--ratio", type=float, metavar="R",
-                       help="pack to at most the data's stored bytes / R (e.g. 1000 for 1000:1)")
-    group.add_argument("--max-error", type=float, metavar="E",
-                       help="guarantee |model - data| <= E (data units) at every voxel with a stored sparse "
-                            "correction; eval verifies it")
-    group.add_argument("--qat-iterations", type=int, metavar="N",
-                       help="quantisation-aware fine-tune iterations before coding (default 0); for a "
-                            "stepwise time series, iterations per step (train of a hybrid series: by default "
-                            "--iterations / 8, 0 turns it off), fewer where a size target leaves too few bytes "
-                            "free for what the fine-tuned values code larger (docs/time_series.md)")
-
-
-def packing_requested(args: argparse.Namespace) -> bool:
-    """Whether any packing option was given."""
-    return any(getattr(args, name, None) is not None for name in PACK_OPTIONS)
-
-
-def pack_config(args: argparse.Namespace, stored_bytes: int):
-    """The :class:`~apmgsrn.training.packing.PackConfig` of the command line.
-
-    Args:
-        args: parsed options.
-        stored_bytes: the data's bytes as stored (``--ratio`` divides them).
-
-    Raises:
-        ApmgsrnError: options that contradict each other or are out of range (named as options).
-    """
-    from apmgsrn.training.packing import PackConfig
-
-    options = {"bits": args.bits, "target_bytes": target_bytes(args, stored_bytes), "max_error": args.max_error,
-               "qat_iterations": args.qat_iterations or 0}
-    if args.psnr_loss is not None:
-        options["psnr_loss"] = args.psnr_loss
-    return PackConfig(**options)
-
-
-def target_bytes(args: argparse.Namespace, stored_bytes: int) -> int | None:
-    """The file size ``--size`` or ``--ratio`` (of ``stored_bytes``) asks for; None when neither is given.
-
-    Raises:
-        ApmgsrnError: both given, or a ratio that is not a positive number.
-    """
-    if args.size is not None and args.ratio is not None:
-        raise ApmgsrnError("--size and --ratio both set the file size: give one of them")
-    if args.ratio is None:
-        return args.size
-    if not (math.isfinite(args.ratio) and args.ratio > 0):
-        raise ApmgsrnError(f"--ratio {args.ratio}: must be a positive number such as 1000")
-    return max(int(stored_bytes / args.ratio), 1)
-
-
-def pack_model(field, volume, config, training: dict, device, out: Path, log=print):
-    """Pack ``field`` against ``volume`` and write it to ``out`` (replacing an older model file of either kind).
-
-    Returns:
-        The :class:`~apmgsrn.training.packing.PackResult`.
-    """
-    from apmgsrn.io import SourceInfo
-    from apmgsrn.training.packing import fitted_values, pack_field, write_packed
-
-    truth = volume.to_numpy()
-    values = fitted_values(field, truth, device) if config.qat_iterations else None
-    result = pack_field(field.to(device), truth, config, SourceInfo.of_volume(volume), training, values=values,
-                        log=log)
-    write_packed(out, result)
-    return result
 
 
 def packing_lines(report: dict, file_bytes: int, compression: dict) -> list[str]:
@@ -125,33 +40,6 @@ def packing_lines(report: dict, file_bytes: int, compression: dict) -> list[str]
                      f"over every voxel ({report['corrected_voxels']:,} voxels corrected), "
                      f"PSNR {report['bounded_psnr']:.2f} dB")
     return lines
-
-
-def series_packing(args: argparse.Namespace, raw_bytes: int):
-    """The :class:`~apmgsrn.training.series_packing.SeriesPacking` that ``--bits``, ``--size`` or ``--ratio``
-    ask for (``train`` and ``pack`` of a series), with ``--qat-iterations``; None when none of the first three
-    is given.
-
-    Raises:
-        ApmgsrnError: another packing option (a series packs to a bit width or a size only), or both a size
-            and a ratio.
-    """
-    from apmgsrn.training.series_packing import DEFAULT_SERIES_BITS, SeriesPacking
-
-    for option in PACK_OPTIONS:
-        if option not in ("bits", "size", "ratio", "qat_iterations") and getattr(args, option, None) is not None:
-            flag = "--" + option.replace("_", "-")
-            raise ApmgsrnError(f"{flag}: a time series packs to a bit width or a size only (--bits, --size, "
-                               f"--ratio, with --qat-iterations); drop {flag}")
-    qat = args.qat_iterations or 0
-    if qat < 0:
-        raise ApmgsrnError(f"--qat-iterations {qat}: must be 0 or more")
-    size = target_bytes(args, raw_bytes)
-    if size is not None:
-        return SeriesPacking(args.bits or DEFAULT_SERIES_BITS, size, qat_iterations=qat)
-    if args.bits is not None:
-        return SeriesPacking(args.bits, min_bits=args.bits, qat_iterations=qat)
-    return None
 
 
 def register(subparsers) -> None:
@@ -170,7 +58,7 @@ def register(subparsers) -> None:
     parser.add_argument("--out", required=True,
                         help="packed model file to write (an existing apmgsrn model there is replaced atomically)")
     add_data_arguments(parser)
-    add_pack_arguments(parser)
+    add_option_arguments(parser, (PACKING,))
     parser.add_argument("--decoder-iterations", type=int, metavar="N",
                         help="a stepwise time series: iterations of a fine-tune of the shared decoder alone to the "
                              "grids as the file stores them, on all steps at once, from the training settings the "
@@ -203,12 +91,15 @@ def run(args: argparse.Namespace) -> int:
         raise ApmgsrnError(f"{len(args.data)} inputs given where one volume is read; name one file")
     volume = open_data(args, args.data[0])
     check_volume_shape(volume.shape, model.description.volume_shape, str(args.data))
+    from apmgsrn.planning import pack_config
+    from apmgsrn.training.packing import pack_volume_model
+
     config = pack_config(args, volume.stored_bytes)
     field = model.field
     if model.description.packing is not None and model.description.packing.max_error is not None:
         raise ApmgsrnError(f"{args.model}: already carries an error bound; pack its float32 model instead")
     out = Path(args.out)
-    result = pack_model(field, volume, config, model.description.training, device, out,
+    result = pack_volume_model(field, volume, config, model.description.training, device, out,
                         log=(lambda line: None) if args.json else print)
     compression = compression_figures(math.prod(volume.shape), str(volume.dtype), volume.dtype.itemsize,
                                       result.file_bytes)
@@ -241,6 +132,7 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
         series_packing_report,
         write_packed_series,
     )
+    from apmgsrn.planning import joint_series_qat, series_packing
     from apmgsrn.training.series_qat import fine_tune_rounded, stored_train_config
 
     layout = model.description.series
@@ -257,7 +149,7 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
                                      "a quantisation-aware fine-tune" if packing.qat_iterations
                                      else "the decoder's fine-tune")
         if not field.config.series.per_step_grids:
-            raise ApmgsrnError(JOINT_SERIES_QAT if packing.qat_iterations else JOINT_SERIES_DECODER)
+            raise joint_series_qat() if packing.qat_iterations else ApmgsrnError(JOINT_SERIES_DECODER)
     values = None
     packed = packing.pack(field)
     options = dict(trained_shape=model.description.volume_shape, progress=not args.json)

@@ -101,11 +101,11 @@ def error_image_path(args: argparse.Namespace) -> Path:
 def run(args: argparse.Namespace) -> int:
     # torch and the renderer load here, not when the CLI starts.
     from apmgsrn.device import resolve_device
-    from apmgsrn.render import Camera, RendererConfig, image_psnr, image_ssim, make_transfer_function
-    from apmgsrn.render.animation import render_frames, turntable_cameras, write_animation
-    from apmgsrn.render.images import as_uint8, error_image, save_image, side_by_side
-    from apmgsrn.render.paraview import save_transfer_function
-    from apmgsrn.render.raymarch import default_batch_size
+    from apmgsrn.rendering import Camera, RendererConfig, image_psnr, image_ssim, make_transfer_function
+    from apmgsrn.rendering.animation import render_frames, turntable_cameras, write_animation
+    from apmgsrn.rendering.images import as_uint8, error_image, save_image, side_by_side
+    from apmgsrn.rendering.paraview import save_transfer_function
+    from apmgsrn.rendering.raymarch import default_batch_size
     from apmgsrn.sources import SourceOptions, open_source
 
     from apmgsrn.cli.series import render_steps

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from apmgsrn.cli.common import format_bytes, percent_of_range, volume_options
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.recipes import PACKING, SERIES
 
 #: Placeholder of ``decode --time all --out``: one file per step.
 STEP_FIELD = "{step}"
@@ -23,56 +24,6 @@ STEP_FIELD = "{step}"
 JOINT_OPTIONS = ("basis", "coefficients", "residual", "steps_per_iteration")
 #: Options of a stepwise series (refused for a joint one).
 STEPWISE_OPTIONS = ("start_step", "step_iterations", "step_sparsity", "decoder_iterations")
-
-
-def add_series_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``train`` on a time series (the model and training options apply as for one volume)."""
-    from apmgsrn.choices import SERIES_COEFFICIENTS, SERIES_STORAGE, SERIES_TRAINING
-    from apmgsrn.models.series_options import SERIES_DEFAULTS
-
-    group = parser.add_argument_group(
-        "time series (DATA: several files, a quoted glob such as 'run/*.vti', a .pvd, or --time all|A:B[:S])"
-    )
-    group.add_argument("--series-training", choices=SERIES_TRAINING,
-                       help="stepwise (default): a model of the step with the most detail, then every other step's "
-                            "own grids fine-tuned from its neighbour's, decoder shared, placement shared unless a "
-                            "step drifts, stored packed (--bits, default 10, lowered to 6 at most to stay within 5 "
-                            "single-step models, or a sixth of the steps' beyond 30 steps; or --size, --ratio; with "
-                            "--bricks, every brick and group of steps "
-                            "so, at the default packing); joint: one model of all steps trained at once (the "
-                            "options below)")
-    group.add_argument("--start-step", metavar="auto|first|last|K",
-                       help="stepwise: the step the first model is trained on (default auto: the most detail)")
-    group.add_argument("--step-iterations", type=int, metavar="N",
-                       help="stepwise: fine-tune iterations of every other step, at the start model's batch "
-                            "(default: a tenth of --iterations; a hybrid series on a CPU runs 0.9 of their points "
-                            "at 0.375 of the batch)")
-    group.add_argument("--step-sparsity", type=float, metavar="S",
-                       help="stepwise: pull every step's features back to its neighbour's while it is fine-tuned "
-                            "(an L1 proximal step of S x the learning rate per iteration, weaker on fine-tunes over "
-                            "twice the base; default 0.01 for a hybrid series, 0 for APMGSRN and where the file's size "
-                            "holds every step packed alone): fewer bytes per step in the packed file, a looser fit "
-                            "(docs/time_series.md)")
-    group.add_argument("--decoder-iterations", type=int, metavar="N",
-                       help="stepwise, packed: iterations of a fine-tune of the shared decoder alone to the grids as "
-                            "the file stores them, on all steps at once (default: 0.15 x --iterations for a hybrid "
-                            "series, none for APMGSRN; 0 turns it off): no extra bytes, about 10 s more on a CPU "
-                            "(docs/time_series.md)")
-    group.add_argument("--basis", type=int, metavar="K",
-                       help=f"joint: basis grids shared by the steps (default {SERIES_DEFAULTS['basis']}, at most "
-                            "the steps)")
-    group.add_argument("--coefficients", choices=SERIES_COEFFICIENTS,
-                       help="joint: learned: every step mixes the basis its own way (default); keyframes: linear "
-                            "interpolation in time between K evenly spaced keyframes")
-    group.add_argument("--residual", type=int, metavar="R",
-                       help="joint: per-step residual grids of R^3 nodes (0: none; default "
-                            f"{SERIES_DEFAULTS['residual']})")
-    group.add_argument("--steps-per-iteration", type=int, metavar="G",
-                       help="joint: steps each iteration's points are spread over (default 4)")
-    group.add_argument("--storage", choices=SERIES_STORAGE,
-                       help="store the feature grids unpacked in this dtype (default: joint "
-                            f"{SERIES_DEFAULTS['storage']}; stepwise packed, see --bits); of one volume, the "
-                            "hybrid's feature tables (default float16)")
 
 
 def is_series(args: argparse.Namespace) -> bool:
@@ -109,25 +60,19 @@ def open_series_data(args: argparse.Namespace):
     return open_series(args.data, **options)
 
 
-def run_series_train(args: argparse.Namespace, series, field_config, train_config) -> int:
-    """``apmgsrn train`` on a series: one model for every step.
+def run_series_train(args: argparse.Namespace, plan) -> int:
+    """``apmgsrn train`` on a series: one model for every step, as the plan (:mod:`apmgsrn.planning`) says."""
+    import torch
 
-    Args:
-        args: the command line.
-        series: the opened series.
-        field_config, train_config: from the command line (the budget sized for the series).
-    """
-    from apmgsrn.device import resolve_device
     from apmgsrn.training.series_fit import fit_series
     from apmgsrn.training.trainer import TrainingInterrupted
 
-    device = resolve_device(args.device)  # the same device build_configs sized the budget for
-    config = build_series_config(args, field_config, len(series))
-    stepwise, packing = series_training(args, config, series.raw_bytes, series.shape, train_config.iterations)
+    series, packing = plan.source, plan.packing
     out = Path(args.out)
     try:
-        result = fit_series(series, config, train_config, out, device, transform=args.transform,
-                            log_offset=args.log_offset, resume=args.resume, stepwise=stepwise, packing=packing)
+        result = fit_series(series, plan.field, plan.training, out, torch.device(plan.device),
+                            transform=plan.transform, log_offset=plan.log_offset, resume=args.resume,
+                            stepwise=plan.stepwise, packing=packing, plan=plan.record())
     except TrainingInterrupted as exc:
         print(f"{exc}; run the same command with --resume to continue")
         return 130
@@ -169,23 +114,21 @@ def run_series_train(args: argparse.Namespace, series, field_config, train_confi
         print(f"training    {result.iterations} iterations in {result.seconds:.1f} s "
               f"({summary['ms_per_iteration']:.1f} ms/iteration), grids frozen at {result.frozen_at}")
     if summary.get("over_target"):
-        from apmgsrn.training.series_packing import DEFAULT_SERIES_MODELS, series_growth
+        from apmgsrn.training.series_packing import series_growth
 
         over = summary["over_target"]
-        files = DEFAULT_SERIES_MODELS * series_growth(len(series))
+        files = PACKING.series_models * series_growth(len(series))
         print(f"note        the file is over the default size, {files:.3g} single-step files "
               f"({format_bytes(over['target_bytes'])}): the {len(series)} steps' grids take more even at "
               f"{over['bits']} bits; --size or --bits sets the size yourself (docs/time_series.md)")
     if summary.get("placement_moved_steps"):
-        from apmgsrn.training.series_steps import TRACK_DB
-
         moved = summary["placement_moved_steps"]
         print(f"placement   moved with the structures at {len(moved)} step(s) ({_listed(moved)}), which fit more "
-              f"than {TRACK_DB:g} dB worse than the start step with the start's")
+              f"than {SERIES.track_db:g} dB worse than the start step with the start's")
     if summary.get("drifted_steps"):
         drifted = summary["drifted_steps"]
-        print(f"note        {len(drifted)} step(s) ({_listed(drifted)}) fit more than {DRIFT_DB:g} dB worse than the "
-              f"start step {start}: their structures may have changed more than the shared decoder follows "
+        print(f"note        {len(drifted)} step(s) ({_listed(drifted)}) fit more than {SERIES.drift_db:g} dB worse "
+              f"than the start step {start}: their structures may have changed more than the shared decoder follows "
               "(docs/time_series.md, 'Where it fails')")
     return 0
 
@@ -195,84 +138,11 @@ def _listed(steps: list[int]) -> str:
     return ", ".join(map(str, steps[:8])) + (" ..." if len(steps) > 8 else "")
 
 
-#: A stepwise step this many dB below the start step's PSNR is reported as drifted.
-DRIFT_DB = 6.0
-
-
 def drifted_steps(evaluation, start: int) -> list[int]:
-    """Steps of a stepwise series whose PSNR is more than :data:`DRIFT_DB` below the start step's."""
+    """Steps of a stepwise series whose PSNR is more than ``SERIES.drift_db`` below the
+    start step's."""
     reference = evaluation.steps[start].psnr
-    return [t for t, e in enumerate(evaluation.steps) if reference - e.psnr > DRIFT_DB]
-
-
-def series_training(args: argparse.Namespace, config, raw_bytes: int, shape: tuple[int, int, int],
-                    iterations: int):
-    """(StepwiseConfig or None for a joint model, SeriesPacking or None for a float file) of the command line.
-
-    Args:
-        args: the command line.
-        config: the series model (sizes the default packing).
-        raw_bytes: the series' bytes as float32 (``--ratio`` divides them).
-        shape: ``(D, H, W)`` of every step (sizes a hybrid's tables, hence the default packing).
-        iterations: the start model's (the default quantisation-aware and decoder fine-tunes are shares of them).
-
-    Raises:
-        ApmgsrnError: a packing option a series does not take, packing with --storage, or a bad --start-step.
-    """
-    from apmgsrn.cli.pack import JOINT_SERIES_QAT, series_packing
-    from apmgsrn.training.series_packing import default_series_decoder, default_series_packing, default_series_qat
-    from apmgsrn.training.series_steps import StepwiseConfig
-
-    packing = series_packing(args, raw_bytes)
-    qat = args.qat_iterations  # None: the model kind's default
-    decoder = args.decoder_iterations  # None: the model kind's default
-    if (packing is not None or qat or decoder) and args.storage is not None:
-        raise ApmgsrnError("--bits, --size, --ratio, --qat-iterations and --decoder-iterations pack the grids, "
-                           "--storage keeps them unpacked: give one")
-    if args.series_training == "joint":
-        if qat:
-            raise ApmgsrnError(JOINT_SERIES_QAT)
-        return None, packing
-    start = args.start_step or "auto"
-    if start not in ("auto", "first", "last"):
-        try:
-            start = int(start)
-        except ValueError:
-            raise ApmgsrnError(f"--start-step {start}: must be auto, first, last or a step index") from None
-    stepwise = StepwiseConfig(start=start, step_iterations=args.step_iterations, step_sparsity=args.step_sparsity)
-    if qat is None:
-        qat = default_series_qat(config.field.model, iterations)
-    if decoder is None:
-        decoder = default_series_decoder(config.field.model, iterations)
-    if packing is None and args.storage is None:
-        packing = default_series_packing(config, shape, iterations)
-    return stepwise, packing if packing is None else replace(packing, qat_iterations=qat, decoder_iterations=decoder)
-
-
-def build_series_config(args: argparse.Namespace, field_config, steps: int):
-    """The time-series model the command line asks for (defaults where options are not given).
-
-    Raises:
-        ApmgsrnError: options out of range.
-    """
-    from apmgsrn.models.series_field import series_config
-    from apmgsrn.training.series_steps import stepwise_config
-
-    stepwise = args.series_training == "stepwise"
-    for option in JOINT_OPTIONS if stepwise else STEPWISE_OPTIONS:
-        if getattr(args, option, None) is not None:
-            flag = "--" + option.replace("_", "-")
-            raise ApmgsrnError(f"{flag} shapes a joint series model; add --series-training joint or drop {flag}"
-                               if stepwise else
-                               f"{flag} applies to --series-training stepwise; drop it for a joint model")
-    try:
-        if stepwise:
-            return stepwise_config(field_config, steps, args.storage or "float32")
-        return series_config(field_config, steps, args.basis, args.coefficients, args.residual, args.storage)
-    except ApmgsrnError:
-        raise  # names the option already (translated by the command line)
-    except ValueError as exc:
-        raise ApmgsrnError(f"invalid time-series options: {exc}") from None
+    return [t for t, e in enumerate(evaluation.steps) if reference - e.psnr > SERIES.drift_db]
 
 
 def step_rows(labels, names, evaluation) -> list[dict]:

@@ -8,21 +8,12 @@ import math
 from dataclasses import replace
 from pathlib import Path
 
-from apmgsrn.choices import VALUE_TRANSFORMS
-from apmgsrn.cli.common import (
-    add_data_arguments,
-    add_device_argument,
-    compression_figures,
-    compression_text,
-    format_bytes,
-    open_data,
-    percent_of_range,
-)
-from apmgsrn.cli.fit_options import add_fit_arguments, build_configs
-from apmgsrn.cli.pack import add_pack_arguments, pack_config, pack_model, packing_lines, packing_requested
+from apmgsrn.cli.common import compression_figures, compression_text, format_bytes, percent_of_range
+from apmgsrn.cli.pack import packing_lines
 from apmgsrn.cli.paths import CommandPaths, Output
-from apmgsrn.cli.train_bricks import add_brick_arguments, run_bricks
+from apmgsrn.cli.train_bricks import run_bricks
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.options import BRICKS, DEVICE, INPUT, MODEL, PACKING, SERIES, TRAINING, add_option_arguments
 
 #: What ``--out`` may replace; README.md and docs/security.md say the same.
 OUT_HELP = (
@@ -32,8 +23,6 @@ OUT_HELP = (
 
 
 def register(subparsers) -> None:
-    from apmgsrn.cli.series import add_series_arguments
-
     parser = subparsers.add_parser(
         "train",
         help="fit a model to a volume",
@@ -42,17 +31,15 @@ def register(subparsers) -> None:
     parser.add_argument("data", nargs="+",
                         help="volume file (.nc, .h5, .zarr, .raw, .npy, .vti, .vtr); several files, a quoted glob "
                              "or a .pvd for a time series")
-    parser.add_argument("--out", required=True, help=OUT_HELP)
-    add_data_arguments(parser)
-    parser.add_argument("--transform", choices=VALUE_TRANSFORMS, default="none",
-                        help="value transform before fitting")
-    parser.add_argument("--log-offset", type=float, default=0.0, help="offset added before --transform log10")
-    add_fit_arguments(parser)
-    add_pack_arguments(parser, "packing (any of these packs the model at the end of training; --out is then "
-                               "the packed file)")
-    add_brick_arguments(parser)
-    add_series_arguments(parser)
-    add_device_argument(parser)
+    parser.add_argument("--out", help=OUT_HELP + " (required unless --dry-run)")
+    add_option_arguments(parser, (INPUT, MODEL, TRAINING, PACKING, BRICKS, SERIES, DEVICE),
+                         titles={PACKING: "packing (any of these packs the model at the end of training; --out is "
+                                          "then the packed file)"})
+    parser.add_argument("--resume", action="store_true",
+                        help="continue an interrupted run from MODEL.ckpt (only with the same data file, "
+                             "unchanged, and the same options)")
+    parser.add_argument("--dry-run", action="store_true",
+                        help="print the resolved plan (model, sizes, training, packing) and train nothing")
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
     parser.set_defaults(func=run, paths=paths)
 
@@ -62,6 +49,10 @@ def paths(args: argparse.Namespace) -> CommandPaths:
     ``MODEL.ckpt``) written."""
     from apmgsrn.data.series import input_files
 
+    if args.out is None:
+        if not args.dry_run:
+            raise ApmgsrnError("--out is required: the model file to write (or --dry-run to see the plan)")
+        return CommandPaths(reads=input_files(args.data))
     writes = [Output(args.out, "--out", "model", model=True)]
     if not args.bricks:
         writes.append(Output(f"{args.out}.ckpt", "--out", "training checkpoint", model=True))
@@ -89,53 +80,62 @@ def resumed_model(out: Path, bricks: bool) -> str | None:
     return model if model in MODEL_KINDS else None
 
 
-def run(args: argparse.Namespace) -> int:
-    from apmgsrn.cli.series import is_series, open_series_data, run_series_train, single_input
-    from apmgsrn.device import resolve_device
+def train_plan(args: argparse.Namespace):
+    """The plan of the command line (:func:`apmgsrn.planning.resolve`); a resumed run keeps the model kind its
+    checkpoint names."""
+    from apmgsrn.options import TrainOptions
+    from apmgsrn.planning import resolve
 
-    if args.model is None and (args.resume or args.bricks):
-        args.model = resumed_model(Path(args.out), args.bricks)  # a run begun before the default changed ends so
-    if args.bricks and packing_requested(args):
-        raise ApmgsrnError("packing options (--bits, --max-error, ...) apply to single models and time series, "
-                           "not --bricks")
-    if is_series(args):
-        args.series_training = args.series_training or "stepwise"
-        if args.bricks:
+    options = TrainOptions.from_namespace(args)
+    if options.model is None and (args.resume or args.bricks) and args.out is not None:
+        options = replace(options, model=resumed_model(Path(args.out), args.bricks is not None))
+    return resolve(args.data, options)
+
+
+def print_plan(plan, as_json: bool) -> None:
+    """``--dry-run``: the plan, as JSON or as lines of ``key  value``."""
+    values = plan.to_dict()
+    if as_json:
+        print(json.dumps(values))
+        return
+    for key, value in values.items():
+        print(f"{key:<13} {json.dumps(value)}")
+
+
+def run(args: argparse.Namespace) -> int:
+    plan = train_plan(args)
+    if args.dry_run:
+        print_plan(plan, args.json)
+        return 0
+    if plan.input == "series":
+        from apmgsrn.cli.series import run_series_train
+
+        if plan.bricks is not None:
             from apmgsrn.cli.train_bricks import run_series_bricks
 
-            return run_series_bricks(args)
-        series = open_series_data(args)
-        return run_series_train(args, series, *build_configs(args, resolve_device(args.device), steps=len(series)))
-    args.data = single_input(args)
-    if args.bricks:
-        return run_bricks(args)
+            return run_series_bricks(args, plan)
+        return run_series_train(args, plan)
+    if plan.bricks is not None:
+        return run_bricks(args, plan)
+    import torch
+
     from apmgsrn.training.fit import fit_volume
     from apmgsrn.training.trainer import TrainingInterrupted
 
-    device = resolve_device(args.device)
-    field_config, train_config = build_configs(args, device)
-    volume = open_data(args, args.data)
-    packing = pack_config(args, volume.stored_bytes) if packing_requested(args) else None  # checked before training
-    if packing is not None and packing.target_bytes is not None and args.resolution is None:
-        from apmgsrn.training.packing import anchored_grids_for, config_for_bytes
-
-        fixed = (*(("grids",) if args.grids is not None else ()),
-                 *(("decoder",) if args.width is not None or args.hidden_layers is not None else ()))
-        field_config = config_for_bytes(field_config, packing.target_bytes, fixed)  # packs to the target
-        if args.anchored_grids is None:
-            train_config = replace(train_config, anchored_grids=anchored_grids_for(field_config))
-        if not args.json:
-            grids = getattr(field_config.encoder, "grids", None)
-            shape = "x".join(str(r) for r in reversed(field_config.encoder.resolution))  # x*y*z
-            print(f"model size  {f'{grids} grids' if grids else 'a grid'} of {shape}, "
-                  f"decoder {field_config.decoder.hidden_layers} x {field_config.decoder.width}, chosen to pack "
-                  f"into {packing.target_bytes:,} bytes (--resolution, --grids, --width to choose yourself)"
-                  + (", one grid anchored over the domain" if train_config.anchored_grids else ""))
+    device = torch.device(plan.device)
+    volume, field_config, train_config, packing = plan.source, plan.field, plan.training, plan.packing
+    if packing is not None and packing.target_bytes is not None and args.resolution is None and not args.json:
+        grids = getattr(field_config.encoder, "grids", None)
+        shape = "x".join(str(r) for r in reversed(field_config.encoder.resolution))  # x*y*z
+        print(f"model size  {f'{grids} grids' if grids else 'a grid'} of {shape}, "
+              f"decoder {field_config.decoder.hidden_layers} x {field_config.decoder.width}, chosen to pack "
+              f"into {packing.target_bytes:,} bytes (--resolution, --grids, --width to choose yourself)"
+              + (", one grid anchored over the domain" if train_config.anchored_grids else ""))
     out = Path(args.out)
     try:
         result = fit_volume(
             volume, field_config, train_config, out, device,
-            transform=args.transform, log_offset=args.log_offset, resume=args.resume,
+            transform=plan.transform, log_offset=plan.log_offset, resume=args.resume, plan=plan.record(),
         )
     except TrainingInterrupted as exc:
         print(f"{exc}; run the same command with --resume to continue")
@@ -146,8 +146,10 @@ def run(args: argparse.Namespace) -> int:
     if packing is not None:
         training = {"iterations": result.iterations, "batch_size": train_config.batch_size,
                     "seconds": round(result.seconds, 3), "frozen_at": result.frozen_at,
-                    "stopped_early": result.stopped_early, "device": str(device)}
-        packed = pack_model(result.field, volume, packing, training, device, out,
+                    "stopped_early": result.stopped_early, "device": str(device), "plan": plan.record()}
+        from apmgsrn.training.packing import pack_volume_model
+
+        packed = pack_volume_model(result.field, volume, packing, training, device, out,
                             log=(lambda line: None) if args.json else print)
         compression = compression_figures(voxels, str(volume.dtype), volume.dtype.itemsize, packed.file_bytes)
     summary = {

@@ -1,60 +1,34 @@
-"""``apmgsrn train --bricks I,J,K``: the domain-decomposition options of ``train`` and their run (wiring only)."""
+"""``apmgsrn train --bricks I,J,K``: the run of a brick plan (wiring only; the options are in :mod:`apmgsrn.options`)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import math
-import os
 from pathlib import Path
 
-from apmgsrn.cli.common import compression_figures, compression_text, format_bytes, open_data, parse_triple
-from apmgsrn.cli.fit_options import build_configs
+from apmgsrn.cli.common import compression_figures, compression_text, format_bytes
 from apmgsrn.errors import ApmgsrnError
 
 
-def add_brick_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of a brick (domain decomposition) run; every other ``train`` option applies per brick."""
-    group = parser.add_argument_group(
-        "domain decomposition (one model per brick; --out is then a folder)",
-    )
-    group.add_argument("--bricks", metavar="I,J,K",
-                       help="train one model per brick of an I x J x K grid over x, y, z (e.g. 2,2,2 or 4)")
-    group.add_argument("--ghost-cells", type=int, default=1, metavar="G",
-                       help="voxels each brick overlaps its neighbours beyond the shared border (default 1)")
-    group.add_argument("--workers", type=int, metavar="N",
-                       help="local workers (default: one per visible GPU, else one per CPU core, at most 4)")
-    group.add_argument("--scheduler", metavar="ADDRESS|FILE",
-                       help="join a running Dask cluster: tcp://host:port or its scheduler JSON file")
-    group.add_argument("--retries", type=int, default=2, metavar="N",
-                       help="extra attempts of a brick whose job raised (default 2)")
-    group.add_argument("--blend", action="store_true",
-                       help="at inference, blend neighbouring bricks across their shared ghost region (no seams)")
-    group.add_argument("--group-steps", type=int, metavar="S",
-                       help="a time series: one job per (brick, group of S consecutive steps) (default: every step)")
-
-
-def run_bricks(args: argparse.Namespace) -> int:
-    """Train (or finish) a brick model; the same command after a crash trains only missing bricks."""
+def run_bricks(args: argparse.Namespace, plan) -> int:
+    """Train (or finish) a brick model as the plan (:mod:`apmgsrn.planning`) says; the same command after a crash
+    trains only missing bricks."""
     from apmgsrn.decomposition.coordinator import BrickProgress, train_bricks
     from apmgsrn.decomposition.executor import ExecutorConfig, open_job_queue
-    from apmgsrn.decomposition.planner import DecompositionConfig
-    from apmgsrn.device import resolve_device
 
-    counts = parse_triple(args.bricks, "--bricks")
-    decomposition = DecompositionConfig(counts, args.ghost_cells, args.blend)
-    executor = ExecutorConfig(scheduler=args.scheduler, workers=args.workers, retries=args.retries)
-    # The coordinator only sizes the budget; workers resolve --device themselves (auto: their own GPU).
-    # How a brick trains beyond these options (the plateau schedule's early stop) is decided by
+    decomposition = plan.bricks
+    counts = decomposition.bricks
+    executor = ExecutorConfig(scheduler=plan.scheduler, workers=plan.workers, retries=plan.retries)
+    # The plan only sizes the budget; workers resolve --device themselves (auto: their own GPU). How a brick
+    # trains beyond these options (the plateau schedule's early stop) is decided by
     # decomposition.brick_training.brick_policy.
-    field_config, train_config = build_configs(args, resolve_device(args.device))
-    # Workers reopen the file by path, possibly from another folder or machine.
-    volume = open_data(args, os.path.abspath(args.data))
+    volume = plan.source  # opened by its absolute path: workers reopen it, possibly from another folder
     out = Path(args.out)
     with open_job_queue(executor) as queue:
         summary = train_bricks(
-            volume, decomposition, field_config, train_config, out, queue,
-            transform=args.transform, log_offset=args.log_offset, device=args.device,
+            volume, decomposition, plan.field, plan.training, out, queue,
+            transform=plan.transform, log_offset=plan.log_offset, device=args.device,
             progress=BrickProgress(),
         )
     trained = [r for r in summary.trained if r.ok]
@@ -97,32 +71,23 @@ def run_bricks(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_series_bricks(args: argparse.Namespace) -> int:
+def run_series_bricks(args: argparse.Namespace, plan) -> int:
     """Train (or finish) a time-series brick model: one job per (brick, group of ``--group-steps`` steps), each
     stepwise from the group's own start step (packed) unless ``--series-training joint``."""
-    from apmgsrn.cli.series import build_series_config, open_series_data, series_training
     from apmgsrn.decomposition.coordinator import BrickProgress
     from apmgsrn.decomposition.executor import ExecutorConfig, open_job_queue
-    from apmgsrn.decomposition.planner import DecompositionConfig
     from apmgsrn.decomposition.series_bricks import step_groups, train_series_bricks
-    from apmgsrn.device import resolve_device
 
-    counts = parse_triple(args.bricks, "--bricks")
-    if args.group_steps is not None and args.group_steps < 1:
-        raise ApmgsrnError(f"--group-steps {args.group_steps}: must be 1 or more")
-    series = open_series_data(args).absolute()  # workers reopen the steps by path
-    groups = step_groups(len(series), args.group_steps)
-    # Each group trains with the budget of its own number of steps.
-    field_config, train_config = build_configs(args, resolve_device(args.device), steps=len(groups[0]))
-    config = build_series_config(args, field_config, len(series))
-    stepwise, packing = series_training(args, config, series.raw_bytes, series.shape, train_config.iterations)
+    counts = plan.bricks.bricks
+    series = plan.source  # opened by absolute paths: workers reopen the steps
+    groups = step_groups(len(series), plan.group_steps)
     out = Path(args.out)
-    executor = ExecutorConfig(scheduler=args.scheduler, workers=args.workers, retries=args.retries)
+    executor = ExecutorConfig(scheduler=plan.scheduler, workers=plan.workers, retries=plan.retries)
     with open_job_queue(executor) as queue:
         summary = train_series_bricks(
-            series, DecompositionConfig(counts, args.ghost_cells, args.blend), config, train_config, out, queue,
-            group_steps=args.group_steps, transform=args.transform, log_offset=args.log_offset, device=args.device,
-            progress=BrickProgress(), stepwise=stepwise, packing=packing,
+            series, plan.bricks, plan.field, plan.training, out, queue,
+            group_steps=plan.group_steps, transform=plan.transform, log_offset=plan.log_offset, device=args.device,
+            progress=BrickProgress(), stepwise=plan.stepwise, packing=plan.packing,
         )
     result = {"model": str(out), "bricks": list(counts), "steps": len(series), "groups": len(groups),
               "complete": summary.complete, "failed": summary.failed, "model_bytes": summary.model_bytes,

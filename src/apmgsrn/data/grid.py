@@ -5,7 +5,7 @@ coordinates per axis, compression); the model file keeps it (``apmgsrn.io.Source
 writes it back. A decode samples a :class:`SampleGrid`: a box of the training volume, in continuous voxel
 indices, at any number of samples per axis, chosen by a :class:`Region` (an index or a coordinate box).
 
-The network only ever sees voxel indices (SPEC section 1: voxel ``i`` of ``n`` at ``-1 + 2 i / (n - 1)``).
+The network only ever sees voxel indices (docs/method.md §1: voxel ``i`` of ``n`` at ``-1 + 2 i / (n - 1)``).
 Coordinates map indices to the source's units: evenly (``start + i * step``) or through every voxel's value
 (an uneven axis, kept as it is and interpolated linearly between voxels for another resolution).
 """

@@ -21,9 +21,7 @@ import numpy as np
 
 from apmgsrn.data.grid import VolumeMetadata
 from apmgsrn.errors import ApmgsrnError
-
-#: Voxels per z-slab when streaming statistics: 2**24 float32 voxels are 64 MiB.
-DEFAULT_SLAB_VOXELS = 2**24
+from apmgsrn.recipes import RUNTIME
 
 
 @dataclass(frozen=True)
@@ -284,7 +282,7 @@ class Volume:
         """
         return self.read()
 
-    def iter_slabs(self, max_voxels: int = DEFAULT_SLAB_VOXELS) -> Iterator[tuple[slice, np.ndarray]]:
+    def iter_slabs(self, max_voxels: int = RUNTIME.stats_slab_voxels) -> Iterator[tuple[slice, np.ndarray]]:
         """Stream the volume as consecutive z-slabs of bounded size.
 
         Args:
@@ -312,7 +310,7 @@ class Volume:
             return self._stats
         lowest, highest, total, finite_count, nonfinite = math.inf, -math.inf, 0.0, 0, 0
         depth, height, width = self.shape
-        step = max(1, DEFAULT_SLAB_VOXELS // (height * width))
+        step = max(1, RUNTIME.stats_slab_voxels // (height * width))
         for start in range(0, depth, step):
             slab = self._read_float(slice(start, min(depth, start + step)), slice(None), slice(None))
             finite = np.isfinite(slab)
@@ -342,13 +340,13 @@ class Volume:
     @property
     def raw_bytes(self) -> int:
         """Size of the volume as float32, ``D*H*W*4`` bytes: what it takes in memory here, and the second
-        reference of compression ratios (SPEC section 8)."""
+        reference of compression ratios (docs/method.md §8)."""
         return math.prod(self.shape) * 4
 
     @property
     def stored_bytes(self) -> int:
         """Size of the volume in its stored dtype (a uint8 volume is 1 byte a voxel): the reference of
-        compression ratios (SPEC section 8)."""
+        compression ratios (docs/method.md §8)."""
         return math.prod(self.shape) * self.dtype.itemsize
 
     def describe(self) -> str:

@@ -24,8 +24,6 @@ _READERS = {
 }
 
 
-#: Most bytes the XML header of a VTK file is searched for its extents (the appended data follows it).
-HEADER_SEARCH_BYTES = 16 << 20
 #: Largest expansion of stored bytes each compressor can give (zlib's is 1032:1, LZ4's about 255:1);
 #: a file declaring more data than this times its own size cannot hold it. LZMA has no small bound.
 COMPRESSION_BOUND = {"": 1.0, "vtkZLibDataCompressor": 1100.0, "vtkLZ4DataCompressor": 300.0}
@@ -42,15 +40,16 @@ def _available_memory() -> int:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
-def check_declared_size(path: Path) -> None:
+def check_declared_size(path: Path, header_bytes: int = 16 << 20) -> None:
     """Refuse a VTK XML file whose declared extents it cannot hold, or that would not fit in memory,
     before VTK allocates anything (a 335-byte file declaring 2001^3 points would abort the process).
+    The first ``header_bytes`` are searched for the extents (the appended data follows the XML header).
 
     Raises:
         ApmgsrnError: the declared data is larger than the file could hold or than half the free memory.
     """
     with open(path, "rb") as f:
-        head = f.read(HEADER_SEARCH_BYTES)
+        head = f.read(header_bytes)
     head = head.split(b"<AppendedData", 1)[0].decode("latin-1")
     extents = re.findall(r'\b(?:Whole)?Extent\s*=\s*"([^"]*)"', head)
     arrays = max(1, len(re.findall(r"<DataArray\b", head)))

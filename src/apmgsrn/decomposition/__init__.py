@@ -1,4 +1,4 @@
-"""Domain decomposition (SPEC section 6): one model per brick of a large volume.
+"""Domain decomposition (docs/method.md §6): one model per brick of a large volume.
 
 ``planner`` cuts a volume into bricks (pure), ``brick_training`` trains one brick where a job runs
 (reading only its box), ``executor`` runs the jobs on Dask (local cluster or a user's) or in-process,

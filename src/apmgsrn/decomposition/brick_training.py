@@ -27,14 +27,12 @@ from apmgsrn.errors import ApmgsrnError
 from apmgsrn.data.series import VolumeSeries
 from apmgsrn.io import SeriesStepInfo, SourceInfo
 from apmgsrn.models.registry import FieldConfig
+from apmgsrn.recipes import BRICKS
 from apmgsrn.training.fit import fit, prepare_values
 from apmgsrn.training.series_packing import SeriesPacking
 from apmgsrn.training.series_qat import budgeted
 from apmgsrn.training.series_steps import StepwiseConfig, series_trainer
 from apmgsrn.training.trainer import TrainConfig
-
-#: Paper (SPEC section 6): a brick is done after the plateau scheduler's third learning-rate cut.
-BRICK_LR_CUTS = 3
 
 
 @dataclass(frozen=True)
@@ -195,11 +193,7 @@ def _job_threads(job: BrickJob) -> int:
     return max(1, cores // slots)
 
 
-#: Bytes of mapped rows per slab when a brick is read from a memory-mapped (raw, .npy) volume.
-MAPPED_SLAB_BYTES = 16 << 20
-
-
-def read_brick(volume, brick: Brick) -> np.ndarray:
+def read_brick(volume, brick: Brick, slab_bytes: int = 16 << 20) -> np.ndarray:
     """Read one brick's box, keeping the process's resident set near the brick's own size.
 
     Pages a memory map touches count in the resident set (what a Dask nanny holds against the memory
@@ -210,6 +204,7 @@ def read_brick(volume, brick: Brick) -> np.ndarray:
     Args:
         volume: the :class:`apmgsrn.data.Volume`.
         brick: the box to read.
+        slab_bytes: bytes of mapped rows per slab of a memory-mapped (raw, .npy) volume.
 
     Returns:
         float32 ``[d, h, w]`` (``[T, d, h, w]`` for a :class:`~apmgsrn.data.series.VolumeSeries`).
@@ -225,7 +220,7 @@ def read_brick(volume, brick: Brick) -> np.ndarray:
     depth, height, width = brick.shape
     region = np.empty((depth, height, width), dtype=np.float32)
     row_bytes = height * volume.shape[2] * volume.dtype.itemsize  # one z-slice of the box's rows
-    step = max(1, MAPPED_SLAB_BYTES // row_bytes)
+    step = max(1, slab_bytes // row_bytes)
     for start in range(z.start, z.stop, step):
         stop = min(z.stop, start + step)
         region[start - z.start : stop - z.start] = volume.read(slice(start, stop), y, x)
@@ -312,7 +307,7 @@ def brick_policy(config: TrainConfig) -> TrainConfig:
     """How the bricks of a run train, given the run's config (the brick policy lives here, not in the CLI).
 
     Under the paper's ``plateau`` schedule a brick is done after the scheduler's third learning-rate cut
-    (SPEC section 6), which frees its worker for the next brick; every other schedule, the default
+    (docs/method.md §6), which frees its worker for the next brick; every other schedule, the default
     budget-following ``cosine`` included, runs the whole budget.
 
     Args:
@@ -322,7 +317,7 @@ def brick_policy(config: TrainConfig) -> TrainConfig:
         The config every brick trains with (before its own seed, see :func:`brick_train_config`).
     """
     if config.lr_schedule == "plateau" and config.stop_after_lr_cuts is None:
-        return replace(config, stop_after_lr_cuts=BRICK_LR_CUTS)
+        return replace(config, stop_after_lr_cuts=BRICKS.lr_cuts)
     return config
 
 

@@ -1,4 +1,4 @@
-"""The brick model as one field: route each point to its brick's network (SPEC section 6).
+"""The brick model as one field: route each point to its brick's network (docs/method.md §6).
 
 Routing is vectorised: a batch of points is sorted by brick, each brick's network runs once on its
 contiguous run of points, and the values are scattered back. No Python loop touches single points;
@@ -88,7 +88,7 @@ class BrickedField(nn.Module):
 
     # ------------------------------------------------------------------------------------------ routing
     def route(self, points: torch.Tensor) -> torch.Tensor:
-        """Brick position ``(i, j, k)`` of each point, SPEC section 6.
+        """Brick position ``(i, j, k)`` of each point, docs/method.md §6.
 
         Args:
             points: ``[N, 3]`` global ``(x, y, z)``.

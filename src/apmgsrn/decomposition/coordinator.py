@@ -163,7 +163,7 @@ def training_settings(volume, plan: BrickPlan, field_config: FieldConfig, train_
     """Everything that decides the bricks' models; a rerun must match it to reuse finished bricks."""
     steps = getattr(volume, "steps", None)  # a series: every step's file and time index
     series_training = {} if stepwise is None else {  # absent for the runs before stepwise bricks
-        "stepwise": asdict(stepwise), "packing": None if packing is None else asdict(packing)}
+        "stepwise": stepwise.settings(), "packing": None if packing is None else packing.settings()}
     return as_json({
         **series_training,
         "volume": {"path": Path(str(volume.path)).name, "variable": volume.variable,

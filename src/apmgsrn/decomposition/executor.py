@@ -24,9 +24,8 @@ from typing import Any
 
 from apmgsrn.arguments import check_int, check_optional_int
 from apmgsrn.errors import ApmgsrnError, InvalidArgument
+from apmgsrn.recipes import BRICKS
 
-#: Local CPU workers when ``--workers`` is not given (at most; never more than the cores).
-DEFAULT_CPU_WORKERS = 4
 
 #: Resource name a cluster's workers may advertise (``--resources brick=1``) so that a worker with
 #: several threads still trains one brick at a time.
@@ -41,7 +40,7 @@ class ExecutorConfig:
         scheduler: ``tcp://host:port`` (any Dask address) or a scheduler JSON file of a running cluster;
             None: start a local cluster.
         workers: local workers; None: one per visible GPU, else one per CPU core up to
-            :data:`DEFAULT_CPU_WORKERS` (each brick on one core: small networks scale far better over
+            ``BRICKS.cpu_workers`` (each brick on one core: small networks scale far better over
             bricks than over threads, and a multi-threaded step stalls when the cores are shared).
         retries: extra attempts of a job that raised (a job whose worker died is rescheduled anyway).
         processes: local workers as separate processes (False: threads of this process, for tests and
@@ -304,7 +303,7 @@ def _start_local_cluster(config: ExecutorConfig) -> DaskJobQueue:
 
     gpus = visible_gpus() if config.processes else []
     cores = os.cpu_count() or 1
-    workers = config.workers or (len(gpus) if gpus else max(1, min(cores, DEFAULT_CPU_WORKERS)))
+    workers = config.workers or (len(gpus) if gpus else max(1, min(cores, BRICKS.cpu_workers)))
     threads_per_job = max(1, cores // workers)
     memory_limit = config.memory_limit or int(psutil.virtual_memory().total // workers)
     # Loopback only, TLS between scheduler, workers and this client, dashboard only when asked for.

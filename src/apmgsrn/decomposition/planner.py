@@ -1,4 +1,4 @@
-"""Split a volume into a grid of overlapping bricks (SPEC section 6). Pure: shapes in, boxes out.
+"""Split a volume into a grid of overlapping bricks (docs/method.md §6). Pure: shapes in, boxes out.
 
 Axis conventions: the user types the brick counts ``I,J,K`` along ``x, y, z`` (as for every shape on the
 command line), bricks are numbered ``i + I j + I J k``, and voxel boxes are stored in the volume's C order

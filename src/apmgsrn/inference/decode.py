@@ -9,15 +9,16 @@ from pathlib import Path
 import numpy as np
 
 from apmgsrn.data.writers import VolumeWriter
-from apmgsrn.inference.slabs import QUERY_BATCH, SLAB_VOXELS, field_slabs
+from apmgsrn.inference.slabs import field_slabs
 from apmgsrn.progress import Progress
+from apmgsrn.recipes import RUNTIME
 
 #: A box in the field's ``[-1, 1]^3``, ``((x0, x1), (y0, y1), (z0, z1))``.
 Box = tuple[tuple[float, float], tuple[float, float], tuple[float, float]]
 
 
-def decode_volume(field, out: Path, shape: tuple[int, int, int], batch_size: int = QUERY_BATCH,
-                  slab_voxels: int = SLAB_VOXELS, progress: bool = False, box: Box | None = None,
+def decode_volume(field, out: Path, shape: tuple[int, int, int], batch_size: int = RUNTIME.query_batch,
+                  slab_voxels: int = RUNTIME.slab_voxels, progress: bool = False, box: Box | None = None,
                   **writer_options) -> None:
     """Write the field sampled on a corner-aligned ``(D, H, W)`` lattice to ``out`` (.nc, .vti, .raw, .npy).
 
@@ -40,7 +41,7 @@ def decode_volume(field, out: Path, shape: tuple[int, int, int], batch_size: int
 
 
 def decode_series(step_field, out: Path, shape: tuple[int, int, int], indices, time_values=None,
-                  batch_size: int = QUERY_BATCH, slab_voxels: int = SLAB_VOXELS, progress: bool = False,
+                  batch_size: int = RUNTIME.query_batch, slab_voxels: int = RUNTIME.slab_voxels, progress: bool = False,
                   box: Box | None = None, **writer_options) -> None:
     """Write several steps of a time-series model to one file with a leading time dimension.
 
@@ -74,8 +75,8 @@ def _write_field(writer: VolumeWriter, field, shape, step: int | None, shown: Pr
         shown.update(values.numel())
 
 
-def decode_array(field, shape: tuple[int, int, int], batch_size: int = QUERY_BATCH,
-                 slab_voxels: int = SLAB_VOXELS, box: Box | None = None) -> np.ndarray:
+def decode_array(field, shape: tuple[int, int, int], batch_size: int = RUNTIME.query_batch,
+                 slab_voxels: int = RUNTIME.slab_voxels, box: Box | None = None) -> np.ndarray:
     """The field sampled on a corner-aligned ``(D, H, W)`` lattice over ``box`` (default ``[-1, 1]^3``), as one
     float32 array in memory."""
     decoded = np.empty(shape, dtype=np.float32)

@@ -1,6 +1,6 @@
-"""How well a field reproduces a volume (SPEC section 8): PSNR and largest error over every voxel,
+"""How well a field reproduces a volume (docs/method.md §8): PSNR and largest error over every voxel,
 streamed over z-slabs of the volume, with the check that the volume is the one the field was trained on;
-for a time series, per step and over every step (SPEC section 10)."""
+for a time series, per step and over every step (docs/method.md §10)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,9 @@ import torch
 
 from apmgsrn.data import Volume, format_xyz
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.inference.slabs import QUERY_BATCH, SLAB_VOXELS, field_slabs
+from apmgsrn.inference.slabs import field_slabs
 from apmgsrn.progress import Progress
+from apmgsrn.recipes import RUNTIME
 
 
 @dataclass(frozen=True)
@@ -110,8 +111,8 @@ def evaluate(
     trained_shape: tuple[int, int, int] | None = None,
     max_voxels: int | None = None,
     progress: bool = False,
-    slab_voxels: int = SLAB_VOXELS,
-    batch_size: int = QUERY_BATCH,
+    slab_voxels: int = RUNTIME.slab_voxels,
+    batch_size: int = RUNTIME.query_batch,
 ) -> Evaluation:
     """Compare ``field`` with every voxel of ``truth`` (or a regular subset), one z-slab at a time.
 
@@ -162,7 +163,7 @@ def compare_arrays(restored: np.ndarray, truth: np.ndarray) -> Evaluation:
 
 @dataclass(frozen=True)
 class SeriesEvaluation:
-    """Errors of a time-series model, per step and over every voxel of every step (SPEC section 10).
+    """Errors of a time-series model, per step and over every voxel of every step (docs/method.md §10).
 
     Attributes:
         steps: one :class:`Evaluation` per step evaluated, in order (each with its own step's value range).
@@ -201,8 +202,8 @@ def evaluate_series(
     trained_shape: tuple[int, int, int] | None = None,
     max_voxels: int | None = None,
     progress: bool = False,
-    slab_voxels: int = SLAB_VOXELS,
-    batch_size: int = QUERY_BATCH,
+    slab_voxels: int = RUNTIME.slab_voxels,
+    batch_size: int = RUNTIME.query_batch,
 ) -> SeriesEvaluation:
     """Compare a time-series model with every voxel of every step, one step (and one slab) at a time.
 

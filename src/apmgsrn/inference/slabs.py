@@ -12,14 +12,10 @@ import torch
 
 from apmgsrn.inference.query import query
 from apmgsrn.ops.trilinear import voxel_coordinates
-
-#: Voxels per slab: 2^22 points are 48 MiB of coordinates and 16 MiB of float32 values.
-SLAB_VOXELS = 2**22
-#: Points per forward pass.
-QUERY_BATCH = 2**18
+from apmgsrn.recipes import RUNTIME
 
 
-def z_slabs(shape: tuple[int, int, int], slab_voxels: int = SLAB_VOXELS, stride: int = 1) -> Iterator[slice]:
+def z_slabs(shape: tuple[int, int, int], slab_voxels: int = RUNTIME.slab_voxels, stride: int = 1) -> Iterator[slice]:
     """Consecutive z-ranges covering ``0..D-1``, each with about ``slab_voxels`` evaluated voxels.
 
     Args:
@@ -41,9 +37,9 @@ def z_slabs(shape: tuple[int, int, int], slab_voxels: int = SLAB_VOXELS, stride:
 def field_slabs(
     field,
     shape: tuple[int, int, int],
-    slab_voxels: int = SLAB_VOXELS,
+    slab_voxels: int = RUNTIME.slab_voxels,
     stride: int = 1,
-    batch_size: int = QUERY_BATCH,
+    batch_size: int = RUNTIME.query_batch,
     box: tuple[tuple[float, float], tuple[float, float], tuple[float, float]] | None = None,
 ) -> Iterator[tuple[slice, torch.Tensor]]:
     """The field's values on the corner-aligned voxel lattice of ``shape``, slab by slab.

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.atomic import atomic_write_text
-from apmgsrn.io.container import FORMAT, FORMAT_VERSION, read_header
+from apmgsrn.io.container import FORMAT, FORMAT_VERSION, MAX_HEADER_BYTES, read_header
 from apmgsrn.io.description import (
     BrickEntry,
     BrickLayout,
@@ -41,7 +41,6 @@ from apmgsrn.io.series_file import PACKED_SERIES_KIND, SERIES_KIND, model_file_d
 BRICKS_KIND = "bricks"
 MANIFEST_NAME = "manifest.json"
 BRICK_SUFFIX = ".apmgsrn"
-MAX_MANIFEST_BYTES = 64 * 1024 * 1024
 #: Brick grids beyond this many bricks are refused (a hostile manifest could ask for billions of modules).
 MAX_BRICKS = 1_000_000
 _BRICK_NAME = re.compile(r"^brick_\d{3,7}_\d{3,7}_\d{3,7}$")
@@ -118,7 +117,7 @@ def read_manifest(directory: str | os.PathLike) -> dict:
             f"{directory}: folder has no {MANIFEST_NAME}, so it is not a brick model; pass a model file or a "
             "folder written by a brick training run"
         )
-    return read_manifest_file(path, BRICKS_KIND, MAX_MANIFEST_BYTES, "brick model manifest", _check_manifest)
+    return read_manifest_file(path, BRICKS_KIND, MAX_HEADER_BYTES, "brick model manifest", _check_manifest)
 
 
 def _check_manifest(manifest: dict) -> None:

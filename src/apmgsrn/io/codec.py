@@ -33,6 +33,7 @@ import zlib
 import numpy as np
 
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.recipes import RUNTIME
 from apmgsrn.threads import map_in_threads, work_threads
 
 PREDICTORS = ("none", "delta", "lorenzo", "time")
@@ -40,11 +41,6 @@ PREDICTORS = ("none", "delta", "lorenzo", "time")
 #: (the JSON description) the default contexts.
 CODECS = {"numbers": {"lc": 0, "lp": 0, "pb": 0}, "text": {}}
 MIN_DICTIONARY, MAX_DICTIONARY = 1 << 12, 1 << 24
-
-
-#: Memory the compressions :func:`best_encodings` runs side by side may take together: where each would take
-#: more (a series of many steps on a machine of many cores), fewer run at once.
-PARALLEL_CODING_MEMORY = 2 << 30
 
 
 def _dictionary(size: int) -> int:
@@ -68,9 +64,9 @@ def coding_memory(values: int) -> int:
 def coding_threads(values: list[int]) -> int:
     """How many compressions of tensors of ``values`` integers :func:`best_encodings` runs at once: as many as
     the process has threads (:func:`~apmgsrn.threads.work_threads`), fewer where the largest would together
-    take more than :data:`PARALLEL_CODING_MEMORY`."""
+    take more than ``RUNTIME.parallel_coding_memory`` (a series of many steps on a machine of many cores)."""
     largest = max((coding_memory(n) for n in values), default=1)
-    return max(1, min(work_threads(), PARALLEL_CODING_MEMORY // largest))
+    return max(1, min(work_threads(), RUNTIME.parallel_coding_memory // largest))
 
 
 def compress(data: bytes, kind: str = "numbers") -> bytes:

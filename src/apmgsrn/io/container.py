@@ -29,6 +29,7 @@ FORMAT = "apmgsrn"
 #: (:mod:`apmgsrn.io.packed`; the layout of every other kind is unchanged). Files of every version up to this
 #: one load.
 FORMAT_VERSION = 2
+#: Largest JSON header of a model file (and of a brick folder's manifest).
 MAX_HEADER_BYTES = 64 * 1024 * 1024
 #: Kinds of single-file models: a float32 field (:mod:`apmgsrn.io.field_file`) and a packed one
 #: (:mod:`apmgsrn.io.packed`). A model of either kind may replace a model file of the other.

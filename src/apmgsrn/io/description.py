@@ -218,7 +218,7 @@ class BrickEntry:
 
 @dataclass(frozen=True)
 class BrickLayout:
-    """The brick grid of a brick model (SPEC section 6)."""
+    """The brick grid of a brick model (docs/method.md §6)."""
 
     counts: tuple[int, int, int]  # bricks along x, y, z
     ghost_cells: int
@@ -241,7 +241,7 @@ class SeriesStepInfo:
 
 @dataclass(frozen=True)
 class SeriesLayout:
-    """The time axis of a time-series model (SPEC section 10).
+    """The time axis of a time-series model (docs/method.md §10).
 
     Attributes:
         config: steps, basis size and kind of weights.

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.atomic import atomic_write_text
-from apmgsrn.io.container import FORMAT, FORMAT_VERSION
+from apmgsrn.io.container import FORMAT, FORMAT_VERSION, MAX_HEADER_BYTES
 from apmgsrn.io.description import (
     DescriptionError,
     SourceInfo,
@@ -38,7 +38,6 @@ from apmgsrn.models.series_options import MAX_STEPS
 
 SERIES_BRICKS_KIND = "series-bricks"
 SERIES_MANIFEST_NAME = "series.json"
-MAX_SERIES_MANIFEST_BYTES = 64 * 1024 * 1024
 _GROUP_NAME = re.compile(r"^steps_\d{6,7}_\d{6,7}$")
 
 
@@ -91,7 +90,7 @@ def read_series_manifest(directory: str | os.PathLike) -> dict:
         ApmgsrnError: missing, not ours, corrupt, inconsistent or from a newer format version.
     """
     path = series_manifest_path(directory)
-    return read_manifest_file(path, SERIES_BRICKS_KIND, MAX_SERIES_MANIFEST_BYTES, "time-series brick manifest", _check)
+    return read_manifest_file(path, SERIES_BRICKS_KIND, MAX_HEADER_BYTES, "time-series brick manifest", _check)
 
 
 def _check(manifest: dict) -> None:

@@ -1,4 +1,4 @@
-"""A neural field plus a sparse voxel correction: the network with an error bound (SPEC section 10).
+"""A neural field plus a sparse voxel correction: the network with an error bound (docs/method.md §10).
 
 The correction holds a value at the few voxels where the network alone misses the data by more than the
 bound, zero elsewhere, and is interpolated like the data (trilinearly between voxels, exactly its own value

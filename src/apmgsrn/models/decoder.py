@@ -1,4 +1,4 @@
-"""The decoder MLP shared by every encoder (SPEC section 2)."""
+"""The decoder MLP shared by every encoder (docs/method.md §2)."""
 
 from __future__ import annotations
 

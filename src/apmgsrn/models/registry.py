@@ -1,4 +1,4 @@
-"""Model kinds users type (``apmgsrn``, ...), their encoder classes and size presets (SPEC section 5)."""
+"""Model kinds users type (``apmgsrn``, ...), their encoder classes and size presets (docs/method.md §5)."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from apmgsrn.models.encoders.adaptive_multigrid import AdaptiveMultiGridConfig, 
 from apmgsrn.models.encoders.dense_grid import DenseGridConfig, DenseGridEncoder
 from apmgsrn.models.encoders.hash_grid import HashGridConfig, HashGridEncoder
 from apmgsrn.models.encoders.hybrid_grid import NO_LATTICE, HybridGridConfig, HybridGridEncoder
+from apmgsrn.recipes import MODELS
 
 # model name (apmgsrn.choices.MODEL_KINDS, in that order) -> (encoder config class, encoder class)
 ENCODERS: dict[str, tuple[type, type]] = {
@@ -25,56 +26,14 @@ ENCODERS: dict[str, tuple[type, type]] = {
     "hybrid": (HybridGridConfig, HybridGridEncoder),
 }
 
-# model name -> preset name (apmgsrn.choices.SIZE_PRESETS) -> encoder config fields (SPEC section 5, paper Table 1 sizes)
-PRESETS: dict[str, dict[str, dict]] = {
-    "apmgsrn": {
-        "small": dict(grids=16, features=1, resolution=(16, 16, 16)),
-        "medium": dict(grids=16, features=2, resolution=(32, 32, 32)),
-        "large": dict(grids=16, features=4, resolution=(64, 64, 64)),
-    },
-    "fvsrn": {
-        "small": dict(features=2, resolution=(32, 32, 32)),
-        "medium": dict(features=4, resolution=(64, 64, 64)),
-        "large": dict(features=8, resolution=(128, 128, 128)),
-    },
-    "ngp": {
-        "small": dict(levels=17, features=2, log2_table_size=11, base_resolution=8, finest_resolution=256),
-        "medium": dict(levels=18, features=2, log2_table_size=15, base_resolution=16, finest_resolution=512),
-        "large": dict(levels=17, features=2, log2_table_size=20, base_resolution=16, finest_resolution=256),
-    },
-    # Feature tables stored in float16 (rounded when training ends: no PSNR change measured), so each preset
-    # holds about twice the features of a float32 one; its stored bytes stay at or under the smallest
-    # baseline's of its size on every shape (tests/test_hybrid_grid.py). Measured in docs/models.md.
-    # 12 domain levels: 15 took 1.4-1.5x APMGSRN's time per iteration for 0 to 0.9 dB more (docs/models.md).
-    "hybrid": {
-        "small": dict(levels=12, features=2, log2_table_size=11, coarsest=8, grids=8, grid_features=1,
-                      grid_resolution=21, storage="float16"),
-        "medium": dict(levels=12, features=2, log2_table_size=15, coarsest=16, grids=8, grid_features=2,
-                       grid_resolution=42, storage="float16"),
-        "large": dict(levels=12, features=2, log2_table_size=19, coarsest=16, grids=8, grid_features=4,
-                      grid_resolution=84, storage="float16"),
-    },
-}
-
-# model name -> TrainConfig fields that differ from TrainConfig's own defaults for that kind.
-# lr_schedule: measured under the CPU protocol (docs/baselines.md), the budget-following cosine suits every
-# kind. voxel_fraction: half of every batch on voxels measured from +0 (dense turbulence) to +8 dB (a sparse
-# uint8 volume) at the voxels, for 0 to 3 dB less between them against trilinear interpolation
-# (docs/models.md, "Voxel points"); the paper's APMGSRN and the two baselines keep SPEC section 4's uniform
-# points, so that their published results reproduce. error_sampling: the hybrid's voxel points drawn where it
-# is wrong, -0.07 to +10.8 dB (mean +2.6) on the nine shared volumes under the CPU protocol, 0-10 % more time
-# (docs/models.md, "Error-guided voxel points").
-TRAINING_DEFAULTS: dict[str, dict] = {
-    "apmgsrn": {"lr_schedule": "cosine"},
-    "fvsrn": {"lr_schedule": "cosine"},
-    "ngp": {"lr_schedule": "cosine"},
-    "hybrid": {"lr_schedule": "cosine", "voxel_fraction": 0.5, "error_sampling": 1.0},
-}
-
 
 def training_defaults(model: str, **given) -> dict:
-    """TrainConfig fields a model kind trains with: its defaults, replaced by the ``given`` ones not None."""
-    return {**TRAINING_DEFAULTS.get(model, {}), **{name: value for name, value in given.items() if value is not None}}
+    """TrainConfig fields a model kind trains with: its recipe's (:class:`~apmgsrn.recipes.ModelRecipe`), replaced
+    by the ``given`` ones not None."""
+    recipe = MODELS.get(model)
+    defaults = {} if recipe is None else {"lr_schedule": recipe.lr_schedule, "voxel_fraction": recipe.voxel_fraction,
+                                          "error_sampling": recipe.error_sampling}
+    return {**defaults, **{name: value for name, value in given.items() if value is not None}}
 
 
 #: Config fields that choose how to run, not what to build: never saved, so a model trained with one
@@ -195,8 +154,9 @@ def preset_config(model: str, preset: str, **overrides) -> FieldConfig:
     """
     if model not in ENCODERS:
         raise ValueError(f"unknown model {model!r}; choose from {sorted(ENCODERS)}")
-    if preset not in PRESETS[model]:
-        raise ValueError(f"unknown preset {preset!r}; choose from {sorted(PRESETS[model])}")
+    presets = MODELS[model].presets
+    if preset not in presets:
+        raise ValueError(f"unknown preset {preset!r}; choose from {sorted(presets)}")
     overrides = {k: v for k, v in overrides.items() if v is not None}
     if model == "hybrid":
         overrides = _hybrid_names(overrides)
@@ -210,5 +170,5 @@ def preset_config(model: str, preset: str, **overrides) -> FieldConfig:
         if name not in known:
             raise InvalidArgument(f"{name}={overrides[name]!r}: does not apply to {model} models",
                                   arguments=(name,))
-    fields = {**PRESETS[model][preset], **overrides}
+    fields = {**presets[preset], **overrides}
     return FieldConfig(model, config_class(**fields), decoder)

@@ -1,4 +1,4 @@
-"""A time-varying field: one network for T steps of a simulation run (SPEC section 10).
+"""A time-varying field: one network for T steps of a simulation run (docs/method.md §10).
 
 The adaptive grids extend into time through a small basis. Every grid ``i`` holds ``K`` basis grids
 ``B_ik`` (``[K, M, C, D, H, W]`` in all); the features of step ``t`` are the per-grid combination
@@ -221,8 +221,8 @@ class SeriesMultiGridEncoder(AdaptiveMultiGridEncoder):
 
     Parameters: ``grids`` ``[K, M, C, D, H, W]`` (the basis), ``coefficients`` ``[T, M, C, K]`` when learned
     (a buffer of hat functions for keyframes), ``matrices`` ``[M, 3, 3]`` and ``translations`` ``[M, 3]``
-    shared by every step (per-step placement: ``[T, M, 3, 3]`` and ``[T, M, 3]``). Initialisation is the
-    SPEC's (the basis grids like one grid set, every step's placement the same), the weights start as the
+    shared by every step (per-step placement: ``[T, M, 3, 3]`` and ``[T, M, 3]``). Initialisation is
+    docs/method.md §2's (the basis grids like one grid set, every step's placement the same), the weights start as the
     keyframe hat functions.
     """
 

@@ -1,4 +1,4 @@
-"""Optional value transforms applied before training and inverted on decode (SPEC section 1)."""
+"""Optional value transforms applied before training and inverted on decode (docs/method.md §1)."""
 
 from __future__ import annotations
 

@@ -26,9 +26,6 @@ from apmgsrn.ops.level_layout import HASH_PRIMES, LevelLayout
 # is_available and load_error are this backend's (the dispatcher asks this module).
 from apmgsrn.ops.triton_support import IMPORT_ERROR, is_available, load_error, tl, triton  # noqa: F401
 
-#: Points per program.
-BLOCK = 256
-
 if triton is not None:
 
     @triton.jit
@@ -130,16 +127,17 @@ def layout_info(layout: LevelLayout, device: torch.device) -> torch.Tensor:
     return torch.tensor(rows, dtype=torch.int64, device=device).reshape(-1, 8)
 
 
-def _launch(kernel, points, maps, layout: LevelLayout, data, out, n: int) -> None:
+def _launch(kernel, points, maps, layout: LevelLayout, data, out, n: int, block: int = 256) -> None:
+    """Run ``kernel`` on ``n`` points, ``block`` points per program and one program row per level."""
     if triton is None:
         raise RuntimeError(IMPORT_ERROR)
     if layout.table_size >= 2**31:
         raise ValueError("tables of 2^31 floats or more are not supported by the Triton backend")
     info = layout_info(layout, points.device)
     fp = triton.next_power_of_2(max(layout.features))
-    kernel[(triton.cdiv(n, BLOCK), layout.levels)](
+    kernel[(triton.cdiv(n, block), layout.levels)](
         points, maps, info, data, out, n, layout.out_features,
-        FP=fp, BLOCK=BLOCK, P1=HASH_PRIMES[1], P2=HASH_PRIMES[2], num_warps=4,
+        FP=fp, BLOCK=block, P1=HASH_PRIMES[1], P2=HASH_PRIMES[2], num_warps=4,
     )
 
 

@@ -1,4 +1,4 @@
-"""Adaptive multi-grid encoding (SPEC section 2) and feature density (SPEC section 3).
+"""Adaptive multi-grid encoding (docs/method.md §2) and feature density (docs/method.md §3).
 
 Reference implementation in pure PyTorch: every point is mapped into all ``M`` local grid frames and
 sampled with one batched ``grid_sample``. Sampling is *zero-padded trilinear* (corner-aligned): a corner
@@ -260,7 +260,7 @@ def feature_density(
         points: ``[N, 3]``.
         matrices: ``[M, 3, 3]``.
         translations: ``[M, 3]``.
-        power: ``P`` of the super-Gaussian (SPEC: 10).
+        power: ``P`` of the super-Gaussian (docs/method.md: 10).
         backend: ``"auto"``, ``"torch"`` or ``"cpu"``.
 
     Returns:

@@ -344,7 +344,7 @@ void mg_backward_coords(const float *points, i64 n, const float *aff, i64 m, con
     }
 }
 
-/* ---- Feature density (SPEC section 3): rho[n] = sum_g det[g] exp(-sum_d G_g(p_n)_d^(2P)) ---- */
+/* ---- Feature density (docs/method.md §3): rho[n] = sum_g det[g] exp(-sum_d G_g(p_n)_d^(2P)) ---- */
 
 /* exp(x) for x <= 0, vectorisable (glibc's expf is not, without fast-math): 2^k e^r with
    |r| <= ln2/2 and a degree-6 polynomial (the classic single-precision minimax coefficients);
@@ -495,11 +495,6 @@ void mg_density_backward(const float *points, i64 n, const float *aff, const flo
 }
 """
 
-#: Points per tile of the density kernels (``DTILE`` in the C source).
-DENSITY_TILE = 256
-#: Most runs of tiles the density backward sums separately (their partial sums take ``blocks * M * 13``
-#: doubles); the runs depend on the number of points only.
-DENSITY_BLOCKS = 64
 
 def _declare(lib: ctypes.CDLL) -> None:
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
@@ -766,8 +761,9 @@ class _DensityFunction(torch.autograd.Function):
         lib = LIBRARY.load_or_raise()
         m = aff.shape[0]
         g = grad_rho.to(torch.float32).contiguous()
-        tiles = -(-pts.shape[0] // DENSITY_TILE)
-        blocks = max(1, min(DENSITY_BLOCKS, tiles))
+        tiles = -(-pts.shape[0] // 256)  # DTILE points per tile in the C source
+        # at most 64 runs of tiles summed apart (blocks * M * 13 doubles), a function of the point count alone
+        blocks = max(1, min(64, tiles))
         partial = torch.zeros(blocks, m, 13, dtype=torch.float64)  # one per run of tiles, no races
         sums = torch.empty(m, 13, dtype=torch.float64)
         lib.mg_density_backward(

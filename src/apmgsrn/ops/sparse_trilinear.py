@@ -10,14 +10,10 @@ from __future__ import annotations
 
 import torch
 
-#: A point closer than this to a voxel (in voxel units) is taken to be on it: float32 coordinates of a
-#: voxel (``-1 + 2 i / (n - 1)``) map back to ``i`` only up to rounding, and a voxel must get exactly its
-#: own value, not a blend with its neighbour's of weight 1e-7.
-SNAP = 1e-4
-
 
 def sample_sparse_volume(
-    indices: torch.Tensor, values: torch.Tensor, shape: tuple[int, int, int], points: torch.Tensor
+    indices: torch.Tensor, values: torch.Tensor, shape: tuple[int, int, int], points: torch.Tensor,
+    snap: float = 1e-4,
 ) -> torch.Tensor:
     """Interpolate a sparse ``(D, H, W)`` volume at points, corner-aligned and trilinear.
 
@@ -26,6 +22,9 @@ def sample_sparse_volume(
         values: ``[K]`` float values at those voxels (every other voxel is 0).
         shape: ``(D, H, W)``.
         points: ``[N, 3]`` coordinates ``(x, y, z)`` in ``[-1, 1]^3``.
+        snap: a point closer than this to a voxel (in voxel units) is taken to be on it: float32 coordinates
+            of a voxel (``-1 + 2 i / (n - 1)``) map back to ``i`` only up to rounding, and a voxel must get
+            exactly its own value, not a blend with its neighbour's of weight 1e-7.
 
     Returns:
         ``[N]`` interpolated values in ``values``' dtype (exactly ``values[k]`` at voxel ``indices[k]``).
@@ -46,7 +45,7 @@ def sample_sparse_volume(
             continue
         u = ((points[:, axis].float().clamp(-1, 1) + 1) * 0.5) * (size - 1)  # [N] in voxel units
         nearest = torch.round(u)
-        u = torch.where((u - nearest).abs() < SNAP, nearest, u)
+        u = torch.where((u - nearest).abs() < snap, nearest, u)
         low = torch.floor(u).clamp(0, size - 2)
         lower.append(low.to(torch.int64))
         upper.append(low.to(torch.int64) + 1)

@@ -1,4 +1,4 @@
-"""Trilinear sampling of a dense volume at points in [-1, 1]^3 (the ground truth of SPEC section 1)."""
+"""Trilinear sampling of a dense volume at points in [-1, 1]^3 (the ground truth of docs/method.md §1)."""
 
 from __future__ import annotations
 

@@ -7,9 +7,6 @@ import math
 from apmgsrn.progress import Progress
 from apmgsrn.training.trainer import StepLosses, Trainer, TrainingCallback
 
-#: Iterations between refreshes of the loss figures (reads only losses already on the host).
-FIELDS_EVERY = 10
-
 
 class TrainingProgress(TrainingCallback):
     """Shows iteration, loss, PSNR estimate, grid state, rate and time left (see :mod:`apmgsrn.progress`); for a
@@ -22,11 +19,14 @@ class TrainingProgress(TrainingCallback):
     Args:
         description: label of the display.
         enabled: False shows nothing.
+        fields_every: iterations between refreshes of the loss figures (they read only losses already on the
+            host); the worst step's, ten times as many.
     """
 
-    def __init__(self, description: str = "train", enabled: bool = True):
+    def __init__(self, description: str = "train", enabled: bool = True, fields_every: int = 10):
         self.description = description
         self.enabled = enabled
+        self.fields_every = fields_every
         self._progress: Progress | None = None
 
     def on_start(self, trainer: Trainer) -> None:
@@ -34,13 +34,13 @@ class TrainingProgress(TrainingCallback):
                                   initial=trainer.state.iteration, enabled=self.enabled)
 
     def after_step(self, trainer: Trainer, iteration: int, losses: StepLosses) -> None:
-        if iteration % FIELDS_EVERY == 0 or not self._progress.fields:
+        if iteration % self.fields_every == 0 or not self._progress.fields:
             recent = trainer.state.history["reconstruction"][-5:]
             if recent:
                 mse = sum(recent) / len(recent)
                 fields = dict(loss=f"{mse:.2e}", psnr=f"{-10 * math.log10(max(mse, 1e-30)):.2f}dB")
                 if trainer.step_losses is not None:
-                    if iteration % (10 * FIELDS_EVERY) == 0 or "worst" not in self._progress.fields:
+                    if iteration % (10 * self.fields_every) == 0 or "worst" not in self._progress.fields:
                         fields["worst"] = _worst_step(trainer.step_losses)
                     else:
                         fields["worst"] = self._progress.fields["worst"]

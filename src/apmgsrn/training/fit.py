@@ -377,6 +377,7 @@ def fit_volume(
     log_offset: float = 0.0,
     resume: bool = False,
     progress: bool = True,
+    plan: dict | None = None,
 ) -> FitResult:
     """Train a model on a whole volume and save it to ``out`` (the ``train`` command).
 
@@ -390,6 +391,7 @@ def fit_volume(
         log_offset: offset for ``log10``.
         resume: continue from ``out.ckpt`` if it exists.
         progress: show training progress (see :mod:`apmgsrn.progress`).
+        plan: the run's plan (:meth:`apmgsrn.planning.Plan.record`), kept in the training summary.
     """
     check_output(out, resume)  # before reading what may be a large volume
     data = volume.to_numpy()  # [D, H, W] float32, data units
@@ -400,7 +402,7 @@ def fit_volume(
     fingerprint = {"data": volume_fingerprint(volume), "field": field_config.to_dict(),
                    "transform": asdict(prepared.transform)}
     return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
-               callbacks=[TrainingProgress(enabled=progress)])
+               callbacks=[TrainingProgress(enabled=progress)], summary_extra={"plan": plan} if plan else None)
 
 
 def _last_finite(values: list[float]) -> float | None:

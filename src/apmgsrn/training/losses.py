@@ -1,4 +1,4 @@
-"""Training losses: reconstruction (SPEC section 4) and feature density (SPEC section 3)."""
+"""Training losses: reconstruction (docs/method.md §4) and feature density (docs/method.md §3)."""
 
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ def feature_density_loss(
         density: ``[N]`` unnormalised feature density ``rho`` (differentiable w.r.t. the grid placements).
         error: ``[N]`` per-point squared reconstruction error ``h`` (no gradient needed).
         mean_density: None for the paper's batch normalisation, else the all-inside mean density.
-        eps: the SPEC's small constant.
+        eps: docs/method.md's small constant.
 
     Returns:
         Scalar loss.

@@ -1,4 +1,4 @@
-"""Packing a trained field into a small file, and an error bound at every voxel (SPEC section 10).
+"""Packing a trained field into a small file, and an error bound at every voxel (docs/method.md §10).
 
 1. **Steps.** Every parameter is quantised uniformly, one step per group (:mod:`apmgsrn.io.quantization`).
    With a bit width ``B`` the steps fit each group in ``B`` signed bits. Otherwise they follow each group's
@@ -59,12 +59,10 @@ from apmgsrn.io.quantization import (
 from apmgsrn.models.corrected_field import CorrectedField
 from apmgsrn.models.field import NeuralField
 from apmgsrn.ops.trilinear import sample_volume
+from apmgsrn.recipes import PACKING
 
 #: ``bits=FLOAT32_BITS`` keeps every parameter exactly (float32, entropy-coded): for an error bound alone.
 FLOAT32_BITS = 32
-#: The correction quantises to a bound this much tighter than promised, so float32 rounding of
-#: ``network + correction`` (and another device's summation order) stays inside the promise.
-BOUND_MARGIN = 1 / 64
 
 
 @dataclass(frozen=True)
@@ -90,9 +88,9 @@ class PackConfig:
     psnr_loss: float = 0.1
     max_error: float | None = None
     qat_iterations: int = 0
-    qat_lr: float = 3e-3
-    sensitivity_points: int = 1 << 18
-    measure_voxels: int = 1 << 20
+    qat_lr: float = PACKING.qat_lr
+    sensitivity_points: int = PACKING.sensitivity_points
+    measure_voxels: int = PACKING.measure_voxels
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -126,47 +124,22 @@ class PackConfig:
         return "size" if self.target_bytes is not None else "psnr-loss"
 
 
-#: Stored bits per parameter a model packs to at a small PSNR cost, for choosing a model size from a byte
-#: target: 4.5 to 7.4 measured at 0.1 dB on the shared volumes (docs/results_packing.md; 2.3 on a
-#: log-transformed dark-matter field). The packer then meets the target exactly, with finer or coarser steps.
-BITS_PER_PARAMETER = 6.0
-#: Bytes a packed file spends besides its coded parameters: the container's framing, the coded description
-#: and the float16 steps (350-450 measured on the shared volumes; about 900 before format version 2).
-PACKED_OVERHEAD_BYTES = 420
-#: Decoders a size target may shrink to (hidden layers, width), largest first. The largest that takes at most
-#: :data:`DECODER_SHARE` of the parameters is used (never one larger than the config's): at 10,000:1 on a
-#: 187^3 volume the preset's 2 x 64 decoder alone would take twice the bytes. A decoder is worth much of the
-#: budget: with an eighth instead of a half, Richtmyer-Meshkov lost 2.3 dB at 1,000:1 and 2.8 at 3,000:1, HCCI
-#: 0.6 at 1,000:1; at 10,000:1 on HCCI 4 grids with 2 x 32 (41.2, 42.5, 41.1 dB over three seeds) beat 8 with
-#: 1 x 16 (41.7, 36.0, 42.8).
-DECODER_LADDER = ((2, 64), (2, 32), (1, 32), (1, 16))
-DECODER_SHARE = 1 / 2
-#: Grids coarser than this are not worth their count: the number of grids halves (not below
-#: :data:`MIN_GRIDS`) until each gets at least this resolution.
-MIN_RESOLUTION, MIN_GRIDS = 6, 4
-#: A model sized for a target with at most this many adaptive grids trains with one of them anchored over
-#: the whole domain (:attr:`~apmgsrn.training.trainer.TrainConfig.anchored_grids`): with so few, the placement
-#: can drift off a region for good (HCCI at 10,000:1, 8 grids, three seeds: 30.9, 27.1, 27.4 dB with every grid
-#: moving, 41.7, 36.0, 42.8 anchored), while with 16 none collapsed and an anchor cost about 0.5 dB (one seed).
-ANCHOR_MAX_GRIDS = 8
-
-
 def anchored_grids_for(config) -> int:
     """Grids to anchor when training ``config``, a model :func:`config_for_bytes` sized: 1 for an adaptive
-    encoder of at most :data:`ANCHOR_MAX_GRIDS` grids, else 0."""
-    return 1 if 0 < getattr(config.encoder, "grids", 0) <= ANCHOR_MAX_GRIDS else 0
+    encoder of at most ``PACKING.anchor_max_grids`` grids, else 0."""
+    return 1 if 0 < getattr(config.encoder, "grids", 0) <= PACKING.anchor_max_grids else 0
 
 
 def config_for_bytes(config, target_bytes: int, fixed: tuple[str, ...] = (),
-                     bits_per_parameter: float = BITS_PER_PARAMETER):
+                     bits_per_parameter: float = PACKING.bits_per_parameter):
     """A config like ``config`` (a :class:`~apmgsrn.models.registry.FieldConfig` of an encoder with a
     ``resolution``: apmgsrn, fvsrn) whose packed file comes to about ``target_bytes``.
 
-    Chooses, unless ``fixed`` names it (``"grids"``, ``"decoder"``): the decoder, from
-    :data:`DECODER_LADDER` by :data:`DECODER_SHARE`; the number of grids (apmgsrn), halved while each would
-    be coarser than :data:`MIN_RESOLUTION`; then the largest resolution (2^3 .. 256^3, one axis finer at a
-    time) whose ``parameters * bits_per_parameter / 8`` plus :data:`PACKED_OVERHEAD_BYTES` fits. Features
-    and every other setting stay as given.
+    Chooses, unless ``fixed`` names it (``"grids"``, ``"decoder"``): the decoder, from the packing recipe's
+    ``decoder_ladder`` by its ``decoder_share`` (:class:`~apmgsrn.recipes.PackingRecipe`); the number of grids
+    (apmgsrn), halved while each would be coarser than its ``min_resolution``; then the largest resolution (2^3 ..
+    256^3, one axis finer at a time) whose ``parameters * bits_per_parameter / 8`` plus its ``overhead_bytes``
+    fits. Features and every other setting stay as given.
 
     Raises:
         ApmgsrnError: the encoder has no resolution to choose, or even resolution 2 does not fit.
@@ -174,7 +147,7 @@ def config_for_bytes(config, target_bytes: int, fixed: tuple[str, ...] = (),
     if not hasattr(config.encoder, "resolution"):
         raise ApmgsrnError(f"target_bytes={target_bytes}: choosing the size of a {config.model} model is not "
                            "supported; give its size options and pack to the target", arguments=("target_bytes",))
-    budget = max(target_bytes - PACKED_OVERHEAD_BYTES, 0) * 8 / bits_per_parameter  # parameters
+    budget = max(target_bytes - PACKING.overhead_bytes, 0) * 8 / bits_per_parameter  # parameters
 
     def parameters(candidate) -> int:
         return sum(math.prod(shape) for shape in candidate.parameter_shapes().values())
@@ -197,24 +170,26 @@ def config_for_bytes(config, target_bytes: int, fixed: tuple[str, ...] = (),
         if "decoder" in fixed:
             return candidate
         current = (candidate.decoder.hidden_layers, candidate.decoder.width)
-        ladder = [size for size in DECODER_LADDER if size[0] <= current[0] and size[1] <= current[1]] or [current]
+        ladder = [size for size in PACKING.decoder_ladder
+                  if size[0] <= current[0] and size[1] <= current[1]] or [current]
         for layers, width in ladder:
             decoder = replace(candidate.decoder, hidden_layers=layers, width=width)
             shapes = decoder.parameter_shapes(candidate.encoder.out_features)
-            if sum(math.prod(shape) for shape in shapes.values()) <= DECODER_SHARE * budget:
+            if sum(math.prod(shape) for shape in shapes.values()) <= PACKING.decoder_share * budget:
                 break
         return replace(candidate, decoder=decoder)
 
     candidate = with_decoder(config)
     resolution = largest_resolution(candidate)
-    while ("grids" not in fixed and hasattr(config.encoder, "grids") and candidate.encoder.grids // 2 >= MIN_GRIDS
-           and (resolution is None or min(resolution) < MIN_RESOLUTION)):
+    while ("grids" not in fixed and hasattr(config.encoder, "grids")
+           and candidate.encoder.grids // 2 >= PACKING.min_grids
+           and (resolution is None or min(resolution) < PACKING.min_resolution)):
         candidate = with_decoder(replace(config, encoder=replace(config.encoder, grids=candidate.encoder.grids // 2)))
         resolution = largest_resolution(candidate)
     if resolution is None:
         smallest = with_resolution(candidate, (2, 2, 2))
         raise ApmgsrnError(f"target_bytes={target_bytes}: even grids of 2^3 take about "
-                           f"{parameters(smallest) * bits_per_parameter / 8 + PACKED_OVERHEAD_BYTES:.0f} bytes; "
+                           f"{parameters(smallest) * bits_per_parameter / 8 + PACKING.overhead_bytes:.0f} bytes; "
                            "pass a larger target (a lower ratio), or fewer grids or a narrower decoder",
                            arguments=("target_bytes",))
     return with_resolution(candidate, resolution)
@@ -461,7 +436,8 @@ def voxel_correction(field: NeuralField, truth: np.ndarray, max_error: float) ->
             f"max_error={max_error:g}: too small for float32 values up to {magnitude:.6g} (at least "
             f"{magnitude * 2.0**-16:.3g}); pass a larger max_error=", arguments=("max_error",)
         )
-    step = 2 * max_error * (1 - BOUND_MARGIN)
+    # a bound this much tighter than promised: float32 rounding of network + correction stays inside it
+    step = 2 * max_error * (1 - PACKING.bound_margin)
     plane = truth.shape[1] * truth.shape[2]
     indices, levels = [], []
     for z, predicted in field_slabs(field, truth.shape):
@@ -744,3 +720,16 @@ def _scale_for_psnr_loss(field, sensitivity, truth, float32: Evaluation, config:
 def write_packed(path: str | Path, result: PackResult) -> int:
     """Write a :class:`PackResult` atomically to ``path`` (replacing an older model file of either kind)."""
     return save_packed(path, result.data)
+
+
+def pack_volume_model(field: NeuralField, volume, config: PackConfig, training: dict, device, out: Path,
+                      log: Callable[[str], None] = print) -> PackResult:
+    """Pack ``field`` against ``volume`` (a :class:`~apmgsrn.data.volume.Volume`) and write it to ``out``
+    (replacing an older model file of either kind): ``train`` and ``pack`` of one volume, and :func:`apmgsrn.fit`.
+    """
+    truth = volume.to_numpy()
+    values = fitted_values(field, truth, device) if config.qat_iterations else None
+    result = pack_field(field.to(device), truth, config, SourceInfo.of_volume(volume), training, values=values,
+                        log=log)
+    write_packed(out, result)
+    return result

@@ -1,6 +1,6 @@
 """Where a training batch looks at the volume: uniform points with trilinear targets, voxels, or a mix.
 
-SPEC section 4 draws points uniformly in the domain and takes the trilinearly interpolated volume there as
+docs/method.md §4 draws points uniformly in the domain and takes the trilinearly interpolated volume there as
 the target. The data, though, are the voxels, and PSNR, maximum error, decoded volumes and compression
 ratios are all measured on them. :func:`draw_batch` can give a fraction of each batch at voxel positions
 (their exact values, no interpolation): the network then fits the samples it is judged on, while the
@@ -24,6 +24,7 @@ from apmgsrn.io.description import DescriptionError
 from apmgsrn.ops.sorted_search_cpu import LIBRARY as SEARCH_LIBRARY
 from apmgsrn.ops.sorted_search_cpu import ascending_search_cpu
 from apmgsrn.ops.trilinear import axis_coordinates, sample_volume
+from apmgsrn.recipes import RUNTIME, VOLUME
 
 
 def voxel_count(batch: int, fraction: float) -> int:
@@ -31,19 +32,10 @@ def voxel_count(batch: int, fraction: float) -> int:
     return min(batch, round(batch * fraction))
 
 
-#: Most voxels an :class:`ErrorGuide` measures the error at: a volume of more voxels is cut into blocks of
-#: ``b^3`` voxels, at most this many, and one voxel drawn at random in every block stands for it.
-ERROR_POOL = 1 << 18
-#: Points an :class:`ErrorGuide` measurement evaluates at once, per device type (elsewhere 2^16). On CPU a
-#: chunk's hidden activations then stay in cache: 2^18 voxels of the hybrid small model in 0.09 s against 0.14
-#: with chunks of 2^16, the same values.
-MEASURE_CHUNK = {"cpu": 1 << 13}
-
-
 class ErrorGuide:
     """Voxel draws in proportion to the model's absolute error.
 
-    :meth:`measure` evaluates the model at every voxel of a volume of at most :data:`ERROR_POOL` voxels, else at
+    :meth:`measure` evaluates the model at every voxel of a volume of at most ``pool`` voxels, else at
     one random voxel of every block of ``b^3`` (the smallest ``b`` that leaves at most that many blocks), and
     keeps the errors (with ``parts`` > 1, after the first time, at one of ``parts`` interleaved parts of them
     in turn: ``parts`` times cheaper, the rest as last measured); :meth:`draw` then gives voxel indices, each
@@ -54,12 +46,12 @@ class ErrorGuide:
     trainer's uniform points keep the whole domain in every batch.
     """
 
-    def __init__(self, volume: torch.Tensor, parts: int = 1):
+    def __init__(self, volume: torch.Tensor, parts: int = 1, pool: int = VOLUME.error_pool):
         self.volume = volume
         self.parts = parts
         d, h, w = volume.shape
         self.block = 1
-        while math.ceil(d / self.block) * math.ceil(h / self.block) * math.ceil(w / self.block) > ERROR_POOL:
+        while math.ceil(d / self.block) * math.ceil(h / self.block) * math.ceil(w / self.block) > pool:
             self.block += 1
         self.blocks = tuple(math.ceil(n / self.block) for n in (d, h, w))
         self.block_count = math.prod(self.blocks)
@@ -95,7 +87,8 @@ class ErrorGuide:
                 self._every_voxel = index, points
         part = slice(None) if self.errors is None or self.parts == 1 else slice(turn % self.parts, None, self.parts)
         index, points = index[part], points[part]
-        chunk = MEASURE_CHUNK.get(device.type, 1 << 16)
+        # on a CPU a chunk's hidden activations stay in cache
+        chunk = RUNTIME.cpu_measure_chunk if device.type == "cpu" else 1 << 16
         error = torch.cat([(predict(chunk_points).view(-1) - self.volume.reshape(-1)[chunk_index]).abs()
                            for chunk_points, chunk_index in zip(points.split(chunk), index.split(chunk))]).double()
         if part == slice(None):
@@ -179,7 +172,7 @@ def draw_batch(
         count: points to draw.
         voxel_fraction: share of the points drawn at voxel positions (uniformly over the voxels, with the
             voxel's value as target); the others are uniform in the domain with trilinear targets. 0 draws
-            exactly what SPEC section 4 (and every version before this option) draws.
+            exactly what docs/method.md §4 (and every version before this option) draws.
         generator: the trainer's generator (same seed, same batches).
         guide: where the voxel points of ``guided_share`` come from (measured already), the others uniform.
         guided_share: share of the voxel points drawn by ``guide``.

@@ -6,14 +6,14 @@ The decoder has seen neither the other steps nor the rounded values. Here, once 
 the decoder alone is trained a little on all steps at once, every step's grids held at what the file gives back.
 The decoder is stored exactly (float32), so this costs no byte, and the integers stay the same.
 
-Every iteration draws :data:`DECODER_STEPS_PER_ITERATION` steps at random and a share of the start model's batch
+Every iteration draws ``PACKING.decoder_steps_per_iteration`` steps at random and a share of the start model's batch
 on each. The loss weights each step by one over its error before the fine-tune, so that every step's PSNR counts
 alike: a decoder trained on the plain sum would serve the steps with the largest errors, which the steps that fit
 closest (and are nearest to falling below their own models) would pay for. Should the fine-tune not lower that
 weighted error on a fixed sample of every step's voxels, the decoder is put back as it was.
 
 Measured on trained, packed hybrid series (docs/time_series.md), 300 iterations with a tenth of their points
-between the voxels (:data:`DECODER_VOXEL_FRACTION`), about 10 s on two threads: the steps least like the start
+between the voxels (``PACKING.decoder_voxel_fraction``), about 10 s on two threads: the steps least like the start
 model's gain most (t010 of three steps 40 apart +0.59 dB, step 0 of the 30 viscous-finger steps at 128^3 +0.08,
 the first steps of their crop to half the height +0.19), the others little (the 30 steps at 64^3 -0.03 to +0.06), and
 between the voxels no step moves by more than 0.05 dB. Its time is not taken from the steps' budget: shortening
@@ -28,24 +28,10 @@ import torch
 
 from apmgsrn.models.series_field import SeriesField
 from apmgsrn.progress import Progress
+from apmgsrn.recipes import PACKING
 from apmgsrn.training.points import draw_batch
 from apmgsrn.training.series_steps import check_sample
 from apmgsrn.training.trainer import TrainConfig
-
-#: Steps every iteration trains on (all of a shorter series); the start model's batch is split among them.
-DECODER_STEPS_PER_ITERATION = 4
-#: The fine-tune's learning rate as a share of the start model's (cosine decay to zero). 0.1 and 0.3 ended
-#: within 0.1 dB of each other on three steps 40 apart (1,000 iterations); Adam moves every weight by about
-#: the rate at first, and the grids were fitted to the weights as they are.
-DECODER_LR_SHARE = 0.1
-#: Share of the fine-tune's points drawn at voxels (the others between them, against the data's trilinear
-#: interpolation). The decoder trades one for the other: on trained hybrid series, 300 iterations at the voxels
-#: alone lifted every step there (30 viscous-finger steps +0.06-0.20 dB) and lowered it between the voxels about
-#: as much or more (-0.24 to -0.29); at 0.95, +0.03-0.16 and -0.11; at 0.9, +0.02-0.06 and +0.03-0.05 (step 29,
-#: the start: -0.03 and +0.03), and the steps least like the start's still gain at the voxels with nothing lost
-#: between them (t010 of three steps 40 apart +0.59 and +0.08; step 0 of the 30 steps at 128^3 +0.08 and +0.07).
-#: At 0.75 or the start model's 0.5 no step's weighted error fell, and the decoder was put back.
-DECODER_VOXEL_FRACTION = 0.9
 
 
 def fine_tune_decoder(series: SeriesField, values: torch.Tensor, config: TrainConfig, iterations: int,
@@ -57,7 +43,7 @@ def fine_tune_decoder(series: SeriesField, values: torch.Tensor, config: TrainCo
         series: a trained series field holding what its packed file gives back.
         values: ``[T, D, H, W]`` the training values.
         config: the start model's training: its batch (split over the steps drawn), learning rate (times
-            :data:`DECODER_LR_SHARE`) and seed.
+            ``PACKING.decoder_lr_share``) and seed.
         iterations: the fine-tune's iterations.
         show_progress: one line of progress over the iterations.
 
@@ -77,17 +63,17 @@ def fine_tune_decoder(series: SeriesField, values: torch.Tensor, config: TrainCo
     trainable = [p.requires_grad for p in series.parameters()]
     series.requires_grad_(False)
     series.decoder.requires_grad_(True)
-    drawn = min(DECODER_STEPS_PER_ITERATION, steps)
+    drawn = min(PACKING.decoder_steps_per_iteration, steps)
     batch = max(1, config.batch_size // drawn)
     generator = torch.Generator(values.device).manual_seed(config.seed)  # the points
     chooser = torch.Generator().manual_seed(config.seed)  # the steps
-    optimizer = torch.optim.Adam(series.decoder.parameters(), lr=config.lr * DECODER_LR_SHARE)
+    optimizer = torch.optim.Adam(series.decoder.parameters(), lr=config.lr * PACKING.decoder_lr_share)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, iterations)
     try:
         with Progress(iterations, unit="it", description="decoder", enabled=show_progress) as shown:
             for _ in range(iterations):
                 chosen = torch.randperm(steps, generator=chooser)[:drawn]
-                points, targets = zip(*(draw_batch(values[t], batch, DECODER_VOXEL_FRACTION, generator)
+                points, targets = zip(*(draw_batch(values[t], batch, PACKING.decoder_voxel_fraction, generator)
                                         for t in chosen.tolist()))
                 predicted = series.normalized(torch.cat(points), chosen.to(values.device)).view(drawn, batch)
                 errors = (predicted - torch.stack(targets)).square().mean(dim=1)

@@ -42,6 +42,7 @@ def fit_series(
     progress: bool = True,
     stepwise: StepwiseConfig | None = None,
     packing: SeriesPacking | None = None,
+    plan: dict | None = None,
 ) -> FitResult:
     """Train one time-series model on every step of a series and save it to ``out``.
 
@@ -64,6 +65,7 @@ def fit_series(
         packing: how to pack the grids (a ``packed-series`` file); None: a float series file. Its
             quantisation-aware fine-tune after stepwise training shares the steps' budget and is shortened with
             them (:meth:`~apmgsrn.training.series_steps.StepwiseConfig.budget_scale`).
+        plan: the run's plan (:meth:`apmgsrn.planning.Plan.record`), kept in the training summary.
 
     Returns:
         The result; its evaluation is a :class:`~apmgsrn.inference.evaluate.SeriesEvaluation`.
@@ -85,4 +87,4 @@ def fit_series(
     display = TrainingProgress("train" if stepwise is None else "start step", enabled=progress)
     return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
                callbacks=[display], steps=steps, packing=packing, train=series_trainer(stepwise, progress),
-               tune_packed=tune_packed, tune_decoder=tune_decoder)
+               tune_packed=tune_packed, tune_decoder=tune_decoder, summary_extra={"plan": plan} if plan else None)

@@ -10,7 +10,7 @@ At a bit width ``B`` the feature grids are quantised uniformly (:mod:`apmgsrn.io
   groups of ``D * H * W`` elements, each shared step repeated ``K`` times (2 bytes per slice, grid and
   channel), so the tensor reads back like any packed one;
 - a hybrid series' per-step tensors the same way: its level tables ``[T, P]`` one step per run of about
-  :data:`LEVEL_TABLE_GROUP` values, its grids ``[T, M, R, R, R, C]`` one per grid, shared by all steps;
+  ``PACKING.level_table_group`` values, its grids ``[T, M, R, R, R, C]`` one per grid, shared by all steps;
 - per-step residual grids, if any, take one step per group (:func:`~apmgsrn.io.quantization.group_size`);
 - the learned weights, the grid placement and the decoder are kept exactly (float32, LZMA): they are small.
 
@@ -39,7 +39,7 @@ import copy
 import math
 import os
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from dataclasses import field as dataclass_field
 
 import numpy as np
@@ -64,26 +64,11 @@ from apmgsrn.io.quantization import (
 )
 from apmgsrn.models.registry import stored_bytes
 from apmgsrn.models.series_field import SeriesField
+from apmgsrn.recipes import PACKING, SERIES, PackingRecipe, SeriesRecipe, model_recipe
 from apmgsrn.training.packing import group_means, parameter_sensitivity
 
-#: Bit width of a packed series when none is asked for: about 0.03 dB below float32 (8 bits: 0.4-0.5 dB).
-DEFAULT_SERIES_BITS = 10
 #: Per-step tensors whose groups share one step over all steps (what the ``time`` predictor needs).
 SHARED_STEP_TENSORS = ("encoder.grids", "encoder.level_table")
-#: About how many values of a hybrid's level table share a step.
-LEVEL_TABLE_GROUP = 1024
-#: A sensitivity-allocated step is at most this many bits finer than the uniform one (:func:`sensitivity_steps`).
-FINEST_SHARE_BITS = 8
-#: The lattice of bit widths a size target's search (:meth:`SeriesPacking._search`) takes the finest fitting one of.
-FINER_RESOLUTION = 1 / 16
-#: Share of a size target left free by the packing a quantisation-aware fine-tune trains towards
-#: (:meth:`SeriesPacking.pack` with ``qat_iterations``): the fine-tuned steps of the default hybrid series of the
-#: 30 viscous-finger steps coded 1.0 % larger after 50 iterations, 2.1 % after 200 and 2.5 % after the 250 of
-#: today's default (docs/time_series.md); a target filled to within a sixteenth of a bit then no longer holds
-#: them. Where they still do not fit, :meth:`SeriesPacking.repack` undoes the fine-tune of as few steps as it must;
-#: where the packing cannot leave this much free (its bit width at its floor), the fine-tune is shortened in
-#: proportion (:meth:`SeriesPacking.tune_iterations`).
-TUNED_BYTES_MARGIN = 0.03
 
 
 @dataclass(frozen=True)
@@ -150,11 +135,11 @@ def shared_steps(grids: np.ndarray, bits: int, group: int | None = None) -> tupl
 def slice_group(model: str, name: str, shape: tuple[int, ...]) -> int | None:
     """Elements per quantisation group of one step of a per-step tensor of a ``model`` series
     (:func:`shared_steps`): one per adaptive grid of the hybrid's ``grids`` ``[T, M, R, R, R, C]``; runs of about
-    :data:`LEVEL_TABLE_GROUP` values of its ``level_table`` ``[T, P]`` (a divisor of ``P``; the coarse levels
+    ``PACKING.level_table_group`` values of its ``level_table`` ``[T, P]`` (a divisor of ``P``; the coarse levels
     are about that size); None for APMGSRN's grids."""
     if name == "encoder.level_table":
         size = shape[1]
-        fewest = -(-size // LEVEL_TABLE_GROUP)
+        fewest = -(-size // PACKING.level_table_group)
         return next((size // n for n in range(fewest, 4 * fewest + 1) if size % n == 0), size)
     if model == "hybrid" and name == "encoder.grids":
         return math.prod(shape[2:])
@@ -184,7 +169,7 @@ def sensitivity_steps(uniform: dict[str, tuple[np.ndarray, int]],
 
     Returns:
         name -> ``[K * G]`` float16 steps. ``c`` makes the mean ``log2`` step over every element of these
-        tensors that of the uniform steps (no finer than :data:`FINEST_SHARE_BITS` below them); a group no
+        tensors that of the uniform steps (no finer than ``PACKING.finest_share_bits`` below them); a group no
         probed point reaches keeps its uniform step.
     """
     counts = {name: group_count(sensitivity[name].size, group) for name, (_, group) in uniform.items()}
@@ -204,14 +189,14 @@ def sensitivity_steps(uniform: dict[str, tuple[np.ndarray, int]],
     for name, (steps, _) in uniform.items():
         count = counts[name]
         uniform_steps = steps[:count].astype(np.float64)
-        # At most FINEST_SHARE_BITS bits finer than the uniform step: integers stay far inside MAX_LEVEL.
-        chosen = np.where(reached[name], np.maximum(scale * raw[name], uniform_steps / 2**FINEST_SHARE_BITS),
+        # At most finest_share_bits bits finer than the uniform step: integers stay far inside MAX_LEVEL.
+        chosen = np.where(reached[name], np.maximum(scale * raw[name], uniform_steps / 2**PACKING.finest_share_bits),
                           uniform_steps)
         out[name] = np.tile(round_steps(chosen), len(steps) // count)
     return out
 
 
-def pack_series(field: SeriesField, bits: int = DEFAULT_SERIES_BITS,
+def pack_series(field: SeriesField, bits: int = PACKING.series_bits,
                 sensitivity: dict[str, np.ndarray] | None = None, finer: float = 0.0,
                 steps: dict[str, np.ndarray] | None = None,
                 predictors: dict[str, tuple[str, ...]] | None = None) -> PackedSeries:
@@ -308,14 +293,16 @@ class SeriesPacking:
             (:mod:`apmgsrn.training.series_qat`; 0: none). Needs the data: ``train`` runs it.
         decoder_iterations: a fine-tune of the shared decoder to the grids as coded, on all steps at once, this
             many iterations (:mod:`apmgsrn.training.series_decoder`; 0: none). Needs the data: ``train`` runs it.
+        recipe: the packing's margins and search lattice (a run's fingerprint leaves them out: :meth:`settings`).
     """
 
-    bits: int = DEFAULT_SERIES_BITS
+    bits: int = PACKING.series_bits
     target_bytes: int | None = None
     min_bits: int = MIN_BITS
     strict: bool = True
     qat_iterations: int = 0
     decoder_iterations: int = 0
+    recipe: PackingRecipe = dataclass_field(default=PACKING, repr=False)
 
     def __post_init__(self) -> None:
         """Refuse values packing cannot run with (:class:`~apmgsrn.errors.InvalidArgument`)."""
@@ -326,17 +313,22 @@ class SeriesPacking:
         if self.target_bytes is not None:
             check_int("target_bytes", self.target_bytes, 1)
 
+    def settings(self) -> dict:
+        """The fields as a run's fingerprint records them: all but :attr:`recipe`, which the code fixes."""
+        return {name: value for name, value in asdict(self).items() if name != "recipe"}
+
     def pack(self, field: SeriesField) -> PackedSeries:
         """The packed field (with a target the finest bit width from ``bits`` down to ``min_bits``, in
-        :data:`FINER_RESOLUTION` of a bit, whose coded parameters fit: :meth:`_search`).
+        ``PACKING.finer_resolution`` of a bit, whose coded parameters fit: :meth:`_search`).
 
         With :attr:`qat_iterations` the field is to be fine-tuned towards these steps and packed on them again
-        (:meth:`repack`): a target is then met within :data:`TUNED_BYTES_MARGIN` less, where it can be, so that
+        (:meth:`repack`): a target is then met within ``PACKING.tuned_bytes_margin`` less, where it can be, so that
         the fine-tuned values, which code a little larger, still fit; and the width kept is not coded with every
         predictor again, since only its steps are used."""
         if self.qat_iterations and self.target_bytes is not None:
             try:
-                return self._pack(field, max(1, round(self.target_bytes * (1 - TUNED_BYTES_MARGIN))), final=False)
+                margin = self.recipe.tuned_bytes_margin
+                return self._pack(field, max(1, round(self.target_bytes * (1 - margin))), final=False)
             except InvalidArgument:  # fits the target only without the margin
                 pass
         return self._pack(field, self.target_bytes, final=not self.qat_iterations)
@@ -344,20 +336,15 @@ class SeriesPacking:
     def tune_iterations(self, packed: PackedSeries, steps: int) -> int:
         """The quantisation-aware fine-tune's iterations per step towards ``packed`` (:meth:`pack` of a series of
         ``steps`` steps): :attr:`qat_iterations`, shortened in proportion where the packing could not leave
-        :data:`TUNED_BYTES_MARGIN` of the target free for what the fine-tuned values code larger (its bit width
+        ``PACKING.tuned_bytes_margin`` of the target free for what the fine-tuned values code larger (its bit width
         at ``min_bits``), none where it left nothing free.
 
         A fine-tune whose values do not fit is undone on as many steps as it takes (:meth:`repack`), and the
-        iterations it ran on them are lost: the default hybrid series of the 30 viscous-finger steps, seed 0,
-        packed at 7 bits with 1.0 % of the target free, lost its 213 iterations on 19 steps; shortened to 72, 7
-        were undone, the least step's margin over its own model rose from +0.13 to +0.51 dB and the mean PSNR by
-        0.05 dB, and the series trained in 325.6 s instead of 378.0 (one thread). Where the margin is free, as on
-        the other seeds and at 128^3, every iteration counts: shortened to 100 there, the steps lost 0.04-0.17 dB
-        (128^3, seed 0; docs/time_series.md)."""
+        iterations it ran on them are lost; where the margin is free every iteration counts (docs/time_series.md)."""
         if not self.qat_iterations or self.target_bytes is None:
             return self.qat_iterations
         free = parameter_budget(self.target_bytes, steps) - packed.parameter_bytes
-        share = free / (TUNED_BYTES_MARGIN * self.target_bytes)
+        share = free / (self.recipe.tuned_bytes_margin * self.target_bytes)
         return self.qat_iterations if share >= 1 else max(0, round(self.qat_iterations * share))
 
     def fine_tune(self, field: SeriesField, packed: PackedSeries, tune: Callable[[PackedSeries, int], object]
@@ -474,15 +461,15 @@ class SeriesPacking:
     def _coded_budget(self, target_bytes: int, field: SeriesField) -> int:
         """Bytes the coded parameters of ``field`` may take in a file of ``target_bytes``
         (:func:`parameter_budget`), less, where the decoder is fine-tuned after coding (:meth:`tune_decoder`),
-        :data:`DECODER_BYTES_MARGIN` of its float32 bytes: its new weights code a few bytes larger or smaller."""
+        ``PACKING.decoder_bytes_margin`` of its float32 bytes: its new weights code a few bytes larger or smaller."""
         return max(1, parameter_budget(target_bytes, field.steps) - self._decoder_margin(field))
 
     def _decoder_margin(self, field: SeriesField) -> int:
-        """:data:`DECODER_BYTES_MARGIN` of ``field``'s decoder's float32 bytes where it is fine-tuned after coding,
+        """``PACKING.decoder_bytes_margin`` of ``field``'s decoder's float32 bytes where it is fine-tuned after coding,
         else 0."""
         if not self.decoder_iterations:
             return 0
-        return math.ceil(DECODER_BYTES_MARGIN * 4 * sum(p.numel() for p in field.decoder.parameters()))
+        return math.ceil(self.recipe.decoder_bytes_margin * 4 * sum(p.numel() for p in field.decoder.parameters()))
 
     def _pack(self, field: SeriesField, target_bytes: int | None, final: bool) -> PackedSeries:
         """:meth:`pack` to ``target_bytes``; ``final``: the width a search kept coded with every predictor
@@ -494,7 +481,7 @@ class SeriesPacking:
             return packed
         # The trials below code every tensor with the predictor this first one chose (LZMA, one predictor
         # instead of each: most of a trial's time); the width kept is coded with each again, never larger.
-        best = self._search(field, packed, sensitivity, budget, self.min_bits)
+        best = self._search(field, packed, sensitivity, budget, self.min_bits, self.recipe.finer_resolution)
         if best is not None:
             return pack_series(field, best.bits, sensitivity, best.finer) if final else best
         if self.strict:
@@ -506,9 +493,9 @@ class SeriesPacking:
 
     @staticmethod
     def _search(field: SeriesField, top: PackedSeries, sensitivity: dict[str, np.ndarray], budget: int,
-                min_bits: int) -> PackedSeries | None:
+                min_bits: int, resolution: float) -> PackedSeries | None:
         """The finest packing from ``min_bits`` up to below ``top``'s width (which does not fit the ``budget``)
-        on the lattice of :data:`FINER_RESOLUTION` that fits, its trials coded with ``top``'s predictors; None
+        on the lattice of ``PACKING.finer_resolution`` that fits, its trials coded with ``top``'s predictors; None
         if not even ``min_bits`` fits.
 
         Bytes grow with the width, nearly linearly over a bit or two, so a trial is taken where the line through
@@ -518,7 +505,7 @@ class SeriesPacking:
         size never makes the search creep one sixteenth at a time. The viscous-finger series' default target
         takes 3 trials this way where whole bits down and then a bisection of the last one took 7."""
         predictors = chosen_predictors(top)
-        unit = round(1 / FINER_RESOLUTION)
+        unit = round(1 / resolution)
         low_k, high_k = min_bits * unit, round(top.bit_width * unit)
         if low_k >= high_k:
             return None
@@ -549,79 +536,39 @@ class SeriesPacking:
             k = min(max(low_k + math.floor((high_k - low_k) * share), low_k + 1), high_k - 1)
 
 
-#: A stepwise series is packed within this many single-step models of its preset unless the command
-#: line says otherwise (``--bits`` or ``--size``), lowering the bit width from 10 to at most 6 if it must: the 30
-#: viscous-finger steps take 4.2 at 10 bits; steps that change more code less well along time.
-DEFAULT_SERIES_MODELS, DEFAULT_SERIES_MIN_BITS = 5, 6
-#: The longest series whose default size (:data:`DEFAULT_SERIES_MODELS` single-step files) and whose steps' training
-#: budget (:data:`~apmgsrn.training.series_steps.STEPS_BUDGET_CAP`) are the same whatever its length: the 30
-#: viscous-finger steps, in a sixth of what own models of them take. A longer series gets both in proportion to its
-#: steps (:func:`series_growth`), a sixth of its own models still. Held fixed, they left 59 steps (the 30 and the
-#: mean between each two) 0.40 of each step's share of iterations, 7.13 files at the packing's 7-bit floor, and
-#: every data step 0.7-2.5 dB below the 30-step series (1.21 dB below its own model at worst); grown, every measured
-#: step is 1.70-3.48 dB above its own model, in 9.27 files and 6.8-7.2 times one step's training, and 60 steps (the 30,
-#: then the same backwards) 1.21-3.35 dB above in 9.46 files and 9.21 times (docs/time_series.md).
-SHARE_STEPS = 30
-#: The lowest bit width of the default packing for a model kind whose steps lose more than APMGSRN's at lower
-#: ones: a hybrid series' tables (pulled towards their neighbours', ``STEP_SPARSITY_OF``) cost about 0.1 dB at
-#: 8 bits, 0.45 at 7 and 1.7 at 6 with steps that follow the output (with uniform steps: 0.50 at 8; unpulled
-#: 7.6 at 6), and the 30 viscous-finger steps fit within five files at 7 (docs/time_series.md). So a hybrid
-#: series stays at 7 bits at least, above the cap if need be.
-DEFAULT_SERIES_MIN_BITS_OF = {"hybrid": 7}
-#: Quantisation-aware fine-tune iterations per step (:attr:`SeriesPacking.qat_iterations`) with which ``train``
-#: packs a stepwise series of a model kind by default, as a share of the start model's iterations (elsewhere
-#: none): 50 after 2,000 lift every step of a hybrid series of the 30 viscous-finger steps by 0.5-0.8 dB in the
-#: same bytes (393 s, 4.7 times one step's model, since a frozen-decoder step runs as one fused CPU pass,
-#: :mod:`apmgsrn.ops.field_train_cpu`); 200, measured as often but on half of the voxels each time
-#: (:data:`~apmgsrn.training.series_qat.QAT_MEASUREMENTS`), another 0.16-0.25 dB on every step of seed 0 in
-#: the same time, the steps' fine-tunes measuring half of the voxels too
-#: (:data:`~apmgsrn.training.series_steps.STEP_ERROR_PARTS`; docs/time_series.md); 250 at the steps' smaller
-#: batch, measured on quarters, as much in 12-17 % less time (:data:`~apmgsrn.training.series_qat.QAT_ERROR_PARTS`).
-DEFAULT_SERIES_QAT_SHARE_OF = {"hybrid": 0.125}
-
-
-def series_growth(steps: int) -> float:
-    """How many times the default size and the steps' training budget of a series of up to :data:`SHARE_STEPS`
-    steps a series of ``steps`` gets: 1 up to that length, in proportion beyond it."""
-    return max(1.0, steps / SHARE_STEPS)
+def series_growth(steps: int, recipe: SeriesRecipe = SERIES) -> float:
+    """How many times the default size and the steps' training budget of a series of up to
+    ``SERIES.share_steps`` steps a series of ``steps`` gets: 1 up to that length, in
+    proportion beyond it."""
+    return max(1.0, steps / recipe.share_steps)
 
 
 def default_series_qat(model: str, iterations: int) -> int:
     """Quantisation-aware fine-tune iterations per step of a stepwise ``model`` series whose start model trains
-    ``iterations`` (:data:`DEFAULT_SERIES_QAT_SHARE_OF`; at least one where the kind has a share)."""
-    share = DEFAULT_SERIES_QAT_SHARE_OF.get(model, 0.0)
+    ``iterations`` (``ModelRecipe.series_qat_share``; at least one where the kind has a share)."""
+    share = model_recipe(model).series_qat_share
     return max(1, round(share * iterations)) if share > 0 else 0
-
-
-#: Share of the decoder's float32 bytes a packing whose decoder is fine-tuned after coding leaves free
-#: (:attr:`SeriesPacking.decoder_iterations`): the hybrid series' decoder (6,208 weights, 24.8 kB) coded 4 bytes
-#: larger after its fine-tune; a packing filled to the last byte would have had to keep the old one.
-DECODER_BYTES_MARGIN = 0.01
-#: Iterations of the shared decoder's fine-tune to the coded grids (:attr:`SeriesPacking.decoder_iterations`) with
-#: which ``train`` packs a stepwise series of a model kind by default, as a share of the start model's iterations
-#: (elsewhere none; :mod:`apmgsrn.training.series_decoder` gives what 300 after 2,000 gained).
-DEFAULT_SERIES_DECODER_SHARE_OF = {"hybrid": 0.15}
 
 
 def default_series_decoder(model: str, iterations: int) -> int:
     """Decoder fine-tune iterations of a stepwise ``model`` series whose start model trains ``iterations``
-    (:data:`DEFAULT_SERIES_DECODER_SHARE_OF`; at least one where the kind has a share)."""
-    share = DEFAULT_SERIES_DECODER_SHARE_OF.get(model, 0.0)
+    (``ModelRecipe.series_decoder_share``; at least one where the kind has a share)."""
+    share = model_recipe(model).series_decoder_share
     return max(1, round(share * iterations)) if share > 0 else 0
 
 
 def default_series_packing(field_config, volume_shape: tuple[int, int, int], iterations: int) -> SeriesPacking:
     """How ``train`` packs a stepwise series of ``field_config`` (a :class:`SeriesFieldConfig`) of
-    ``(D, H, W)`` steps by default: within :data:`DEFAULT_SERIES_MODELS` single-step files of its preset (times
+    ``(D, H, W)`` steps by default: within ``PACKING.series_models`` single-step files of its preset (times
     :func:`series_growth` of its steps), each counted at the bytes its parameters are stored in (float16 tables of
-    the hybrid presets), lowering the bit width to fit down to :data:`DEFAULT_SERIES_MIN_BITS` (a hybrid series:
-    :data:`DEFAULT_SERIES_MIN_BITS_OF`), every step fine-tuned towards its packing first where the kind does so
+    the hybrid presets), lowering the bit width to fit down to ``ModelRecipe.series_min_bits`` (a hybrid series:
+    ``ModelRecipe.series_min_bits``), every step fine-tuned towards its packing first where the kind does so
     (:func:`default_series_qat` of the start model's ``iterations``)."""
     single = stored_bytes(field_config.field.fitted_to(volume_shape))
     model = field_config.field.model
-    lowest = DEFAULT_SERIES_MIN_BITS_OF.get(model, DEFAULT_SERIES_MIN_BITS)
-    target = round(DEFAULT_SERIES_MODELS * single * series_growth(field_config.series.steps))
-    return SeriesPacking(DEFAULT_SERIES_BITS, target, lowest, strict=False,
+    lowest = model_recipe(model).series_min_bits
+    target = round(PACKING.series_models * single * series_growth(field_config.series.steps))
+    return SeriesPacking(PACKING.series_bits, target, lowest, strict=False,
                          qat_iterations=default_series_qat(model, iterations),
                          decoder_iterations=default_series_decoder(model, iterations))
 

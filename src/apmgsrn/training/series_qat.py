@@ -36,6 +36,7 @@ from apmgsrn.errors import ApmgsrnError, InvalidArgument
 from apmgsrn.io.quantization import group_ids
 from apmgsrn.models.series_field import SeriesField
 from apmgsrn.progress import Progress
+from apmgsrn.recipes import PACKING, PackingRecipe
 from apmgsrn.threads import work_threads
 from apmgsrn.training.series_decoder import fine_tune_decoder
 from apmgsrn.training.series_packing import SHARED_STEP_TENSORS, PackedSeries, SeriesPacking, packed_group
@@ -49,22 +50,6 @@ from apmgsrn.training.series_steps import (
     store_step,
 )
 from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, current_names
-
-#: The fine-tune's learning rate as a share of the start model's. A viscous-finger step (7.25 bits, 50
-#: iterations at half the batch) gained 0.54 dB at 0.03 of it, 0.46 at 0.05, and lost 0.25 dB at 0.3: Adam's
-#: first updates move every value by about the rate, a large share of a quantisation step.
-QAT_LR_SHARE = 0.03
-#: Share of the fine-tune's voxel points drawn where the rounded step is wrong, whatever the model kind's own
-#: training draws (:attr:`~apmgsrn.training.trainer.TrainConfig.error_sampling`; no voxel points, no guide).
-GUIDED_SHARE = 1.0
-#: Times the fine-tune measures where the rounded step is wrong, whatever its length (rounding moves the error
-#: with every few updates), and in how many interleaved parts of the voxels, one part each time
-#: (:attr:`~apmgsrn.training.trainer.TrainConfig.error_parts`). Four viscous-finger steps (7.19 bits) fine-tuned
-#: for 50 iterations ended 0.39 dB higher (mean) measuring all voxels 25 times than 5 times; for 200 iterations,
-#: measuring half of them 25 times ended 0.18 dB above 50 iterations measuring all 25 times, in 0.75 s more a
-#: step; a quarter of them 25 times, 250 iterations at the steps' batch of 0.375 of the start model's, ended
-#: 0.01 dB above that (200 at half the batch, halves) in 12-17 % less time (docs/time_series.md).
-QAT_MEASUREMENTS, QAT_ERROR_PARTS = 25, 4
 
 
 class RoundedForward(TrainingCallback):
@@ -114,8 +99,8 @@ def element_steps(series: SeriesField, packed: PackedSeries) -> dict[str, torch.
 
 
 def fine_tune_rounded(series: SeriesField, values: torch.Tensor, packed: PackedSeries, config: TrainConfig,
-                      iterations: int, show_progress: bool = True, measurements: int = QAT_MEASUREMENTS
-                      ) -> tuple[int, float]:
+                      iterations: int, show_progress: bool = True, measurements: int = PACKING.qat_measurements,
+                      recipe: PackingRecipe = PACKING) -> tuple[int, float]:
     """Every step's features fine-tuned towards the steps ``packed`` rounds them to (module docstring); the
     series field is changed in place.
 
@@ -123,12 +108,13 @@ def fine_tune_rounded(series: SeriesField, values: torch.Tensor, packed: PackedS
         series: the trained series field (its decoder and placement are kept).
         values: ``[T, D, H, W]`` the training values.
         packed: the field packed once (its :attr:`~apmgsrn.training.series_packing.PackedSeries.steps`).
-        config: the start model's training (the fine-tune takes its learning rate times
-            :data:`QAT_LR_SHARE`, the steps' batch share on a CPU, its voxel share, guided :data:`GUIDED_SHARE`).
+        config: the start model's training (the fine-tune takes its learning rate times the recipe's
+            ``qat_lr_share``, the steps' batch share on a CPU, its voxel share, guided at ``qat_guided_share``).
         iterations: each step's iterations.
         show_progress: one line of progress over the steps.
         measurements: times each step's fine-tune measures where it is wrong (fewer where a long series shortened
             it: :func:`~apmgsrn.training.series_steps.shortened_measurements`).
+        recipe: the fine-tune's learning-rate share, guided share and measured parts.
 
     Returns:
         (iterations run over all steps, seconds).
@@ -139,9 +125,9 @@ def fine_tune_rounded(series: SeriesField, values: torch.Tensor, packed: PackedS
         return 0, 0.0
     device = values.device
     batch_share, _, _ = step_shares(series.config.field.model, device)
-    tune = replace(config, iterations=iterations, lr=config.lr * QAT_LR_SHARE, density_start=iterations + 1,
-                   history_every=None, stop_after_lr_cuts=None, error_sampling=GUIDED_SHARE,
-                   error_measurements=measurements, error_parts=QAT_ERROR_PARTS,
+    tune = replace(config, iterations=iterations, lr=config.lr * recipe.qat_lr_share, density_start=iterations + 1,
+                   history_every=None, stop_after_lr_cuts=None, error_sampling=recipe.qat_guided_share,
+                   error_measurements=measurements, error_parts=recipe.qat_error_parts,
                    batch_size=max(1, round(config.batch_size * batch_share)),
                    voxel_fraction=step_voxel_fraction(config.voxel_fraction))
     series.requires_grad_(False)
@@ -214,7 +200,8 @@ def budgeted(stepwise: StepwiseConfig | None, packing: SeriesPacking | None, con
     much it held them far from their data: on three steps 40 apart (t010, t050, t090) t010 fine-tuned from t050
     for its 9,321 iterations reached 70.62 dB pulled at 0.01 and 74.26 unpulled (its own model 72.90;
     docs/time_series.md)."""
-    measurements = QAT_MEASUREMENTS
+    recipe = PACKING if packing is None else packing.recipe
+    measurements = recipe.qat_measurements
     if (stepwise is not None and packing is not None and stepwise.step_sparsity is None
             and packing.holds_every_step_alone(field_config.fitted_to(volume_shape), steps)):
         stepwise = replace(stepwise, step_sparsity=0.0)
@@ -223,7 +210,8 @@ def budgeted(stepwise: StepwiseConfig | None, packing: SeriesPacking | None, con
         shares = step_shares(field_config.field.model, device)
         packing = replace(packing, qat_iterations=stepwise.shortened_qat(config, steps - 1, *shares))
         measurements = shortened_measurements(measurements, stepwise.budget_scale(config, steps - 1, *shares))
-    return (stepwise, packing, partial(fine_tune_rounded, show_progress=show_progress, measurements=measurements),
+    return (stepwise, packing,
+            partial(fine_tune_rounded, show_progress=show_progress, measurements=measurements, recipe=recipe),
             partial(fine_tune_decoder, show_progress=show_progress))
 
 

@@ -1,4 +1,4 @@
-"""The training loop of SPEC section 4: two optimisers, delayed and early-stopped grid motion,
+"""The training loop of docs/method.md §4: two optimisers, delayed and early-stopped grid motion,
 a learning rate that follows the iteration budget, atomic checkpoints and exact resume."""
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from apmgsrn.io.description import DescriptionError
 from apmgsrn.models.encoders.base import Encoder
 from apmgsrn.models.field import NeuralField
 from apmgsrn.ops.trilinear import sample_volume
+from apmgsrn.recipes import SERIES, VOLUME
 from apmgsrn.threads import ThreadGovernor, thread_candidates
 from apmgsrn.training.checkpoint import (
     CHECKPOINT_KIND,
@@ -38,20 +39,9 @@ from apmgsrn.training.losses import feature_density_loss
 from apmgsrn.training.optimizer import CpuAdam
 from apmgsrn.training.points import ErrorGuide, draw_batch, spatially_ordered
 
-#: Times a run measures the error that guides :attr:`TrainConfig.error_sampling` (evenly spaced, the first before
-#: its first iteration). A viscous-finger step fine-tuned for 560 iterations ended 0.16 dB higher measuring every
-#: 50 than every 100; a 32^3 step fine-tuned for 200, 0.5 dB higher every 10 than every 100 (measured once, at
-#: the start, the guide keeps drawing the voxels the first updates already fixed).
-ERROR_MEASUREMENTS = 20
-#: Weight of the newest loss in a series step's running loss.
-STEP_LOSS_WEIGHT = 0.3
 #: What can move the grid placements (:attr:`TrainConfig.placement_loss`).
 PLACEMENT_LOSSES = ("density", "reconstruction")
 
-#: ATen sums at most this many elements on one thread (its grain size) whatever the thread count; a larger
-#: batch is summed in per-thread parts, so its loss, and the density target built from it, would change
-#: with the number of threads.
-SERIAL_REDUCTION_ELEMENTS = 32768
 #: Whether a model's step gives the same numbers on every thread count the governor may choose, by
 #: (field kind, parameter shapes, volume dims, batch size, thread counts): see Trainer._thread_invariant.
 _THREAD_PROBES: dict[tuple, bool] = {}
@@ -59,7 +49,7 @@ _THREAD_PROBES: dict[tuple, bool] = {}
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """How to train (SPEC section 4; defaults are the paper's unless noted).
+    """How to train (docs/method.md §4; defaults are the paper's unless noted).
 
     Attributes:
         iterations: total iterations.
@@ -95,16 +85,16 @@ class TrainConfig:
             (docs/benchmarks.md). Evaluation always runs in float32.
         voxel_fraction: share of every batch drawn at voxel positions with the voxels' own values as
             targets (:func:`~apmgsrn.training.points.draw_batch`); the rest are uniform points with trilinear
-            targets. 0 (SPEC section 4, and what older checkpoints ran with): uniform points only. The model
+            targets. 0 (docs/method.md §4, and what older checkpoints ran with): uniform points only. The model
             kinds' own defaults are in :func:`apmgsrn.models.registry.training_defaults`.
         steps_per_iteration: a time series only: the batch is split evenly over this many steps (every step is
             visited once per round of ``T / steps_per_iteration`` iterations).
         anchored_grids: the first this many adaptive grids keep the placement they started with (the density
             loss moves the others). With the default initialisation they cover the whole domain, so no
             region is ever left without features: a point no grid covers decodes to the bottom of the value
-            range. 0 (SPEC section 3, and what older checkpoints ran with): every grid moves. Small models
+            range. 0 (docs/method.md §3, and what older checkpoints ran with): every grid moves. Small models
             sized for a byte target anchor one (:func:`apmgsrn.training.packing.anchored_grids_for`).
-        placement_loss: what moves the grid placements. ``"density"`` (SPEC section 4): the feature-density
+        placement_loss: what moves the grid placements. ``"density"`` (docs/method.md §4): the feature-density
             loss, between ``density_start`` and the freeze. ``"reconstruction"``: the reconstruction error
             itself, from the first iteration until the freeze, at ``placement_lr`` scaled by the network's
             schedule; no density loss. It follows structures that moved (a time series' step fine-tuned from
@@ -119,7 +109,7 @@ class TrainConfig:
             :func:`apmgsrn.models.registry.training_defaults`; docs/models.md has the measurements. A
             checkpoint keeps the last measurement, so a resumed run draws what the uninterrupted one would.
         error_measurements: how many times a run with ``error_sampling`` measures the error, evenly spaced (the
-            first before its first iteration; :data:`ERROR_MEASUREMENTS` by default).
+            first before its first iteration; ``VOLUME.error_measurements`` by default).
         error_parts: each measurement after the first re-measures one of this many interleaved parts of the
             voxels in turn, the others keeping their last errors (:class:`~apmgsrn.training.points.ErrorGuide`):
             this many times cheaper. 1 (and what older checkpoints ran with): every voxel every time.
@@ -148,7 +138,7 @@ class TrainConfig:
     anchored_grids: int = 0
     placement_loss: str = "density"
     error_sampling: float = 0.0
-    error_measurements: int = ERROR_MEASUREMENTS
+    error_measurements: int = VOLUME.error_measurements
     error_parts: int = 1
 
     def __post_init__(self) -> None:
@@ -196,7 +186,7 @@ class TrainConfig:
 RENAMED = {"transform_lr": "placement_lr"}
 #: :class:`TrainConfig` fields added since, with the value the versions without them ran with.
 ADDED = {"voxel_fraction": 0.0, "anchored_grids": 0, "placement_loss": "density", "error_sampling": 0.0,
-         "error_measurements": ERROR_MEASUREMENTS, "error_parts": 1}
+         "error_measurements": 20, "error_parts": 1}
 
 
 def current_names(stored: dict) -> dict:
@@ -211,17 +201,8 @@ def current_names(stored: dict) -> dict:
 def default_budget(device: torch.device) -> tuple[int, int]:
     """(iterations, batch size) sized for the device: minutes on a 2-core CPU, the paper's on a GPU."""
     if device.type == "cuda":
-        return 50_000, 100_000
-    return 3_000, 32_768
-
-
-#: A time series trains for ``min(steps, SERIES_BUDGET_STEPS)`` times the budget of one volume.
-SERIES_BUDGET_STEPS = 4.5
-#: Grids a time series anchors unless told otherwise (:attr:`TrainConfig.anchored_grids`): its shared
-#: placement must serve steps whose structures move apart. On the 30 viscous-finger steps (basis 10, float16,
-#: 9,000 iterations, half of each batch on voxels) one anchored grid gained on every step, +0.01 to +1.32 dB
-#: (mean +0.62), most on the last steps (docs/time_series.md).
-SERIES_ANCHORED_GRIDS = 1
+        return VOLUME.gpu_iterations, VOLUME.gpu_batch_size
+    return VOLUME.cpu_iterations, VOLUME.cpu_batch_size
 
 
 def series_budget(iterations: int, steps: int) -> int:
@@ -230,7 +211,7 @@ def series_budget(iterations: int, steps: int) -> int:
     Consecutive steps share most of what they hold, and every iteration trains the shared grids and decoder
     on several steps at once, so the series needs far less than one budget per step.
     """
-    return max(1, round(iterations * min(float(steps), SERIES_BUDGET_STEPS)))
+    return max(1, round(iterations * min(float(steps), SERIES.joint_budget_steps)))
 
 
 class TrainingInterrupted(Exception):
@@ -363,7 +344,9 @@ class Trainer:
         ATen reduces serially, float32 decoder products (MKL's are the same on 1 and 2 threads for these
         shapes; oneDNN's bfloat16 ones are not known to be), and an encoder that says so."""
         return (
-            self.config.batch_size <= SERIAL_REDUCTION_ELEMENTS
+            # ATen sums at most 32768 elements on one thread (its grain size); a larger batch is summed in
+            # per-thread parts, so its loss, and the density target built from it, would follow the thread count.
+            self.config.batch_size <= 32768
             and self.hidden_dtype is None
             and self.config.placement_loss == "density"  # placement gradients: not shown to be
             and self.field.encoder.thread_invariant(torch.get_num_threads())
@@ -469,8 +452,8 @@ class Trainer:
             # Running per-step loss (stays on the device; the progress display reads it now and then).
             group_losses = error.detach().view(len(steps), -1).mean(1)  # [G]
             previous = self.step_losses[steps]
-            self.step_losses[steps] = torch.where(previous.isnan(), group_losses,
-                                                  torch.lerp(previous, group_losses, STEP_LOSS_WEIGHT))
+            self.step_losses[steps] = torch.where(previous.isnan(), group_losses,  # the newest weighs 0.3
+                                                  torch.lerp(previous, group_losses, 0.3))
         if fused is None:
             self.network_optimizer.zero_grad(set_to_none=True)
             if tracking:

@@ -27,9 +27,6 @@ from apmgsrn.viewer.session import ViewerSession
 from apmgsrn.viewer.settings import ViewerConfig
 from apmgsrn.viewer.timeline import Timeline
 
-# Room for a message's framing beside an upload's text (file name, RPC name, msgpack headers).
-MESSAGE_MARGIN_BYTES = 64 * 1024
-
 
 @dataclass(frozen=True)
 class ViewerAppConfig:
@@ -39,6 +36,7 @@ class ViewerAppConfig:
     port: int = 8080
     save_directory: Path = Path("apmgsrn-view")  # server-side copies of saved frames and transfer functions
     max_upload_bytes: int = 1 << 20  # ParaView presets are a few kB; anything near this is not one
+    message_margin_bytes: int = 64 * 1024  # a message's framing beside an upload (file name, RPC name, headers)
     title: str = "apmgsrn viewer"
     viewer: ViewerConfig = field(default_factory=ViewerConfig)
 
@@ -59,7 +57,7 @@ class ViewerApp:
         self.catalog = catalog
         self.config = config
         self.device = torch.device(device)
-        message_bytes = config.max_upload_bytes + MESSAGE_MARGIN_BYTES
+        message_bytes = config.max_upload_bytes + config.message_margin_bytes
         # ws_max_msg_size: aiohttp's limit on one websocket frame (the guard caps the whole message).
         self.server = get_server(f"apmgsrn-viewer-{id(self)}", client_type="vue3", ws_max_msg_size=message_bytes)
         self.state = self.server.state

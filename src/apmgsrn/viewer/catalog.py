@@ -20,7 +20,7 @@ from pathlib import Path, PurePosixPath
 
 from apmgsrn.data import SUPPORTED_SUFFIXES
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render.paraview import PRESET_SUFFIXES
+from apmgsrn.rendering.paraview import PRESET_SUFFIXES
 from apmgsrn.sources import is_model_path
 
 MODEL = "model"

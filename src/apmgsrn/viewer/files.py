@@ -13,8 +13,8 @@ import numpy as np
 from PIL import Image
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render import TransferFunction, save_transfer_function
-from apmgsrn.render.paraview import PRESET_SUFFIXES, ParaViewPreset, parse_presets
+from apmgsrn.rendering import TransferFunction, save_transfer_function
+from apmgsrn.rendering.paraview import PRESET_SUFFIXES, ParaViewPreset, parse_presets
 from apmgsrn.sources import RenderSource
 from apmgsrn.viewer.worker import Frame
 

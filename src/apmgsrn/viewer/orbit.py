@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
-from apmgsrn.render import Camera
+from apmgsrn.rendering import Camera
 
 
 @dataclass(frozen=True)
@@ -13,7 +13,7 @@ class OrbitView:
     """An orbiting camera as the user steers it: angles around the target, distance, pan.
 
     ``distance_scale`` multiplies the distance that fits the box in the view, so the same value suits any
-    image size and volume proportions. Angles follow :meth:`apmgsrn.render.Camera.orbit`.
+    image size and volume proportions. Angles follow :meth:`apmgsrn.rendering.Camera.orbit`.
     """
 
     azimuth: float = 30.0

@@ -2,7 +2,7 @@
 brick borders of a brick model.
 
 Box corners are projected with the very camera that rendered the frame (pinhole model of
-:class:`apmgsrn.render.Camera`: pixel centres at ``(column + 0.5, row + 0.5)`` of the image plane), so an
+:class:`apmgsrn.rendering.Camera`: pixel centres at ``(column + 0.5, row + 0.5)`` of the image plane), so an
 edge lands exactly where the volume's features are. Edges that cross behind the camera are clipped at a
 near plane instead of being dropped, so a box the camera sits inside still shows its visible part.
 """
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from apmgsrn.render import Camera
+from apmgsrn.rendering import Camera
 
 # The 12 edges of a box: corner pairs whose indices differ in exactly one bit (x: 1, y: 2, z: 4).
 BOX_EDGES = tuple((a, a | bit) for a in range(8) for bit in (1, 2, 4) if not a & bit)
@@ -30,7 +30,6 @@ GRID_COLORS = (
     (213, 94, 0),
     (204, 121, 167),
 )
-BRICK_COLOR = (0, 0, 0)  # black, a colour no grid gets
 
 
 @dataclass(frozen=True)
@@ -39,6 +38,7 @@ class OverlayConfig:
 
     line_width: int = 1
     near: float = 1e-3  # clip plane in front of the camera, world units
+    brick_color: tuple[int, int, int] = (0, 0, 0)  # black, a colour no grid gets
 
 
 def project(camera: Camera, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -119,7 +119,7 @@ def overlay_lines(
         grid_boxes: ``[M, 8, 3]`` feature-grid corners in field coordinates ([-1, 1]^3), or None.
         brick_boxes: ``[B, 8, 3]`` brick corners in field coordinates, or None.
         extent: half sizes of the drawn box (world = field coordinates * extent), as the renderer used.
-        config: clip-plane settings.
+        config: clip-plane settings and the bricks' colour.
 
     Returns:
         ``(column0, row0, column1, row1, rgb)`` per edge, pixel-index units (pixel ``c`` is centred on
@@ -128,7 +128,7 @@ def overlay_lines(
     scale = torch.tensor(extent, dtype=torch.float32)
     layers = []
     if brick_boxes is not None:
-        layers.append((brick_boxes, lambda index: BRICK_COLOR))
+        layers.append((brick_boxes, lambda index: config.brick_color))
     if grid_boxes is not None:
         layers.append((grid_boxes, lambda index: GRID_COLORS[index % len(GRID_COLORS)]))
     lines = []

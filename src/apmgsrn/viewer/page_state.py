@@ -23,11 +23,8 @@ from apmgsrn.sources import RenderSource
 from apmgsrn.viewer.catalog import CatalogEntry, SkippedFile
 from apmgsrn.viewer.files import encode_image
 from apmgsrn.viewer.session import ViewerSession
-from apmgsrn.viewer.settings import BATCH_SIZE_LIMITS, IMAGE_SIZE_LIMITS, SAMPLES_PER_RAY_LIMITS, editor_points
+from apmgsrn.viewer.settings import PAGE, editor_points
 from apmgsrn.viewer.worker import Frame
-
-IMAGE_SIZES = (128, 192, 256, 384, 512, 768, 1024)
-BATCH_SIZES = tuple(1 << k for k in range(12, 23))  # 4096 .. 4194304 points per forward pass
 
 
 class PageState:
@@ -49,9 +46,9 @@ class PageState:
             "source_name": lambda name: name is None or (isinstance(name, str) and name in self._listed),
             "colormap": lambda key: isinstance(key, str) and key in self.session.colormaps.keys(),
             "value_range": _is_range,
-            "samples_per_ray": lambda value: _is_whole(value, SAMPLES_PER_RAY_LIMITS),
-            "batch_size": lambda value: _is_whole(value, BATCH_SIZE_LIMITS),
-            "image_size": lambda value: _is_whole(value, IMAGE_SIZE_LIMITS),
+            "samples_per_ray": lambda value: _is_whole(value, PAGE.samples_per_ray),
+            "batch_size": lambda value: _is_whole(value, PAGE.batch_size),
+            "image_size": lambda value: _is_whole(value, PAGE.image_size),
             "overlay": lambda value: isinstance(value, bool),
             "time_step": lambda value: _is_whole(value, (0, self._shown_steps() - 1)),
             "time_playing": lambda value: isinstance(value, bool),
@@ -102,9 +99,9 @@ class PageState:
                 "value_range": [0.0, 1.0],
                 "samples_per_ray": settings.samples_per_ray,
                 "batch_size": settings.batch_size,
-                "batch_sizes": list(BATCH_SIZES),
+                "batch_sizes": list(PAGE.batch_sizes),
                 "image_size": settings.image_width,
-                "image_sizes": list(IMAGE_SIZES),
+                "image_sizes": list(PAGE.image_sizes),
                 "overlay": False,
                 "overlay_available": False,
                 "frame_src": "",

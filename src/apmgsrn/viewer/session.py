@@ -20,15 +20,13 @@ import numpy as np
 import torch
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render import Camera, TransferFunction, read_presets
+from apmgsrn.rendering import Camera, TransferFunction, read_presets
 from apmgsrn.sources import RenderSource, open_source
 from apmgsrn.viewer.catalog import MODEL, VOLUME, Catalog
 from apmgsrn.viewer.orbit import OrbitView
 from apmgsrn.viewer.overlay import draw_boxes, overlay_lines
 from apmgsrn.viewer.settings import (
-    BATCH_SIZE_LIMITS,
-    IMAGE_SIZE_LIMITS,
-    SAMPLES_PER_RAY_LIMITS,
+    PAGE,
     ColormapLibrary,
     RenderSettings,
     ViewerConfig,
@@ -246,16 +244,16 @@ class ViewerSession:
 
     def set_samples_per_ray(self, count: int) -> None:
         """Samples across the box's longest side (1..4096)."""
-        self._update_settings(samples_per_ray=whole_number(count, *SAMPLES_PER_RAY_LIMITS, "samples per ray"))
+        self._update_settings(samples_per_ray=whole_number(count, *PAGE.samples_per_ray, "samples per ray"))
 
     def set_batch_size(self, count: int) -> None:
         """Points per forward pass (16..2^24)."""
-        self._update_settings(batch_size=whole_number(count, *BATCH_SIZE_LIMITS, "batch size"))
+        self._update_settings(batch_size=whole_number(count, *PAGE.batch_size, "batch size"))
 
     def set_image_size(self, width: int, height: int) -> None:
         """Rendered image size in pixels (16..2048 each)."""
-        width = whole_number(width, *IMAGE_SIZE_LIMITS, "image width")
-        height = whole_number(height, *IMAGE_SIZE_LIMITS, "image height")
+        width = whole_number(width, *PAGE.image_size, "image width")
+        height = whole_number(height, *PAGE.image_size, "image height")
         self._update_settings(image_width=width, image_height=height)
 
     def set_overlay(self, enabled: bool) -> None:

@@ -8,25 +8,30 @@ import threading
 from dataclasses import dataclass, field
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render import BUILTIN_COLORMAPS, OpacityMap, RendererConfig, TransferFunction, make_transfer_function
-from apmgsrn.render.paraview import ParaViewPreset, apply_preset
-from apmgsrn.render.progressive import DEFAULT_STRIDES, check_strides
-from apmgsrn.render.transfer_function import stretch_nodes
+from apmgsrn.rendering import BUILTIN_COLORMAPS, OpacityMap, RendererConfig, TransferFunction, make_transfer_function
+from apmgsrn.rendering.paraview import ParaViewPreset, apply_preset
+from apmgsrn.rendering.progressive import check_strides
+from apmgsrn.rendering.transfer_function import stretch_nodes
 from apmgsrn.sources import SourceOptions
 
 # An opacity node as the viewer keeps it: (position on [0, 1] of the value range, opacity, midpoint,
 # sharpness). Midpoint and sharpness shape the curve to the next node as in ParaView (0.5, 0: a line).
 OpacityNode = tuple[float, float, float, float]
 
-# What the page may ask for (the session refuses anything else).
-SAMPLES_PER_RAY_LIMITS = (1, 4096)
-BATCH_SIZE_LIMITS = (16, 1 << 24)
-IMAGE_SIZE_LIMITS = (16, 2048)
-MAX_OPACITY_NODES = 256
 
-# Opacity the viewer starts with: the lowest fifth of the range (mostly background in scientific
-# volumes) transparent, then a ramp, so the first image shows structure rather than a fog.
-DEFAULT_VIEWER_OPACITY: tuple[tuple[float, float], ...] = ((0.0, 0.0), (0.2, 0.0), (1.0, 0.8))
+@dataclass(frozen=True)
+class PageLimits:
+    """What the page may ask for (the session refuses anything else), and the sizes its menus offer."""
+
+    samples_per_ray: tuple[int, int] = (1, 4096)
+    batch_size: tuple[int, int] = (16, 1 << 24)
+    image_size: tuple[int, int] = (16, 2048)
+    opacity_nodes: int = 256
+    image_sizes: tuple[int, ...] = (128, 192, 256, 384, 512, 768, 1024)
+    batch_sizes: tuple[int, ...] = tuple(1 << k for k in range(12, 23))  # 4096 .. 4194304 points per forward pass
+
+
+PAGE = PageLimits()
 
 
 def _viewer_sources() -> SourceOptions:
@@ -43,13 +48,15 @@ class ViewerConfig:
     image_height: int = 256
     samples_per_ray: int = 128
     batch_size: int = 1 << 16
-    strides: tuple[int, ...] = DEFAULT_STRIDES
+    strides: tuple[int, ...] = (8, 4, 2, 1)  # lattice strides of the progressive passes
     interactive_seconds: float = 0.15  # time budget of one image while the view moves
     rest_seconds: float = 0.35  # the view rests this long after its last camera event
     chunk_pixels: int = 2048  # pixels rendered between two checks for a newer generation
     macro_cells: int = 16  # empty-space skipping cells per axis (coarse: bounds of a model are sampled)
     colormap: str = "Cool to Warm"
-    opacity: tuple[tuple[float, float], ...] = DEFAULT_VIEWER_OPACITY
+    # the lowest fifth of the range (mostly background in scientific volumes) transparent, then a ramp, so the
+    # first image shows structure rather than a fog
+    opacity: tuple[tuple[float, float], ...] = ((0.0, 0.0), (0.2, 0.0), (1.0, 0.8))
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     source: SourceOptions = field(default_factory=_viewer_sources)
 
@@ -138,7 +145,7 @@ class ColormapLibrary:
         """Offer presets read from a ParaView file.
 
         Args:
-            presets: from :func:`apmgsrn.render.read_presets`.
+            presets: from :func:`apmgsrn.rendering.read_presets`.
             label: shown after each preset's name (e.g. the file's catalog name).
 
         Returns:
@@ -235,8 +242,8 @@ def whole_number(value, low: int, high: int, what: str) -> int:
 
 def opacity_points(points) -> tuple[tuple[float, float], ...]:
     """Opacity nodes from the page: 1 to 256 ``(position, opacity)`` pairs, clamped to [0, 1], sorted."""
-    if not isinstance(points, (list, tuple)) or not points or len(points) > MAX_OPACITY_NODES:
-        raise ApmgsrnError(f"opacity needs 1 to {MAX_OPACITY_NODES} points (position, opacity)")
+    if not isinstance(points, (list, tuple)) or not points or len(points) > PAGE.opacity_nodes:
+        raise ApmgsrnError(f"opacity needs 1 to {PAGE.opacity_nodes} points (position, opacity)")
     clean = []
     for point in points:
         if not isinstance(point, (list, tuple)) or len(point) != 2:

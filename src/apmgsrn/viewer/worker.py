@@ -1,7 +1,7 @@
 """The viewer's render worker: one thread that renders the current view coarse to fine and hands out frames.
 
 Scheduling. Every change that alters the image bumps the session's *generation* counter. The worker
-renders the current generation with the progressive schedule of :mod:`apmgsrn.render.progressive`
+renders the current generation with the progressive schedule of :mod:`apmgsrn.rendering.progressive`
 (strides 8, 4, 2, 1; after each pass a full image interpolated from the pixels rendered so far, the last
 pass exact). A pass is rendered in chunks of pixels; between chunks and once more before a frame is
 handed out, the worker compares its generation with the current one and drops the work when they
@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render import Camera, ProgressiveRender, TransferFunction, VolumeRenderer, as_uint8
+from apmgsrn.rendering import Camera, ProgressiveRender, TransferFunction, VolumeRenderer, as_uint8
 from apmgsrn.sources import RenderSource
 from apmgsrn.viewer.settings import RenderSettings, ViewerConfig
 

@@ -17,13 +17,13 @@ MAX_GRIDS, MAX_FEATURES, MAX_RESOLUTION = 4096, 1024, 4096
 
 @dataclass(frozen=True)
 class AdaptiveMultiGridConfig:
-    """What to build (SPEC section 2).
+    """What to build (docs/method.md §2).
 
     Attributes:
         grids: number of grids ``M``.
         features: feature channels per grid ``C``.
         resolution: grid resolution ``(D, H, W)``.
-        init: ``"default"`` (grids near the domain, SPEC noise), ``"large"`` (grids 20 % larger than the
+        init: ``"default"`` (grids near the domain, docs/method.md §2's noise), ``"large"`` (grids 20 % larger than the
             domain) or ``"small"`` (small grids scattered at random; the paper found it worse).
         backend: multigrid sampling backend (``"auto"`` picks the fastest available).
     """
@@ -80,7 +80,8 @@ class AdaptiveMultiGridEncoder(Encoder):
 
     @torch.no_grad()
     def reset_parameters(self, generator: torch.Generator | None = None) -> None:
-        """SPEC initialisation: diag(A) ~ N(1, 0.05), off-diagonal A and t ~ N(0, 0.05), F ~ U(+-1e-4)."""
+        """Initialisation of docs/method.md §2: diag(A) ~ N(1, 0.05), off-diagonal A and t ~ N(0, 0.05),
+        F ~ U(+-1e-4)."""
         m = self.config.grids
         self.grids.uniform_(-1e-4, 1e-4, generator=generator)
         noise = torch.randn(m, 3, 3, generator=generator) * 0.05
@@ -100,7 +101,7 @@ class AdaptiveMultiGridEncoder(Encoder):
 
         Args:
             points: global coordinates in ``[-1, 1]^3``.
-            detach_placement: True on the reconstruction path (SPEC section 4, step 1), so only the grids
+            detach_placement: True on the reconstruction path (docs/method.md §4, step 1), so only the grids
                 and the decoder learn from the reconstruction error.
         """
         matrices, translations = self.matrices, self.translations
@@ -114,7 +115,7 @@ class AdaptiveMultiGridEncoder(Encoder):
         return multigrid_decoded(points, self.matrices, self.translations, self.grids, weights, self.config.backend)
 
     def feature_density(self, points: torch.Tensor, power: int = 10) -> torch.Tensor:
-        """Unnormalised feature density ``rho`` at ``points`` ``[N, 3]`` -> ``[N]`` (SPEC section 3)."""
+        """Unnormalised feature density ``rho`` at ``points`` ``[N, 3]`` -> ``[N]`` (docs/method.md §3)."""
         return feature_density(points, self.matrices, self.translations, power)
 
     def mean_feature_density(self, power: int = 10) -> float:

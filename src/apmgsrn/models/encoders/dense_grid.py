@@ -1,4 +1,4 @@
-"""Dense feature grid plus Fourier features (the fVSRN baseline of SPEC section 5)."""
+"""Dense feature grid plus Fourier features (the fVSRN baseline of docs/method.md §5)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ MAX_FEATURES, MAX_RESOLUTION, MAX_FREQUENCIES = 1024, 4096, 24
 
 @dataclass(frozen=True)
 class DenseGridConfig:
-    """What to build (SPEC section 5, fVSRN column).
+    """What to build (docs/method.md §5, fVSRN column).
 
     Attributes:
         features: feature channels ``C`` of the grid.

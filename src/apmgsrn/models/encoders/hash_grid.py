@@ -1,4 +1,4 @@
-"""Multiresolution hash-grid encoder (the NGP baseline of SPEC section 5), in pure PyTorch.
+"""Multiresolution hash-grid encoder (the NGP baseline of docs/method.md §5), in pure PyTorch.
 
 Each of ``L`` levels is a grid of resolution ``N_l`` whose ``N_l^3`` vertices are stored in a table of at
 most ``2^T`` entries of ``F`` features: densely (vertex ``x + N_l y + N_l^2 z``) when the level fits, through
@@ -26,11 +26,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from apmgsrn.models.encoders.base import Encoder
+from apmgsrn.ops.level_layout import HASH_PRIMES
 
 HASH_BACKENDS = ("torch", "tcnn", "auto")
-
-# Spatial-hash primes (Teschner et al. 2003, as used by Instant-NGP); the first is 1 for cache coherence.
-_PRIMES = (1, 2654435761, 805459861)
 
 #: Sanity bounds of a config (a model file claiming more is refused before anything is allocated).
 MAX_LEVELS, MAX_FEATURES, MAX_RESOLUTION = 64, 64, 1 << 20
@@ -39,7 +37,7 @@ MAX_LEVELS, MAX_FEATURES, MAX_RESOLUTION = 64, 64, 1 << 20
 
 @dataclass(frozen=True)
 class HashGridConfig:
-    """What to build (SPEC section 5, NGP column).
+    """What to build (docs/method.md §5, NGP column).
 
     Attributes:
         levels: number of resolution levels ``L``.
@@ -295,9 +293,9 @@ def hash_grid_corners(
         # Masking each term by (2^T - 1) before the xor equals masking the xor: all fits in int32.
         mask = sizes[first_hashed:, None, None] - 1
         vx, vy, vz = axis_vertex[first_hashed:].unbind(1)  # [Lh, 2, N] each
-        hx = ((vx * _PRIMES[0]) & mask).to(torch.int32)
-        hy = ((vy * _PRIMES[1]) & mask).to(torch.int32)
-        hz = ((vz * _PRIMES[2]) & mask).to(torch.int32)
+        hx = ((vx * HASH_PRIMES[0]) & mask).to(torch.int32)
+        hy = ((vy * HASH_PRIMES[1]) & mask).to(torch.int32)
+        hz = ((vz * HASH_PRIMES[2]) & mask).to(torch.int32)
         yz = hz[:, :, None] ^ hy[:, None, :]  # [Lh, 2, 2, N]
         hashed = rows[first_hashed:]
         torch.bitwise_xor(yz[:, :, :, None], hx[:, None, None, :], out=hashed)  # [Lh, 2, 2, 2, N]

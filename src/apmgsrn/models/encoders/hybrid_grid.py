@@ -10,7 +10,7 @@ Two kinds of feature grids, read the same way (:mod:`apmgsrn.ops.level_grids`):
   hash); the hash table's collisions resolve where the data needs them, which on sparse volumes acts as
   an implicit adaptivity.
 - ``grids`` *adaptive grids*, dense ``R^3`` grids placed by learned affine maps exactly as APMGSRN's
-  (SPEC section 2): the feature-density loss (SPEC section 3) moves them towards the error, through the
+  (docs/method.md §2): the feature-density loss (docs/method.md §3) moves them towards the error, through the
   same encoder methods as :class:`~apmgsrn.models.encoders.adaptive_multigrid.AdaptiveMultiGridEncoder`.
   :meth:`HybridGridEncoder.initialize_from_volume` starts them on the box that holds the volume's
   gradient mass instead of the whole domain.
@@ -43,12 +43,11 @@ from apmgsrn.ops.level_grids import (
     level_grid_mse_step,
 )
 from apmgsrn.ops.level_layout import LevelLayout
+from apmgsrn.recipes import RUNTIME
 
 GRID_INITS = ("volume", "default")
 #: Sanity bounds of a config (a model file claiming more is refused before anything is allocated).
 MAX_LEVELS, MAX_FEATURES, MAX_GRIDS, MAX_RESOLUTION, MAX_AXIS = 64, 64, 4096, 4096, 1 << 20
-#: Feature tables (float32 bytes, as trained) above which a CPU step sorts its batch by position.
-ORDERED_BATCH_TABLE_BYTES = 2 * 1024 * 1024
 #: ``lattice`` of a config not yet fitted to a volume.
 NO_LATTICE = (0, 0, 0)
 
@@ -67,7 +66,7 @@ class HybridGridConfig:
         grid_resolution: vertices per axis of every adaptive grid.
         grid_init: ``"volume"`` (grids start on the box holding 99 % of the volume's gradient mass, per axis;
             :meth:`HybridGridEncoder.initialize_from_volume`) or ``"default"`` (near the domain, APMGSRN's
-            SPEC initialisation).
+            initialisation, docs/method.md §2).
         level_lr_scale: learning-rate multiplier of the domain levels.
         grid_lr_scale: learning-rate multiplier of the adaptive grids' features.
         storage: dtype the feature tables (domain levels and adaptive grids) are stored in, ``"float32"`` or
@@ -211,7 +210,8 @@ class HybridGridEncoder(Encoder):
 
     @torch.no_grad()
     def reset_parameters(self, generator: torch.Generator | None = None) -> None:
-        """Features ``U(-1e-4, 1e-4)``; grid maps as APMGSRN's SPEC init (diag(A) ~ N(1, 0.05), rest N(0, 0.05))."""
+        """Features ``U(-1e-4, 1e-4)``; grid maps as APMGSRN's init (docs/method.md §2: diag(A) ~ N(1, 0.05),
+        rest N(0, 0.05))."""
         m = self.config.grids
         self.level_table.uniform_(-1e-4, 1e-4, generator=generator)
         self.grids.uniform_(-1e-4, 1e-4, generator=generator)
@@ -225,7 +225,7 @@ class HybridGridEncoder(Encoder):
 
         Per axis, the box runs from the 0.5 % to the 99.5 % quantile of the gradient magnitude's mass
         (one voxel of margin, at least 5 % of the domain wide). Every grid's map is rescaled and shifted
-        so that its local ``[-1, 1]^3`` covers that box, 5 % larger; the SPEC noise of each map is kept, so
+        so that its local ``[-1, 1]^3`` covers that box, 5 % larger; the initial noise of each map is kept, so
         the grids still differ. On a volume with detail everywhere the box is the domain, as in APMGSRN.
 
         Args:
@@ -273,7 +273,7 @@ class HybridGridEncoder(Encoder):
 
         Args:
             points: global coordinates in ``[-1, 1]^3``.
-            detach_placement: True on the reconstruction path (SPEC section 4, step 1), so only the
+            detach_placement: True on the reconstruction path (docs/method.md §4, step 1), so only the
                 features and the decoder learn from the reconstruction error.
         """
         return self.features_of(points, self.level_table, self.grids, self.matrices, self.translations,
@@ -312,7 +312,7 @@ class HybridGridEncoder(Encoder):
         maps = self.maps(detach_placement, matrices, translations)
         return level_grid_features(points, maps, table, self.layout, self.config.backend)
 
-    # The adaptive grids are APMGSRN's (same parameters, same maps): their feature density (SPEC section 3),
+    # The adaptive grids are APMGSRN's (same parameters, same maps): their feature density (docs/method.md §3),
     # its mean over the domain and the grids' boxes are computed the same way.
     feature_density = AdaptiveMultiGridEncoder.feature_density
     mean_feature_density = AdaptiveMultiGridEncoder.mean_feature_density
@@ -321,7 +321,7 @@ class HybridGridEncoder(Encoder):
     def prefers_ordered_batches(self) -> bool:
         # Measured on a 2-core EPYC (docs/models.md, "Time per iteration"): the small preset's 0.5 MB of
         # tables gain about what the sort costs (1.1 ms), the medium preset's 7 MB gain 7-10 ms a step.
-        return 4 * sum(p.numel() for p in (self.level_table, self.grids)) > ORDERED_BATCH_TABLE_BYTES
+        return 4 * sum(p.numel() for p in (self.level_table, self.grids)) > RUNTIME.ordered_batch_table_bytes
 
     def placement_parameters(self) -> list[nn.Parameter]:
         """The parameters the density loss moves (none without adaptive grids)."""

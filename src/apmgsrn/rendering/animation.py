@@ -15,9 +15,9 @@ import numpy as np
 from apmgsrn.arguments import check_int, check_number
 from apmgsrn.atomic import atomic_write, check_output_path
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render.camera import Camera
-from apmgsrn.render.images import as_uint8
-from apmgsrn.render.raymarch import VolumeRenderer
+from apmgsrn.rendering.camera import Camera
+from apmgsrn.rendering.images import as_uint8
+from apmgsrn.rendering.raymarch import VolumeRenderer
 
 ANIMATION_SUFFIXES = (".gif", ".mp4")
 #: Most frames of a turntable (a GIF holds them all in memory before writing).

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render.color_spaces import SUPPORTED_COLOR_SPACES, interpolate_colors
+from apmgsrn.rendering.color_spaces import SUPPORTED_COLOR_SPACES, interpolate_colors
 
 _SPACE_ALIASES = {name.lower(): name for name in SUPPORTED_COLOR_SPACES} | {"cielab": "Lab"}
 

@@ -20,8 +20,6 @@ import numpy as np
 _RGB_TO_XYZ = np.array([[0.4124, 0.3576, 0.1805], [0.2126, 0.7152, 0.0722], [0.0193, 0.1192, 0.9505]])
 _XYZ_TO_RGB = np.array([[3.2406, -1.5372, -0.4986], [-0.9689, 1.8758, 0.0415], [0.0557, -0.2040, 1.0570]])
 _WHITE = np.array([0.9505, 1.0, 1.089])
-_LAB_EPSILON = 0.008856  # where the cube root gives way to the linear segment
-_LAB_SLOPE = 7.787
 
 # ParaView's colour-space names, in the order of its enumeration (a preset may give the number).
 PARAVIEW_COLOR_SPACES = ("RGB", "HSV", "Lab", "Diverging", "Lab/CIEDE2000", "Step")
@@ -51,7 +49,8 @@ def rgb_to_lab(rgb: np.ndarray) -> np.ndarray:
         ``[..., 3]`` (L, a, b), L in [0, 100].
     """
     xyz = srgb_to_linear(rgb) @ _RGB_TO_XYZ.T / _WHITE
-    f = np.where(xyz > _LAB_EPSILON, np.cbrt(xyz), _LAB_SLOPE * xyz + 16.0 / 116.0)
+    # CIE: the cube root gives way to a line of slope 7.787 below 0.008856
+    f = np.where(xyz > 0.008856, np.cbrt(xyz), 7.787 * xyz + 16.0 / 116.0)
     lightness = 116.0 * f[..., 1] - 16.0
     return np.stack([lightness, 500.0 * (f[..., 0] - f[..., 1]), 200.0 * (f[..., 1] - f[..., 2])], axis=-1)
 
@@ -72,7 +71,7 @@ def lab_to_rgb(lab: np.ndarray) -> np.ndarray:
     fy = (lab[..., 0] + 16.0) / 116.0
     f = np.stack([lab[..., 1] / 500.0 + fy, fy, fy - lab[..., 2] / 200.0], axis=-1)
     cubed = f**3
-    xyz = np.where(cubed > _LAB_EPSILON, cubed, (f - 16.0 / 116.0) / _LAB_SLOPE) * _WHITE
+    xyz = np.where(cubed > 0.008856, cubed, (f - 16.0 / 116.0) / 7.787) * _WHITE  # the inverse of rgb_to_lab's
     rgb = linear_to_srgb(xyz @ _XYZ_TO_RGB.T)
     largest = rgb.max(axis=-1, keepdims=True)
     rgb = np.where(largest > 1.0, rgb / np.where(largest > 1.0, largest, 1.0), rgb)

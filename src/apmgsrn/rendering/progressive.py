@@ -1,4 +1,4 @@
-"""Progressive rendering: coarse-to-fine pixel order, a full image after every pass (SPEC section 7).
+"""Progressive rendering: coarse-to-fine pixel order, a full image after every pass (docs/method.md §7).
 
 Pass ``j`` renders the pixels on the lattice of stride ``strides[j]`` (rows and columns that are
 multiples of it) that no earlier pass rendered; with strides 8, 4, 2, 1 the passes hold 1/64, 3/64,
@@ -20,10 +20,8 @@ from typing import Iterator
 
 import torch
 
-from apmgsrn.render.camera import Camera
-from apmgsrn.render.raymarch import RenderStatistics, VolumeRenderer
-
-DEFAULT_STRIDES = (8, 4, 2, 1)
+from apmgsrn.rendering.camera import Camera
+from apmgsrn.rendering.raymarch import RenderStatistics, VolumeRenderer
 
 
 @dataclass
@@ -55,7 +53,7 @@ def check_strides(strides: tuple[int, ...]) -> None:
         raise ValueError(f"strides must decrease strictly to 1, got {strides}")
 
 
-def pass_pixels(width: int, height: int, strides: tuple[int, ...] = DEFAULT_STRIDES) -> list[torch.Tensor]:
+def pass_pixels(width: int, height: int, strides: tuple[int, ...] = (8, 4, 2, 1)) -> list[torch.Tensor]:
     """Linear pixel indices of each pass, in order (they partition the image).
 
     Args:
@@ -116,7 +114,7 @@ def upsample(image: torch.Tensor, stride: int) -> torch.Tensor:
 class ProgressiveRender:
     """The coarse-to-fine render of one view: the passes, the pixels rendered so far, the image after each."""
 
-    def __init__(self, renderer: VolumeRenderer, camera: Camera, strides: tuple[int, ...] = DEFAULT_STRIDES) -> None:
+    def __init__(self, renderer: VolumeRenderer, camera: Camera, strides: tuple[int, ...] = (8, 4, 2, 1)) -> None:
         """Args:
         renderer: the renderer (field, transfer function, settings).
         camera: the view and image size.
@@ -187,7 +185,7 @@ class ProgressiveRender:
 
 
 def render_progressive(
-    renderer: VolumeRenderer, camera: Camera, strides: tuple[int, ...] = DEFAULT_STRIDES
+    renderer: VolumeRenderer, camera: Camera, strides: tuple[int, ...] = (8, 4, 2, 1)
 ) -> Iterator[ProgressiveImage]:
     """Render coarse to fine, yielding the full upsampled image after each pass.
 

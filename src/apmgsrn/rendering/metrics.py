@@ -1,4 +1,4 @@
-"""Image metrics of a render against the reference render: PSNR and SSIM (SPEC section 8).
+"""Image metrics of a render against the reference render: PSNR and SSIM (docs/method.md §8).
 
 SSIM follows Wang et al. (2004): an 11 x 11 Gaussian window with sigma 1.5, K1 = 0.01, K2 = 0.03,
 population statistics, computed per colour channel over the window positions that fit inside the image

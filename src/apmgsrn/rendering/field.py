@@ -53,7 +53,7 @@ def evaluate_field(field: Field, points: torch.Tensor, batch_size: int) -> torch
 
 
 class VolumeField:
-    """Callable ``[N, 3] -> [N, 1]`` that trilinearly samples a dense volume (SPEC section 1's ground truth).
+    """Callable ``[N, 3] -> [N, 1]`` that trilinearly samples a dense volume (docs/method.md §1's ground truth).
 
     Attributes:
         volume: ``[D, H, W]`` float32 tensor on the field's device.

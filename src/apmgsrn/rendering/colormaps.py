@@ -17,8 +17,8 @@ import re
 import numpy as np
 
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render.paraview import PRESET_SUFFIXES, load_transfer_function
-from apmgsrn.render.transfer_function import ColorMap, TransferFunction, opacity_from_normalized
+from apmgsrn.rendering.paraview import PRESET_SUFFIXES, load_transfer_function
+from apmgsrn.rendering.transfer_function import ColorMap, TransferFunction, opacity_from_normalized
 
 # ParaView's default colour map ("Cool to Warm" preset): three nodes, Diverging space.
 COOL_TO_WARM = ColorMap(
@@ -98,16 +98,13 @@ def _from_matplotlib(name: str) -> ColorMap:
     return ColorMap(points=points, color_space="RGB", name=name, nan_color=(float(bad[0]), float(bad[1]), float(bad[2])))
 
 
-# Opacity used when none is given: a linear ramp over the range, transparent at the minimum.
-DEFAULT_OPACITY: tuple[tuple[float, float], ...] = ((0.0, 0.0), (1.0, 1.0))
-
-
 def make_transfer_function(
     colormap: str = "Cool to Warm",
     value_range: tuple[float, float] = (0.0, 1.0),
     opacity: tuple[tuple[float, float], ...] | None = None,
     preset_name: str | None = None,
     preset_units: str = "normalized",
+    default_opacity: tuple[tuple[float, float], ...] = ((0.0, 0.0), (1.0, 1.0)),
 ) -> TransferFunction:
     """A transfer function from a colour-map name or a ParaView preset file, over a value range.
 
@@ -117,10 +114,12 @@ def make_transfer_function(
         value_range: ``(min, max)`` in data units the map is stretched to (unless ``preset_units`` is
             ``"data"``).
         opacity: ``(position, alpha)`` pairs on [0, 1] of the final range; None keeps a preset's own
-            opacity, else uses ``DEFAULT_OPACITY``.
+            opacity, else uses ``default_opacity``.
         preset_name: which preset of a multi-preset file.
         preset_units: ``normalized`` (ParaView's default) or ``data`` (keep a preset's own node positions,
             as saved from a session); see ``paraview.apply_preset``.
+        default_opacity: the opacity of a built-in map, and of a preset that has none: a linear ramp over the
+            range, transparent at the minimum.
 
     Returns:
         The transfer function, nodes in data units.
@@ -130,13 +129,13 @@ def make_transfer_function(
         hi = lo + 1.0  # a constant volume: any non-empty range shows it
     if colormap.lower().endswith(PRESET_SUFFIXES):
         tf = load_transfer_function(
-            colormap, (lo, hi), name=preset_name, units=preset_units, default_opacity=DEFAULT_OPACITY
+            colormap, (lo, hi), name=preset_name, units=preset_units, default_opacity=default_opacity
         )
     else:
         color_map = builtin_colormap(colormap)
         tf = TransferFunction(
             color_map=color_map,
-            opacity_map=opacity_from_normalized(DEFAULT_OPACITY, color_map.span),
+            opacity_map=opacity_from_normalized(default_opacity, color_map.span),
             name=color_map.name,
         ).rescaled(lo, hi)
     if opacity is not None:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import torch
 
-from apmgsrn.render.bounds import intersect_box
+from apmgsrn.rendering.bounds import intersect_box
 
 
 def pixel_jitter(pixels: torch.Tensor, seed: int) -> torch.Tensor:

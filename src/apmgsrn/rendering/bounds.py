@@ -27,8 +27,8 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
-from apmgsrn.render.field import Field
-from apmgsrn.render.transfer_function import TransferTable
+from apmgsrn.rendering.field import Field
+from apmgsrn.rendering.transfer_function import TransferTable
 
 
 def intersect_box(

@@ -1,4 +1,4 @@
-"""The volume renderer: emission-absorption ray marching of any field through the volume's box (SPEC 7).
+"""The volume renderer: emission-absorption ray marching of any field through the volume's box (docs/method.md §7).
 
 A render composes the stages of the other modules: rays are clipped to the box and, with empty-space
 skipping, to the box around the macro cells the transfer function may show (``bounds``); their samples
@@ -22,13 +22,13 @@ import torch
 
 from apmgsrn.arguments import MAX_BATCH_SIZE, check_int, check_number
 from apmgsrn.errors import InvalidArgument
-from apmgsrn.render.bounds import Occupancy, ValueBounds
-from apmgsrn.render.camera import Camera
-from apmgsrn.render.compositing import FrontToBack, corrected_alpha
-from apmgsrn.render.field import Field, VolumeField, evaluate_field, field_device
-from apmgsrn.render.images import as_uint8
-from apmgsrn.render.sampling import RaySamples, sample_offsets
-from apmgsrn.render.transfer_function import TransferFunction, TransferTable
+from apmgsrn.rendering.bounds import Occupancy, ValueBounds
+from apmgsrn.rendering.camera import Camera
+from apmgsrn.rendering.compositing import FrontToBack, corrected_alpha
+from apmgsrn.rendering.field import Field, VolumeField, evaluate_field, field_device
+from apmgsrn.rendering.images import as_uint8
+from apmgsrn.rendering.sampling import RaySamples, sample_offsets
+from apmgsrn.rendering.transfer_function import TransferFunction, TransferTable
 from apmgsrn.threads import inference_governor
 
 #: Most samples per ray across the box (a 2^16-voxel axis), and macro cells per axis (their value bounds
@@ -110,7 +110,7 @@ class VolumeRenderer:
     """Renders a field ``[N, 3] -> [N, 1]`` with a transfer function from any camera.
 
     Holds the run state the config does not: the field, the baked transfer function, the value bounds
-    and the resulting macro-cell :class:`~apmgsrn.render.bounds.Occupancy` (redone by
+    and the resulting macro-cell :class:`~apmgsrn.rendering.bounds.Occupancy` (redone by
     :meth:`set_transfer_function`).
     """
 

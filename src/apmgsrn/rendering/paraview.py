@@ -46,8 +46,8 @@ from pathlib import Path
 from apmgsrn.atomic import atomic_write_text
 from apmgsrn.choices import PRESET_UNITS
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.render.color_spaces import PARAVIEW_COLOR_SPACES
-from apmgsrn.render.transfer_function import (
+from apmgsrn.rendering.color_spaces import PARAVIEW_COLOR_SPACES
+from apmgsrn.rendering.transfer_function import (
     ColorMap,
     OpacityMap,
     TransferFunction,
@@ -59,7 +59,6 @@ PRESET_SUFFIXES = (".json", ".xml")
 
 # ParaView's lookup-table defaults for what a preset leaves out.
 _DEFAULT_COLOR_SPACE = "Diverging"
-_DEFAULT_NAN_COLOR = (1.0, 1.0, 0.0)
 
 # A JSON string, or a comment / a comma right before a closing bracket: what ParaView's reader tolerates.
 # An unterminated string or block comment runs to the end of the text: matching it there (instead of failing
@@ -326,7 +325,7 @@ def _parse_entry(path: Path, index: int, entry: dict) -> ParaViewPreset:
             raise ApmgsrnError(f"{where}: RGBPoints colours must lie in [0, 1]; fix the file")
     if len(nodes) > 1 and nodes[0][0] == nodes[-1][0]:
         raise ApmgsrnError(f"{where}: all RGBPoints sit at {nodes[0][0]:g}; give nodes at two or more positions")
-    nan_values = _numbers(entry.get("NanColor", list(_DEFAULT_NAN_COLOR)), where, "NanColor")
+    nan_values = _numbers(entry.get("NanColor", [1.0, 1.0, 0.0]), where, "NanColor")  # ParaView's: yellow
     if len(nan_values) < 3:
         raise ApmgsrnError(f"{where}: NanColor must be r,g,b; fix the file")
     color_map = ColorMap(
