@@ -46,7 +46,7 @@ from apmgsrn.decomposition.coordinator import BrickProgress, train_bricks
 from apmgsrn.decomposition.executor import ExecutorConfig, open_job_queue
 from apmgsrn.decomposition.planner import DecompositionConfig
 from apmgsrn.inference.evaluate import evaluate, psnr_from_mse
-from apmgsrn.inference.slabs import SLAB_VOXELS
+from apmgsrn.recipes import RUNTIME
 from apmgsrn.inference.query import query
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config
@@ -93,7 +93,7 @@ def seam_errors(model, volume, counts_xyz) -> dict:
     shape = volume.shape
     sums = {(blend, part): [0.0, 0] for blend in (False, True) for part in ("border", "interior")}
     data_min, data_max = math.inf, -math.inf
-    for z, block in volume.iter_slabs(SLAB_VOXELS):
+    for z, block in volume.iter_slabs(RUNTIME.slab_voxels):
         points = voxel_coordinates(shape, z)
         mask = border_mask(shape, counts_xyz, z).reshape(-1)
         truth = block.reshape(-1).astype(np.float64)

@@ -6,7 +6,7 @@
 further at every step). It trains as ``apmgsrn train`` does on a series (a small model of the start step the
 data choose, 2,000 iterations x 32,768 points, half of each batch on voxels, one anchored grid, seed 0; every
 other step fine-tuned from its neighbour with the adaptive budget of
-:meth:`~apmgsrn.training.series_steps.StepwiseConfig.step_config`), with one difference: during each step's
+:meth:`~apmgsrn.series.steps.StepwiseConfig.step_config`), with one difference: during each step's
 fine-tune the feature-density loss moves that step's grid placement as well (from its first iteration, frozen
 at half of the fine-tune as for one volume), so every step has its own placement. The decoder stays shared.
 Not a product path: each step's network is measured (PSNR over every voxel, float32) as it is trained, and
@@ -25,13 +25,14 @@ import numpy as np
 import torch
 
 from apmgsrn.data.readers import SUPPORTED_SUFFIXES
-from apmgsrn.data.series import open_series
+from apmgsrn.series.data import open_series
 from apmgsrn.inference.evaluate import evaluate
 from apmgsrn.models.registry import preset_config
 from apmgsrn.training.fit import prepare_values, train_prepared
-from apmgsrn.training.series_steps import (STEPWISE_VOXEL_FRACTION, StepwiseConfig, change, change_factor,
+from apmgsrn.series.steps import (StepwiseConfig, change, change_factor,
                                            choose_start, step_order)
-from apmgsrn.training.trainer import SERIES_ANCHORED_GRIDS, TrainConfig, Trainer
+from apmgsrn.recipes import SERIES
+from apmgsrn.training.trainer import TrainConfig, Trainer
 
 
 def load_series_folder(folder: Path):
@@ -50,7 +51,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     data, prepared = load_series_folder(args.data)
-    config = TrainConfig(iterations=2000, voxel_fraction=STEPWISE_VOXEL_FRACTION, anchored_grids=SERIES_ANCHORED_GRIDS,
+    config = TrainConfig(iterations=2000, voxel_fraction=SERIES.voxel_fraction, anchored_grids=SERIES.anchored_grids,
                          seed=args.seed)
     began = time.perf_counter()
     start = choose_start(prepared.values, "auto")

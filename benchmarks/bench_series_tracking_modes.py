@@ -7,7 +7,7 @@
 on a series, a small model of the start step the data choose (2,000 iterations x 32,768 points, half of each
 batch on voxels, one anchored grid, seed 0; cached in ``DIR/start_K.pt``), then the first ``--steps`` other
 steps, each fine-tuned from its neighbour with the adaptive budget of
-:meth:`~apmgsrn.training.series_steps.StepwiseConfig.step_config`, the decoder frozen, in one of these ways:
+:meth:`~apmgsrn.series.steps.StepwiseConfig.step_config`, the decoder frozen, in one of these ways:
 
 - ``frozen``: the grids only (the placement stays the start model's);
 - ``register``: first 200 iterations moving the placement alone by the reconstruction error, then the grids;
@@ -42,9 +42,10 @@ from apmgsrn.models.registry import preset_config
 from apmgsrn.ops.multigrid import multigrid_features_reference
 from apmgsrn.training.fit import train_prepared
 from apmgsrn.training.points import draw_batch
-from apmgsrn.training.series_steps import (STEPWISE_VOXEL_FRACTION, StepwiseConfig, change, change_factor,
+from apmgsrn.series.steps import (StepwiseConfig, change, change_factor,
                                            choose_start, step_order)
-from apmgsrn.training.trainer import SERIES_ANCHORED_GRIDS, TrainConfig, Trainer
+from apmgsrn.recipes import SERIES
+from apmgsrn.training.trainer import TrainConfig, Trainer
 
 MODES = ("frozen", "register", "joint", "subset", "quarter", "density")
 PLACEMENT_LR = 0.002
@@ -62,7 +63,7 @@ def joint_fine_tune(field, values: torch.Tensor, iterations: int, lr: float, sub
         factor = 0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * iteration / iterations))
         for group, rate in zip(optimizer.param_groups, base):
             group["lr"] = rate * factor
-        points, target = draw_batch(values, 32768, STEPWISE_VOXEL_FRACTION, generator)
+        points, target = draw_batch(values, 32768, SERIES.voxel_fraction, generator)
         if subset:
             loss = (field.normalized(points, detach_placement=True).view(-1) - target).square().mean()
             features = multigrid_features_reference(points[:subset], encoder.matrices, encoder.translations,
@@ -108,10 +109,10 @@ def fine_tune(field, values: torch.Tensor, config: TrainConfig, mode: str, gener
 def time_fine_tunes(values: torch.Tensor, iterations: int, rounds: int = 3) -> None:
     """Print ms per trainer iteration of a step's fine-tune, grids only and with the placement following the
     error (fused kernel, then reference), interleaved over ``rounds`` rounds; the medians."""
-    from apmgsrn.training.series_steps import tracking_config
+    from apmgsrn.series.steps import tracking_config
 
-    config = StepwiseConfig().step_config(TrainConfig(iterations=2000, voxel_fraction=STEPWISE_VOXEL_FRACTION,
-                                                      anchored_grids=SERIES_ANCHORED_GRIDS))
+    config = StepwiseConfig().step_config(TrainConfig(iterations=2000, voxel_fraction=SERIES.voxel_fraction,
+                                                      anchored_grids=SERIES.anchored_grids))
     config = replace(config, iterations=iterations)
     cases = {"grids only": ("auto", config), "placement follows, fused": ("auto", tracking_config(config)),
              "placement follows, reference": ("torch", tracking_config(config))}
@@ -157,7 +158,7 @@ def main() -> None:
         return
     if args.mode is None:
         parser.error("--mode or --timing is required")
-    config = TrainConfig(iterations=2000, voxel_fraction=STEPWISE_VOXEL_FRACTION, anchored_grids=SERIES_ANCHORED_GRIDS)
+    config = TrainConfig(iterations=2000, voxel_fraction=SERIES.voxel_fraction, anchored_grids=SERIES.anchored_grids)
     start = choose_start(prepared.values, "auto")
     single = replace(prepared, values=prepared.values[start])
     cache = args.data / f"start_{start}.pt"

@@ -1,6 +1,6 @@
 """Warm-started steps for a time series: the measurement that chose stepwise training (issue 16), kept to
 reproduce docs/time_series.md "How stepwise training was found"; the product path is
-``apmgsrn.training.series_steps`` (``apmgsrn train`` on a series, ``bench_time_series.py series``).
+``apmgsrn.series.steps`` (``apmgsrn train`` on a series, ``bench_time_series.py series``).
 
     python benchmarks/bench_series_warm_start.py --csv benchmarks/results/series_warm_start.csv
     python benchmarks/bench_series_warm_start.py --start first --csv ...   # start from step 0 instead
@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from apmgsrn.data.series import open_series
+from apmgsrn.series.data import open_series
 from apmgsrn.inference.evaluate import evaluate
 from apmgsrn.io import codec
 from apmgsrn.io.quantization import quantize, steps_for_bits

@@ -29,10 +29,12 @@ import torch
 from apmgsrn.data import open_volume
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config, training_defaults
-from apmgsrn.training import points, series_steps, trainer
+from apmgsrn.series import steps as series_steps
+from apmgsrn.training import points, trainer
 from apmgsrn.training.fit import prepare_values
 from apmgsrn.training.optimizer import CpuAdam, pull_towards, pull_towards_reference
-from apmgsrn.training.series_steps import STEP_BATCH_SHARES, STEP_POINT_SHARES, PullTowardsStart, StepwiseConfig
+from apmgsrn.recipes import HYBRID
+from apmgsrn.series.steps import PullTowardsStart, StepwiseConfig
 from apmgsrn.training.trainer import TrainConfig, Trainer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -108,8 +110,8 @@ def main() -> None:
     volume = open_volume(args.volume)
     values = prepare_values(volume.to_numpy(), "none", 0.0, str(args.volume), torch.device("cpu")).values
     start = TrainConfig(iterations=2000, batch_size=32768, seed=0, **training_defaults("hybrid"))
-    step = StepwiseConfig().step_config(start, batch_share=STEP_BATCH_SHARES["hybrid"],
-                                        point_share=STEP_POINT_SHARES["hybrid"])
+    step = StepwiseConfig().step_config(start, batch_share=HYBRID.step_batch_share,
+                                        point_share=HYBRID.step_point_share)
     step = replace(step, iterations=args.iterations, density_start=args.iterations + 1)
     lines = [f"The updates alone (median of {args.rounds} rounds of 500 calls; 9,216 guided voxel points: the "
              "steps' batch times their voxel share)", "",

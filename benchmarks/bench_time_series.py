@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-from apmgsrn.bench.series import BETWEEN_POINTS, between_psnr
+from apmgsrn.bench.series import SeriesPlan, between_psnr
 
 ROOT = Path(__file__).resolve().parents[1]
 SERIES = ROOT.parent / "shared" / "data" / "viscous_fingers_run01"
@@ -163,7 +163,7 @@ def _series_files(folder: Path) -> list[Path]:
     orders them (``step_2`` before ``step_10``; a gap in the numbering is refused). Any other series ``train``
     reads (a glob, a ``.pvd``, a file with a time dimension) is measured by ``apmgsrn bench series``."""
     from apmgsrn.data.readers import SUPPORTED_SUFFIXES
-    from apmgsrn.data.series import order_by_step_number
+    from apmgsrn.series.data import order_by_step_number
 
     suffixes = {s for names in SUPPORTED_SUFFIXES.values() for s in names}
     files = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in suffixes)
@@ -173,13 +173,14 @@ def _series_files(folder: Path) -> list[Path]:
 def run_series(args: argparse.Namespace) -> None:
     """One time-series model for every step, through ``fit_series`` (the ``train`` command's pipeline)."""
     import apmgsrn
-    from apmgsrn.data.series import open_series
+    from apmgsrn.series.data import open_series
     from apmgsrn.models.registry import preset_config
-    from apmgsrn.models.series_field import series_config
-    from apmgsrn.training.series_fit import fit_series
-    from apmgsrn.training.series_packing import SeriesPacking, default_series_packing
-    from apmgsrn.training.series_steps import STEPWISE_VOXEL_FRACTION, StepwiseConfig, stepwise_config
-    from apmgsrn.training.trainer import SERIES_ANCHORED_GRIDS, series_budget
+    from apmgsrn.series.field import series_config
+    from apmgsrn.series.fit import fit_series
+    from apmgsrn.series.packing import SeriesPacking, default_series_packing
+    from apmgsrn.recipes import SERIES
+    from apmgsrn.series.steps import StepwiseConfig, stepwise_config
+    from apmgsrn.series.fit import series_budget
 
     series = open_series([str(p) for p in _series_files(args.data)])
     small = preset_config(args.kind, "small")
@@ -195,10 +196,10 @@ def run_series(args: argparse.Namespace) -> None:
                    else SeriesPacking(args.bits, min_bits=args.bits))
         if args.qat_iterations is not None:
             packing = replace(packing, qat_iterations=args.qat_iterations)
-        voxel_fraction = STEPWISE_VOXEL_FRACTION if args.voxel_fraction is None else args.voxel_fraction
+        voxel_fraction = SERIES.voxel_fraction if args.voxel_fraction is None else args.voxel_fraction
         anchored = args.anchored_grids
         if anchored is None:  # the hybrid's domain levels cover the domain: nothing to anchor
-            anchored = SERIES_ANCHORED_GRIDS if args.kind == "apmgsrn" else 0
+            anchored = SERIES.anchored_grids if args.kind == "apmgsrn" else 0
     else:
         iterations = args.series_iterations or series_budget(args.iterations, len(series))
         config = series_config(small, len(series), args.basis, args.coefficients, args.residual, args.storage)
@@ -417,7 +418,7 @@ def _between_section(kind: str) -> str:
                          f"{m[0] - o[0]:+.2f} / {m[1] - o[1]:+.2f} |")
     return f"""
 **Between the voxels too.** A renderer samples between the voxels, where a model is trained on the data's
-trilinear interpolation; there each model is measured at {BETWEEN_POINTS:,} points drawn uniformly in the domain
+trilinear interpolation; there each model is measured at {SeriesPlan.between_points:,} points drawn uniformly in the domain
 (the same for both models of a step) against that interpolation, over the step's value range
 (the `psnr_between` column of `{own_path.name}`, `{series_path.name}` and their `_seedN` siblings). Series minus own
 model: {min(g[0] for g in gaps):+.2f} .. {max(g[0] for g in gaps):+.2f} dB over the voxels,

@@ -15,7 +15,7 @@ from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config, training_defaults
 from apmgsrn.training.fit import prepare_values
 from apmgsrn.training.optimizer import CpuAdam, pull_towards, pull_towards_reference
-from apmgsrn.training.series_steps import PullTowardsStart
+from apmgsrn.series.steps import PullTowardsStart
 from apmgsrn.training.trainer import TrainConfig, Trainer
 
 HAS_COMPILER = bool(os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc"))
@@ -134,7 +134,7 @@ def test_a_real_step_fine_tune_with_the_kernels_is_the_pytorch_one_bit_for_bit(t
             p.requires_grad_(True)
         if reference:  # what ran before the kernels
             monkeypatch.setattr("apmgsrn.training.trainer.CpuAdam", torch.optim.Adam)
-            monkeypatch.setattr("apmgsrn.training.series_steps.pull_towards", pull_towards_reference)
+            monkeypatch.setattr("apmgsrn.series.steps.pull_towards", pull_towards_reference)
         Trainer(field, values, config, None, {}, [PullTowardsStart(features, 0.01)], warm=True).run()
         return field
 

@@ -1,4 +1,4 @@
-"""Packed time-series model files (io/packed_series.py, training/series_packing.py, ``apmgsrn pack`` of a series):
+"""Packed time-series model files (series/packed_file.py, series/packing.py, ``apmgsrn pack`` of a series):
 the ``time`` predictor, what is written loads back into exactly the field the packer measured, close steps code
 smaller along time, hostile files are one-line errors before anything large is allocated. Real data: the four
 consecutive viscous-fingering steps of tests/data, fitted by a short loop here (every step's own grids, started
@@ -15,21 +15,22 @@ import torch
 
 import apmgsrn
 from apmgsrn.cli.main import main
-from apmgsrn.data.series import open_series
+from apmgsrn.series.data import open_series
 from apmgsrn.errors import ApmgsrnError, InvalidArgument
-from apmgsrn.inference.evaluate import evaluate_series
-from apmgsrn.io import SeriesStepInfo, SourceInfo, codec, model_kind, open_model, save_field, save_series
+from apmgsrn.io import SeriesStepInfo, SourceInfo, codec, model_kind, open_model, save_field
 from apmgsrn.io.container import PACKED_SERIES_KIND, check_replaceable, file_bytes
 from apmgsrn.io.packed import encode_quantized, payload_file_bytes, read_payload_file
 from apmgsrn.io.quantization import quantize
-from apmgsrn.io.series_file import declared_steps
-from apmgsrn.models import series_field as series_module
+from apmgsrn.series.file import declared_steps
+from apmgsrn.series.evaluate import evaluate_series
+from apmgsrn.series.file import save_series
+from apmgsrn.series import field as series_module
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config
-from apmgsrn.models.series_field import SeriesConfig, SeriesField, SeriesFieldConfig
+from apmgsrn.series.field import SeriesConfig, SeriesField, SeriesFieldConfig
 from apmgsrn.ops.trilinear import sample_volume
 from apmgsrn.training.packing import group_means
-from apmgsrn.training.series_packing import (
+from apmgsrn.series.packing import (
     pack_series,
     packed_series_field,
     parameter_budget,
@@ -380,7 +381,7 @@ def test_pack_options_that_do_not_apply_to_a_series_exit_2(field, pattern, tmp_p
 def hybrid_series(pattern) -> SeriesField:
     """A stepwise series of tiny hybrid models of the four real steps (about 37 dB)."""
     from apmgsrn.training.fit import prepare_values
-    from apmgsrn.training.series_steps import StepwiseConfig, stepwise_config, train_stepwise
+    from apmgsrn.series.steps import StepwiseConfig, stepwise_config, train_stepwise
     from apmgsrn.training.trainer import TrainConfig
 
     prepared = prepare_values(open_series(pattern).to_numpy(), "none", 0.0, "viscous fingers", torch.device("cpu"))
@@ -426,7 +427,7 @@ def test_steps_that_follow_the_output_lose_less_than_uniform_ones_in_about_the_s
     """Sensitivity-allocated shared steps: finer where an element moves the output more (the coarse levels of
     the table, whose entries each reach many voxels), the same mean log2 step as the uniform ones of the bit
     width, and on the real steps a smaller PSNR cost for about the same bytes."""
-    from apmgsrn.training.series_packing import series_sensitivity, slice_group
+    from apmgsrn.series.packing import series_sensitivity, slice_group
 
     field, truth = hybrid_series, open_series(pattern)
     sensitivity = series_sensitivity(field)
@@ -458,7 +459,7 @@ def test_the_sensitivity_of_some_parameters_is_theirs_among_all(hybrid_series):
     placement then takes no gradient, so the level tables' backward runs through the fused kernel where it can,
     and its sums match the autograd reference's."""
     from apmgsrn.training.packing import parameter_sensitivity
-    from apmgsrn.training.series_packing import SHARED_STEP_TENSORS
+    from apmgsrn.series.packing import SHARED_STEP_TENSORS
 
     step = hybrid_series.step_field(2)
     before = [p.requires_grad for p in step.parameters()]
@@ -475,7 +476,7 @@ def test_a_size_search_codes_its_trials_with_the_first_ones_predictors_and_keeps
     """``pack_series(predictors=...)`` codes a tensor with those predictors only (never smaller than the best of
     all); a size target's search takes its trials that way and codes the width it keeps with every predictor
     again: the packing kept is the unrestricted one of its width, and fits."""
-    from apmgsrn.training.series_packing import SeriesPacking, chosen_predictors, parameter_budget
+    from apmgsrn.series.packing import SeriesPacking, chosen_predictors, parameter_budget
 
     field = hybrid_series
     sensitivity = series_sensitivity(field)
@@ -500,8 +501,8 @@ def test_a_size_search_takes_the_finest_sixteenth_of_a_bit_that_fits_in_few_tria
     """Targets between two whole widths (near either end or the middle, far below the top): the width kept
     fits, the next sixteenth of a bit does not, and the search coded fewer trials than a bisection of the
     lattice would (the 96 sixteenths from 4 bits to 10 take it 7; besides the top and the width kept)."""
-    from apmgsrn.training import series_packing
-    from apmgsrn.training.series_packing import SeriesPacking, parameter_budget
+    from apmgsrn.series import packing as series_packing
+    from apmgsrn.series.packing import SeriesPacking, parameter_budget
 
     field = hybrid_series
     sensitivity = series_sensitivity(field)
@@ -524,7 +525,7 @@ def test_a_size_search_takes_the_finest_sixteenth_of_a_bit_that_fits_in_few_tria
 
 def test_a_size_search_where_not_even_the_fewest_bits_fit(hybrid_series):
     """Strict: one line naming what the fewest bits take; otherwise packed at the fewest bits anyway."""
-    from apmgsrn.training.series_packing import SeriesPacking
+    from apmgsrn.series.packing import SeriesPacking
 
     field = hybrid_series
     fewest = pack_series(field, 5, series_sensitivity(field))
@@ -535,7 +536,7 @@ def test_a_size_search_where_not_even_the_fewest_bits_fit(hybrid_series):
 
 
 def shared_steps_of(field, name):
-    from apmgsrn.training.series_packing import slice_group
+    from apmgsrn.series.packing import slice_group
 
     values = dict(field.named_parameters())[name].detach().numpy()
     return shared_steps(values, 10, slice_group(field.config.field.model, name, values.shape))
@@ -548,8 +549,8 @@ def test_the_default_packing_is_sized_by_the_stored_single_step_file_and_keeps_a
     import math
 
     from apmgsrn.models.registry import stored_bytes
-    from apmgsrn.training.series_packing import default_series_packing
-    from apmgsrn.training.series_steps import stepwise_config
+    from apmgsrn.series.packing import default_series_packing
+    from apmgsrn.series.steps import stepwise_config
 
     shape = (64, 64, 64)
     for kind, lowest in (("apmgsrn", 6), ("hybrid", 7)):

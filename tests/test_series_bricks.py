@@ -14,19 +14,19 @@ import pytest
 import torch
 
 import apmgsrn
-from apmgsrn.data.series import open_series
+from apmgsrn.series.data import open_series
 from apmgsrn.decomposition.executor import DaskJobQueue
 from apmgsrn.decomposition.planner import DecompositionConfig, plan_bricks
-from apmgsrn.decomposition.series_bricks import step_groups, train_series_bricks
+from apmgsrn.series.bricks import step_groups, train_series_bricks
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.inference.decode import decode_array
 from apmgsrn.inference.evaluate import evaluate
 from apmgsrn.io import model_kind
 from apmgsrn.io.brick_folder import brick_file_name
 from apmgsrn.models.registry import preset_config
-from apmgsrn.models.series_field import SeriesConfig, SeriesFieldConfig
-from apmgsrn.training.series_packing import SeriesPacking
-from apmgsrn.training.series_steps import StepwiseConfig, stepwise_config
+from apmgsrn.series.field import SeriesConfig, SeriesFieldConfig
+from apmgsrn.series.packing import SeriesPacking
+from apmgsrn.series.steps import StepwiseConfig, stepwise_config
 from apmgsrn.training.trainer import TrainConfig
 
 pytest.importorskip("distributed")

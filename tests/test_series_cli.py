@@ -21,15 +21,15 @@ import apmgsrn
 from apmgsrn.choices import default_model
 from apmgsrn.cli.main import main
 from apmgsrn.data import open_volume
-from apmgsrn.data.series import open_series
+from apmgsrn.series.data import open_series
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.inference.decode import decode_array
 from apmgsrn.inference.evaluate import evaluate
 from apmgsrn.models.registry import preset_config, stored_bytes, training_defaults
 from apmgsrn.recipes import HYBRID, SERIES
-from apmgsrn.training.series_fit import fit_series
-from apmgsrn.training.series_packing import default_series_packing
-from apmgsrn.training.series_steps import StepwiseConfig, step_shares, stepwise_config
+from apmgsrn.series.fit import fit_series
+from apmgsrn.series.packing import default_series_packing
+from apmgsrn.series.steps import StepwiseConfig, step_shares, stepwise_config
 from apmgsrn.training.trainer import TrainConfig
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -104,7 +104,7 @@ def test_decode_one_step_every_step_to_one_file_and_one_file_each(series_model, 
     np.testing.assert_array_equal(np.load(tmp_path / "two.npy"), expected[2])
 
     assert main(["decode", str(series_model), "--time", "all", "--out", str(tmp_path / "all.nc")]) == 0
-    every = open_series(tmp_path / "all.nc", time=apmgsrn.data.series.parse_time("all"))
+    every = open_series(tmp_path / "all.nc", time=apmgsrn.series.data.parse_time("all"))
     assert len(every) == 4
     for t in range(4):
         np.testing.assert_array_equal(every.read(t), expected[t])
@@ -331,7 +331,7 @@ def test_ctrl_c_in_the_fine_tune_towards_the_packing_resumes_to_the_same_model(p
                                                                                 monkeypatch):
     """Ctrl-C after every step is trained, in the fine-tune towards the packing: the steps' checkpoint stays, the
     command says how to go on (exit 130), and --resume packs the same file as a run never interrupted."""
-    from apmgsrn.training import series_qat
+    from apmgsrn.series import qat as series_qat
 
     # a tiny hybrid (what is checked is where the run stops and how it resumes, not how well it fits)
     command = ["train", pattern, *FAST, "--iterations", "60", "--levels", "6", "--log2-table-size", "10", "--grids",

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from apmgsrn.data import open_volume
-from apmgsrn.data.series import TimeSelection, is_series_input, open_series, order_by_step_number, parse_time
+from apmgsrn.series.data import TimeSelection, is_series_input, open_series, order_by_step_number, parse_time
 from apmgsrn.data.writers import VolumeWriter
 from apmgsrn.errors import ApmgsrnError
 

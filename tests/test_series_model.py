@@ -13,15 +13,15 @@ import torch
 from safetensors.torch import load_file, save_file
 
 import apmgsrn
-from apmgsrn.data.series import open_series
+from apmgsrn.series.data import open_series
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.inference.decode import decode_array
-from apmgsrn.inference.evaluate import evaluate, evaluate_series
-from apmgsrn.io import SeriesStepInfo, SourceInfo, load_field, save_field, save_series
-from apmgsrn.models import series_field as series_module
+from apmgsrn.inference.evaluate import evaluate
+from apmgsrn.io import SeriesStepInfo, SourceInfo, load_field, save_field
+from apmgsrn.series import field as series_module
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config
-from apmgsrn.models.series_field import (
+from apmgsrn.series.field import (
     SeriesConfig,
     SeriesField,
     SeriesFieldConfig,
@@ -30,7 +30,9 @@ from apmgsrn.models.series_field import (
     time_position,
 )
 from apmgsrn.training.fit import prepare_values, train_prepared
-from apmgsrn.training.series_fit import fit_series
+from apmgsrn.series.fit import fit_series
+from apmgsrn.series.evaluate import evaluate_series
+from apmgsrn.series.file import save_series
 from apmgsrn.training.trainer import TrainConfig
 
 pytestmark = pytest.mark.usefixtures("one_thread")

@@ -1,4 +1,4 @@
-"""The quantisation-aware fine-tune of a stepwise series (training/series_qat.py): every step's grids trained
+"""The quantisation-aware fine-tune of a stepwise series (series/qat.py): every step's grids trained
 towards the steps the packed file rounds them to, on the real viscous-finger steps in tests/data."""
 
 from __future__ import annotations
@@ -15,15 +15,15 @@ import torch
 
 import apmgsrn
 from apmgsrn.cli.main import main
-from apmgsrn.data.series import open_series
+from apmgsrn.series.data import open_series
 from apmgsrn.errors import ApmgsrnError, InvalidArgument
-from apmgsrn.inference.evaluate import evaluate_series
 from apmgsrn.models.registry import preset_config, training_defaults
 from apmgsrn.recipes import HYBRID, PACKING, SERIES
 from apmgsrn.training.fit import prepare_values
-from apmgsrn.training.series_decoder import fine_tune_decoder
-from apmgsrn.training.series_fit import fit_series
-from apmgsrn.training.series_packing import (
+from apmgsrn.series.decoder import fine_tune_decoder
+from apmgsrn.series.fit import fit_series
+from apmgsrn.series.evaluate import evaluate_series
+from apmgsrn.series.packing import (
     SeriesPacking,
     default_series_decoder,
     default_series_qat,
@@ -32,14 +32,14 @@ from apmgsrn.training.series_packing import (
     parameter_budget,
     series_sensitivity,
 )
-from apmgsrn.training.series_qat import (
+from apmgsrn.series.qat import (
     RoundedForward,
     element_steps,
     fine_tune_rounded,
     qat_lanes,
     stored_train_config,
 )
-from apmgsrn.training.series_steps import StepwiseConfig, step_voxel_fraction, stepwise_config, train_stepwise
+from apmgsrn.series.steps import StepwiseConfig, step_voxel_fraction, stepwise_config, train_stepwise
 from apmgsrn.training.trainer import TrainConfig
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -137,7 +137,7 @@ def test_a_quantisation_aware_fine_tune_lowers_what_packing_costs_on_the_real_st
 def test_the_fine_tune_towards_the_packing_draws_its_points_as_the_steps_do(hybrid_series, prepared, monkeypatch):
     """Every step's fine-tune towards the packing draws as many of its points between the voxels as the steps'
     own fine-tunes (half the start model's share), for the iterations asked."""
-    from apmgsrn.training import series_qat
+    from apmgsrn.series import qat as series_qat
 
     seen = []
 
@@ -190,7 +190,7 @@ def test_repack_undoes_the_fine_tune_of_as_few_steps_as_make_the_file_fit(hybrid
     their values from before the fine-tune back until the file fits: here a "fine-tune" that moved the table
     entries of steps 1 and 3 by one or two quantisation steps each (decorrelating them along time), so those are
     the ones restored, not all of them; on the same quantisation steps, the field left holding what was packed."""
-    from apmgsrn.training.series_packing import step_tensors
+    from apmgsrn.series.packing import step_tensors
 
     to_tune = SeriesPacking(6, min_bits=6).pack(hybrid_series)
     tuned = copy.deepcopy(hybrid_series)
@@ -277,7 +277,7 @@ def test_train_fine_tunes_towards_the_packing_as_long_as_the_room_allows(pattern
                                                                         iterations):
     """``train`` runs the fine-tune for the iterations :meth:`SeriesPacking.tune_iterations` gives (none for 0),
     records them and counts them."""
-    from apmgsrn.training import series_qat
+    from apmgsrn.series import qat as series_qat
 
     monkeypatch.setattr(SeriesPacking, "tune_iterations", lambda self, packed, steps: iterations)
     calls = []
@@ -332,7 +332,7 @@ def test_a_long_series_shortens_its_fine_tune_towards_the_packing_with_its_steps
     """The quantisation-aware fine-tune shares the steps' budget: where the budget is short, fitting the series
     (what ``train`` runs) shortens both by one share, their measurements of where they are wrong with them, and the
     file records the iterations that ran."""
-    from apmgsrn.training import series_qat
+    from apmgsrn.series import qat as series_qat
 
     seen = {}
 
@@ -367,7 +367,7 @@ def test_a_long_series_shortens_its_fine_tune_towards_the_packing_with_its_steps
 def test_a_packed_series_counts_its_packing_and_fine_tune_in_its_training_time(pattern, tmp_path, capsys, monkeypatch):
     """``train`` waits for the packing search and the fine-tune towards it, so the time it reports counts them:
     here a clock that jumps 1,000 s between their start and end."""
-    from apmgsrn.training import fit as fit_module
+    from apmgsrn.series import fit as fit_module  # the packing is timed in the series fit
 
     clock = iter([0.0, 1000.0])
     monkeypatch.setattr(fit_module, "time", types.SimpleNamespace(perf_counter=lambda: next(clock)))
@@ -558,7 +558,7 @@ def test_train_fine_tunes_the_decoder_to_the_coded_grids_and_counts_it(pattern, 
     ``--decoder-iterations N`` sets how long and 0 turns it off; the file records the iterations kept (none where
     the decoder was put back) and ``info`` names them, the training counts them, and the series fits its steps
     closer in about the same bytes."""
-    from apmgsrn.training import series_qat
+    from apmgsrn.series import qat as series_qat
 
     calls = []
 
@@ -613,8 +613,8 @@ def test_a_series_whose_target_holds_every_step_coded_alone_is_trained_unpulled(
     grids at its bit width with nothing taken from the neighbour (a few steps of the small hybrid within five
     single-step files), ``budgeted`` trains the steps unpulled; a longer series keeps the model kind's pull, a
     pull asked for is kept, and a float series (no target) is left as it is."""
-    from apmgsrn.training.series_packing import SHARED_STEP_TENSORS, default_series_packing
-    from apmgsrn.training.series_qat import budgeted
+    from apmgsrn.series.packing import SHARED_STEP_TENSORS, default_series_packing
+    from apmgsrn.series.qat import budgeted
 
     shape = (64, 64, 64)
 

@@ -13,15 +13,15 @@ import numpy as np
 import pytest
 import torch
 
-from apmgsrn.data.series import open_series
+from apmgsrn.series.data import open_series
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.inference.evaluate import evaluate
 from apmgsrn.io.container import read_header
 from apmgsrn.models.registry import preset_config
 from apmgsrn.recipes import HYBRID, SERIES
-from apmgsrn.training import series_steps
+from apmgsrn.series import steps as series_steps
 from apmgsrn.training.fit import prepare_values, train_prepared
-from apmgsrn.training.series_steps import (
+from apmgsrn.series.steps import (
     STEPS_CHECKPOINT_KIND,
     StepwiseConfig,
     choose_start,
@@ -171,7 +171,7 @@ def test_a_long_series_shortens_every_step_to_stay_within_the_budget():
     39 and 99 alike, by the same share, both fine-tunes and their measurements with them; a fine-tune towards the
     packing too long for the budget gets the least share; steps that change much keep their extra share;
     iterations a caller set are kept."""
-    from apmgsrn.training.series_packing import series_growth
+    from apmgsrn.series.packing import series_growth
 
     share_steps = SERIES.share_steps
 
@@ -368,7 +368,7 @@ def test_a_checkpoint_of_other_data_or_tampered_is_refused(prepared, tmp_path, m
 
 
 def test_a_config_without_grids_per_step_is_refused(prepared):
-    from apmgsrn.models.series_field import series_config
+    from apmgsrn.series.field import series_config
 
     with pytest.raises(ApmgsrnError, match="one grid set per step"):
         train_stepwise(prepared, series_config(TINY, 4, basis=2), TRAIN, (32, 32, 32), show_progress=False)
@@ -495,7 +495,7 @@ def test_a_warm_trainer_leaves_a_trained_hybrid_where_it_is(prepared):
 
 
 def test_a_hybrid_series_must_have_its_own_tables_per_step():
-    from apmgsrn.models.series_field import SeriesConfig, SeriesFieldConfig, series_config
+    from apmgsrn.series.field import SeriesConfig, SeriesFieldConfig, series_config
 
     with pytest.raises(ValueError, match="one grid set and placement per step"):
         series_config(TINY_HYBRID, 4, basis=2)
@@ -508,7 +508,7 @@ def test_a_pull_towards_the_neighbour_keeps_entries_unchanged_and_packs_the_step
     """``step_sparsity``: every step's tables are pulled back to its neighbour's while it is fine-tuned, so (pulled
     hard) many entries keep the neighbour's value exactly where Adam alone moves nearly all of them, the packed
     file is smaller, and every step still fits its own data better than its neighbour's tables do."""
-    from apmgsrn.training.series_packing import pack_series
+    from apmgsrn.series.packing import pack_series
 
     def trained(sparsity):
         return train_stepwise(prepared, stepwise_config(TINY_HYBRID, 4), HYBRID_TRAIN, (32, 32, 32),
@@ -536,7 +536,7 @@ def test_a_pull_towards_the_neighbour_keeps_entries_unchanged_and_packs_the_step
 def test_a_longer_fine_tune_is_pulled_less_in_proportion():
     """The pull's strength over a whole fine-tune stays that of a step that changes little: up to step_even_below
     times the base it is the configured one, past it weaker by the ratio of their iterations."""
-    from apmgsrn.training.series_steps import step_pull
+    from apmgsrn.series.steps import step_pull
 
     most = round(SERIES.step_even_below * 480)
     assert step_pull(0.01, 480, 480) == step_pull(0.01, 100, 480) == step_pull(0.01, most, 480) == 0.01

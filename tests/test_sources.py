@@ -86,9 +86,10 @@ def test_user_errors_name_the_file(tmp_path):
 def test_a_series_placed_per_step_shows_each_steps_own_grids(tmp_path):
     """A stepwise series whose steps placed their grids apart: the source at a step carries that step's grid
     boxes (what the viewer's overlay and render draw), not step 0's."""
-    from apmgsrn.io import SeriesStepInfo, SourceInfo, save_series
+    from apmgsrn.io import SeriesStepInfo, SourceInfo
+    from apmgsrn.series.file import save_series
     from apmgsrn.models.registry import preset_config
-    from apmgsrn.models.series_field import SeriesConfig, SeriesField, SeriesFieldConfig
+    from apmgsrn.series.field import SeriesConfig, SeriesField, SeriesFieldConfig
 
     config = SeriesFieldConfig(preset_config("apmgsrn", "small", grids=3, resolution=(4, 4, 4), width=8),
                                SeriesConfig(3, 3, "keyframes", placement="per_step"))

@@ -79,7 +79,7 @@ def test_the_trainer_fits_the_batch_the_option_draws(channel):
 
 
 def test_a_series_draws_each_group_on_its_own_step(channel):
-    from apmgsrn.models.series_field import SeriesConfig, SeriesField, SeriesFieldConfig
+    from apmgsrn.series.field import SeriesConfig, SeriesField, SeriesFieldConfig
 
     series = torch.stack([channel, 1 - channel, channel.flip(0)])  # [T, D, H, W]
     tiny = preset_config("apmgsrn", "small", grids=2, resolution=(4, 4, 4))
@@ -411,7 +411,7 @@ def test_error_guided_fine_tune_of_a_neighbour_fits_a_real_step_better(test_data
     fits the next step better in the same iterations than drawing them uniformly (the series' step fine-tune):
     47.1 against 46.3 dB here. (From a start fitted worse, 41 dB after 150 iterations, the guide loses 0.6 dB:
     it pays where the error is where the data changed, not everywhere.)"""
-    from apmgsrn.data.series import open_series
+    from apmgsrn.series.data import open_series
     from apmgsrn.inference.evaluate import evaluate
 
     from apmgsrn.training.fit import build_field, prepare_values

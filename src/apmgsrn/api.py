@@ -22,16 +22,16 @@ import torch
 from torch import nn
 
 import apmgsrn.decomposition.brick_model  # noqa: F401 - registers the brick-model loader
-import apmgsrn.decomposition.series_bricks  # noqa: F401 - registers the time-series brick-model loader
+import apmgsrn.series  # noqa: F401 - registers the time-series loaders (files, brick folders)
 from apmgsrn.data import ArrayVolume, Volume, open_volume
 from apmgsrn.data.grid import AxisCoordinates, Region, VolumeMetadata, plain_attributes
-from apmgsrn.data.series import parse_time
+from apmgsrn.series.data import parse_time
 from apmgsrn.device import inference_dtype, resolve_device
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.export import export_onnx
 from apmgsrn.inference.decode import decode_array, decode_volume
 from apmgsrn.inference.query import query
-from apmgsrn.io import ModelDescription, SourceInfo, open_model, save_field, save_series
+from apmgsrn.io import ModelDescription, SourceInfo, open_model, save_field
 from apmgsrn.io.container import SERIES_FILE_KINDS, check_replaceable
 from apmgsrn.io.decode_plan import DecodePlan, plan_decode
 from apmgsrn.io.description import check_time
@@ -47,7 +47,8 @@ from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.fit import fit as fit_prepared
 from apmgsrn.training.fit import prepare_values
 from apmgsrn.training.packing import pack_volume_model
-from apmgsrn.training.series_fit import fit_series
+from apmgsrn.series.file import save_series
+from apmgsrn.series.fit import fit_series
 
 
 class Model(nn.Module):
@@ -319,7 +320,7 @@ def fit(data, preset: str = "small", model: str | None = None, iterations: int |
         if resolved.packing is not None:
             training = {"iterations": result.iterations, "batch_size": resolved.training.batch_size,
                         "seconds": round(result.seconds, 3), "frozen_at": result.frozen_at,
-                        "stopped_early": result.stopped_early, "device": resolved.device, "plan": resolved.record()}
+                        "stopped_early": result.stopped_early, "device": resolved.device}  # a packed file keeps no plan
             pack_volume_model(result.field, volume, resolved.packing, training, target, out,
                               log=print if progress else (lambda line: None))
 

@@ -65,13 +65,13 @@ DENSITY_NORMALIZATIONS = ("mass", "batch")
 #: Precisions of the decoder's hidden layers in training (:class:`apmgsrn.training.trainer.TrainConfig`).
 DECODER_PRECISIONS = ("auto", "float32", "bfloat16")
 
-#: How the basis weights of a time-series step are set (:class:`apmgsrn.models.series_field.SeriesConfig`).
+#: How the basis weights of a time-series step are set (:class:`apmgsrn.series.field.SeriesConfig`).
 SERIES_COEFFICIENTS = ("learned", "keyframes", "cumulative")
 
 #: Dtypes a time-series model stores its feature grids in: float16 halves the file for a rounding far below
 #: the fit's errors.
 SERIES_STORAGE = ("float32", "float16")
-#: How ``train`` fits a time series (apmgsrn.training.series_fit).
+#: How ``train`` fits a time series (apmgsrn.series.fit).
 SERIES_TRAINING = ("stepwise", "joint")
 
 #: How a ParaView preset's node positions are read (:func:`apmgsrn.rendering.paraview.apply_preset`).

@@ -44,7 +44,7 @@ DEVICE = "device"
 
 def time_value(text: str):
     """``--time``: an index, ``all`` or ``A:B[:S]`` (argparse type; a bad value is a usage error)."""
-    from apmgsrn.data.series import parse_time
+    from apmgsrn.series.data import parse_time
 
     try:
         return parse_time(text)

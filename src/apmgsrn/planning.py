@@ -20,22 +20,23 @@ import torch
 from apmgsrn import recipes
 from apmgsrn.choices import default_model
 from apmgsrn.data import Volume, open_volume, parse_shape
-from apmgsrn.data.series import TimeSelection, VolumeSeries, is_series_input, open_series
+from apmgsrn.series.data import TimeSelection, VolumeSeries, is_series_input, open_series
 from apmgsrn.decomposition.planner import DecompositionConfig
 from apmgsrn.device import resolve_device
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.models.registry import preset_config, training_defaults
-from apmgsrn.models.series_field import series_config
+from apmgsrn.series.field import series_config
 from apmgsrn.options import TrainOptions
 from apmgsrn.training.packing import PackConfig, anchored_grids_for, config_for_bytes
-from apmgsrn.training.series_packing import (
+from apmgsrn.series.packing import (
     SeriesPacking,
     default_series_decoder,
     default_series_packing,
     default_series_qat,
 )
-from apmgsrn.training.series_steps import StepwiseConfig, stepwise_config
-from apmgsrn.training.trainer import TrainConfig, default_budget, series_budget
+from apmgsrn.series.fit import series_budget
+from apmgsrn.series.steps import StepwiseConfig, stepwise_config
+from apmgsrn.training.trainer import TrainConfig, default_budget
 
 #: The packing options: a model is packed when any of them is given.
 PACK_OPTIONS = ("bits", "psnr_loss", "size", "ratio", "max_error", "qat_iterations")
@@ -63,12 +64,12 @@ class Plan:
         device: where training runs.
         model: the model kind.
         field: the model's config (a :class:`~apmgsrn.models.registry.FieldConfig`, or for a series a
-            :class:`~apmgsrn.models.series_field.SeriesFieldConfig`).
+            :class:`~apmgsrn.series.field.SeriesFieldConfig`).
         training: the start model's training (:class:`~apmgsrn.training.trainer.TrainConfig`).
         transform, log_offset: the value transform before fitting.
         stepwise: how a stepwise series trains its other steps (None otherwise).
         packing: how the file is packed (:class:`~apmgsrn.training.packing.PackConfig` for a volume,
-            :class:`~apmgsrn.training.series_packing.SeriesPacking` for a series; None: a float file).
+            :class:`~apmgsrn.series.packing.SeriesPacking` for a series; None: a float file).
         bricks: the domain decomposition (None: one model).
         workers, scheduler, retries, group_steps: how bricks are run (with ``bricks``).
         source: the opened volume or series (not part of the plan's value).
@@ -231,7 +232,7 @@ def series_packing(options, raw_bytes: int) -> SeriesPacking | None:
 
 
 def _volume_options(options: TrainOptions) -> dict:
-    """Keyword arguments of :func:`~apmgsrn.data.open_volume` / :func:`~apmgsrn.data.series.open_series`."""
+    """Keyword arguments of :func:`~apmgsrn.data.open_volume` / :func:`~apmgsrn.series.data.open_series`."""
     shape = options.shape
     return {"variable": options.variable, "time": options.time,
             "shape": parse_shape(shape) if isinstance(shape, str) else (tuple(shape) if shape else None),

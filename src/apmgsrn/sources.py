@@ -71,7 +71,7 @@ class RenderSource:
         grid_boxes: ``[M, 8, 3]`` corners of the learned feature grids, field coordinates, or None.
         brick_boxes: ``[B, 8, 3]`` corners of the bricks' routing regions, or None.
         histogram: ``[bins]`` log(1 + count) over ``value_range``, the largest 1; empty unless asked for.
-        series: the :class:`~apmgsrn.models.series_field.SeriesField` of a time-series model, else None;
+        series: the :class:`~apmgsrn.series.field.SeriesField` of a time-series model, else None;
             ``field`` is then its step ``step``, materialised (see :meth:`at_step`).
         step: the step shown of a time-series model.
         step_labels: the number of every step of a time-series model (empty otherwise).

@@ -22,7 +22,7 @@ process. Two measures, both here so that training, decoding, evaluation and rend
 And where work comes in independent pieces that release the GIL (the LZMA coding of a packed file's
 parameters), :func:`map_in_threads` runs them side by side on as many Python threads as the process may use
 (:func:`work_threads`: torch's count, so a process told to use one core keeps to one; a series' quantisation-aware
-fine-tune runs its steps so too, :func:`apmgsrn.training.series_qat.qat_lanes`).
+fine-tune runs its steps so too, :func:`apmgsrn.series.qat.qat_lanes`).
 
 Importing this module does not import torch (``import apmgsrn`` stays light); the governor imports it
 when used.

@@ -121,7 +121,7 @@ class SeriesStepRow:
     model's.
 
     Attributes:
-        dataset: the series (:meth:`~apmgsrn.data.series.VolumeSeries.describe`).
+        dataset: the series (:meth:`~apmgsrn.series.data.VolumeSeries.describe`).
         model, preset, seed, iterations, batch_size: what was trained (the series' start model's budget).
         method: ``series`` or ``own``.
         step: the step's index in the series.

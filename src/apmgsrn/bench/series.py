@@ -49,7 +49,7 @@ from apmgsrn.inference.evaluate import psnr_from_mse
 from apmgsrn.inference.query import query
 from apmgsrn.ops.trilinear import sample_volume
 from apmgsrn.training.fit import fit_volume
-from apmgsrn.training.series_fit import fit_series
+from apmgsrn.series.fit import fit_series
 
 #: The criteria's bounds: the series file within this many own-model files, its training within this many
 #: times one step's.
@@ -64,7 +64,7 @@ class SeriesPlan:
     Attributes:
         data: the series, as :func:`apmgsrn.fit` takes it (files, a glob, a ``.pvd``, or one file with ``time``).
         variable, time, shape, dtype, fill_nonfinite: how to read it (as
-            :func:`apmgsrn.data.series.open_series`).
+            :func:`apmgsrn.series.data.open_series`).
         model, preset: the model kind (None: the default) and size preset of the series and the own models.
         iterations, batch_size: the budget of an own model, and of the series' start model.
         seeds: every model is trained with seeds ``0 .. seeds - 1``.

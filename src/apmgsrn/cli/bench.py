@@ -136,7 +136,7 @@ def compress_paths(args: argparse.Namespace) -> CommandPaths:
 
 def series_paths(args: argparse.Namespace) -> CommandPaths:
     """The series' files are read; the results folder written."""
-    from apmgsrn.data.series import input_files
+    from apmgsrn.series.data import input_files
 
     return CommandPaths(reads=input_files(args.data), writes=[Output(args.out, "--out", "results folder")])
 

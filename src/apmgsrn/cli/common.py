@@ -16,7 +16,7 @@ def add_data_arguments(parser: argparse.ArgumentParser) -> None:
 
 def volume_options(args: argparse.Namespace, allow_series: bool = False) -> dict:
     """Keyword arguments of :func:`apmgsrn.data.open_volume` (or, with ``allow_series``,
-    :func:`apmgsrn.data.series.open_series`) from the data options of ``args``.
+    :func:`apmgsrn.series.data.open_series`) from the data options of ``args``.
 
     Raises:
         ApmgsrnError: ``--time all`` or ``A:B`` where one volume is read.

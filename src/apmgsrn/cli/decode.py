@@ -53,7 +53,7 @@ def paths(args: argparse.Namespace) -> CommandPaths:
 
 def run(args: argparse.Namespace) -> int:
     from apmgsrn.data.grid import Region
-    from apmgsrn.data.series import TimeSelection
+    from apmgsrn.series.data import TimeSelection
     from apmgsrn.data.writers import check_axes_writable
     from apmgsrn.io.description import time_steps
 

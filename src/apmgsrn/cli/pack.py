@@ -116,24 +116,24 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
     """``apmgsrn pack`` of a time-series model: every grid at ``--bits`` (or the largest bit width that fits
     ``--size`` / ``--ratio``), with ``--qat-iterations`` every step of a stepwise series fine-tuned towards its
     packed grids first, then, as ``train`` packs it, the shared decoder fine-tuned to the grids as coded
-    (``--decoder-iterations``, by default :func:`~apmgsrn.training.series_packing.default_series_decoder`; both from
+    (``--decoder-iterations``, by default :func:`~apmgsrn.series.packing.default_series_decoder`; both from
     the training settings the file recorded), the PSNR cost measured on every step of its series (per step in the
     file, which ``info`` shows).
 
     Imports nothing of :mod:`apmgsrn.cli.series`, which imports this module (the packing options).
     """
-    from apmgsrn.data.series import open_series
-    from apmgsrn.inference.evaluate import evaluate_series
+    from apmgsrn.series.data import open_series
+    from apmgsrn.series.evaluate import evaluate_series
     from apmgsrn.training.packing import fitted_values
-    from apmgsrn.training.series_decoder import fine_tune_decoder
-    from apmgsrn.training.series_packing import (
+    from apmgsrn.series.decoder import fine_tune_decoder
+    from apmgsrn.series.packing import (
         SeriesPacking,
         packed_series_field,
         series_packing_report,
         write_packed_series,
     )
     from apmgsrn.planning import joint_series_qat, series_packing
-    from apmgsrn.training.series_qat import fine_tune_rounded, stored_train_config
+    from apmgsrn.series.qat import fine_tune_rounded, stored_train_config
 
     layout = model.description.series
     series = open_series(args.data, **volume_options(args, allow_series=True))
@@ -207,7 +207,7 @@ def _decoder_iterations(args: argparse.Namespace, model, field) -> int:
     """The decoder fine-tune of ``pack`` of a series ``model`` (its loaded ``field``): ``--decoder-iterations``,
     else what ``train`` gives a stepwise series of its kind from the iterations the file recorded (none for a joint
     series or a file that records no settings)."""
-    from apmgsrn.training.series_packing import default_series_decoder
+    from apmgsrn.series.packing import default_series_decoder
 
     if args.decoder_iterations is not None:
         if args.decoder_iterations < 0:

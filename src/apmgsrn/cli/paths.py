@@ -51,6 +51,7 @@ def check_paths(paths: CommandPaths) -> None:
     """
     if not paths.writes:
         return
+    import apmgsrn.series  # noqa: F401 - registers the time-series kinds, so model_kind knows them
     from apmgsrn.io import model_kind  # reads a header only; torch comes with it, so not at start-up
 
     reads = [Path(p) for p in paths.reads if p is not None]

@@ -1,9 +1,9 @@
 """Time series on the command line: the options and runs of ``train``, ``eval``, ``decode`` and ``info`` for a
 series (several files, a quoted glob, a ``.pvd`` collection, or one file with ``--time all|A:B[:S]``).
 
-Wiring only: the series is read by :mod:`apmgsrn.data.series`, modelled by
-:mod:`apmgsrn.models.series_field`, fitted by :func:`apmgsrn.training.fit.fit_series` and measured by
-:func:`apmgsrn.inference.evaluate.evaluate_series`.
+Wiring only: the series is read by :mod:`apmgsrn.series.data`, modelled by
+:mod:`apmgsrn.series.field`, fitted by :func:`apmgsrn.training.fit.fit_series` and measured by
+:func:`apmgsrn.series.evaluate.evaluate_series`.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ STEPWISE_OPTIONS = ("start_step", "step_iterations", "step_sparsity", "decoder_i
 
 def is_series(args: argparse.Namespace) -> bool:
     """Whether the command's DATA names a series rather than one volume."""
-    from apmgsrn.data.series import is_series_input
+    from apmgsrn.series.data import is_series_input
 
     return is_series_input(args.data, getattr(args, "time", None))
 
@@ -54,7 +54,7 @@ def single_input(args: argparse.Namespace) -> str:
 
 def open_series_data(args: argparse.Namespace):
     """The series DATA names, with the data options of ``args``."""
-    from apmgsrn.data.series import open_series
+    from apmgsrn.series.data import open_series
 
     options = volume_options(args, allow_series=True)
     return open_series(args.data, **options)
@@ -64,7 +64,7 @@ def run_series_train(args: argparse.Namespace, plan) -> int:
     """``apmgsrn train`` on a series: one model for every step, as the plan (:mod:`apmgsrn.planning`) says."""
     import torch
 
-    from apmgsrn.training.series_fit import fit_series
+    from apmgsrn.series.fit import fit_series
     from apmgsrn.training.trainer import TrainingInterrupted
 
     series, packing = plan.source, plan.packing
@@ -114,7 +114,7 @@ def run_series_train(args: argparse.Namespace, plan) -> int:
         print(f"training    {result.iterations} iterations in {result.seconds:.1f} s "
               f"({summary['ms_per_iteration']:.1f} ms/iteration), grids frozen at {result.frozen_at}")
     if summary.get("over_target"):
-        from apmgsrn.training.series_packing import series_growth
+        from apmgsrn.series.packing import series_growth
 
         over = summary["over_target"]
         files = PACKING.series_models * series_growth(len(series))
@@ -181,7 +181,7 @@ def print_evaluation(evaluation, labels) -> None:
 
 def run_series_eval(args: argparse.Namespace, model) -> int:
     """``apmgsrn eval`` of a time-series model against its series."""
-    from apmgsrn.inference.evaluate import evaluate_series
+    from apmgsrn.series.evaluate import evaluate_series
 
     layout = model.description.series
     series = open_series_data(args)
@@ -217,7 +217,7 @@ def model_step(model, time, option: str = "--time") -> int:
 
 def selected_steps(model, time) -> list[int]:
     """Step indices of ``--time``: one index, ``all`` or ``A:B[:S]`` over the model's steps."""
-    from apmgsrn.data.series import TimeSelection
+    from apmgsrn.series.data import TimeSelection
 
     if isinstance(time, TimeSelection):
         return list(time.indices(len(model.description.series.steps), "model"))
@@ -235,7 +235,7 @@ def run_series_decode(args: argparse.Namespace, model, shape, region) -> int:
         region: the box to decode, or None (all of it).
     """
     from apmgsrn.cli.paths import CommandPaths, Output, check_paths
-    from apmgsrn.inference.decode import decode_series
+    from apmgsrn.series.decode import decode_series
 
     layout = model.description.series
     indices = selected_steps(model, args.time)
@@ -331,7 +331,7 @@ def render_steps(args: argparse.Namespace) -> tuple[dict, int | None, list[int]]
         0) or, with several steps, ``steps`` lists the frames of an animation over time; for anything else
         ``--time`` stays a volume option (one index along a time dimension) and there are no steps.
     """
-    from apmgsrn.data.series import TimeSelection
+    from apmgsrn.series.data import TimeSelection  # the series package: model_kind then knows its kinds
     from apmgsrn.io import model_kind
     from apmgsrn.io.container import SERIES_FILE_KINDS
 
@@ -340,7 +340,7 @@ def render_steps(args: argparse.Namespace) -> tuple[dict, int | None, list[int]]
     options = volume_options(argparse.Namespace(**{**vars(args), "time": None}))
     if not isinstance(args.time, TimeSelection):
         return options, args.time, []
-    from apmgsrn.io.series_file import declared_steps
+    from apmgsrn.series.file import declared_steps
 
     steps = list(args.time.indices(declared_steps(args.input), args.input))
     return options, steps[0], (steps if len(steps) > 1 else [])

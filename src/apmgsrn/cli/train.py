@@ -47,7 +47,7 @@ def register(subparsers) -> None:
 def paths(args: argparse.Namespace) -> CommandPaths:
     """The volume (or every file of a series) is read; the model (and, for one model, its training checkpoint
     ``MODEL.ckpt``) written."""
-    from apmgsrn.data.series import input_files
+    from apmgsrn.series.data import input_files
 
     if args.out is None:
         if not args.dry_run:
@@ -146,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
     if packing is not None:
         training = {"iterations": result.iterations, "batch_size": train_config.batch_size,
                     "seconds": round(result.seconds, 3), "frozen_at": result.frozen_at,
-                    "stopped_early": result.stopped_early, "device": str(device), "plan": plan.record()}
+                    "stopped_early": result.stopped_early, "device": str(device)}  # a packed file keeps no plan
         from apmgsrn.training.packing import pack_volume_model
 
         packed = pack_volume_model(result.field, volume, packing, training, device, out,

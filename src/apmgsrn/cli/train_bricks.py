@@ -76,7 +76,7 @@ def run_series_bricks(args: argparse.Namespace, plan) -> int:
     stepwise from the group's own start step (packed) unless ``--series-training joint``."""
     from apmgsrn.decomposition.coordinator import BrickProgress
     from apmgsrn.decomposition.executor import ExecutorConfig, open_job_queue
-    from apmgsrn.decomposition.series_bricks import step_groups, train_series_bricks
+    from apmgsrn.series.bricks import step_groups, train_series_bricks
 
     counts = plan.bricks.bricks
     series = plan.source  # opened by absolute paths: workers reopen the steps

@@ -11,12 +11,8 @@ from __future__ import annotations
 
 import hashlib
 import os
-from typing import TYPE_CHECKING
 
 from apmgsrn.data.volume import Volume
-
-if TYPE_CHECKING:
-    from apmgsrn.data.series import VolumeSeries
 
 #: Blocks per axis and their side in voxels: 27 blocks of at most 16^3 values (about 110,000 in all).
 BLOCKS_PER_AXIS, BLOCK_SIDE = 3, 16
@@ -45,19 +41,6 @@ def volume_fingerprint(volume: Volume) -> dict:
         "dtype": str(volume.dtype),
         "sample_sha256": digest.hexdigest(),
     }
-
-
-def series_fingerprint(series: VolumeSeries) -> dict:
-    """A JSON-able identity of every step of a series (:func:`volume_fingerprint` of each, in order).
-
-    Returns:
-        ``{"steps": [fingerprint of step 0, ...]}``.
-    """
-    steps = []
-    for index in range(len(series)):
-        with series.volume(index) as volume:
-            steps.append(volume_fingerprint(volume))
-    return {"steps": steps}
 
 
 def _block_slices(length: int) -> list[slice]:

@@ -14,7 +14,7 @@ import torch
 from apmgsrn.decomposition.bricked_field import BrickedField
 from apmgsrn.decomposition.planner import Brick, BrickPlan, DecompositionConfig, plan_bricks
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.io import BrickLayout, ModelDescription, SeriesLayout, SourceInfo, load_field, load_series, register_loader
+from apmgsrn.io import BrickLayout, ModelDescription, SeriesLayout, SourceInfo, file_loader, register_loader
 from apmgsrn.io.brick_folder import (
     BRICKS_KIND,
     brick_file_name,
@@ -25,9 +25,6 @@ from apmgsrn.io.brick_folder import (
     read_manifest,
 )
 from apmgsrn.io.field_file import FIELD_KIND
-from apmgsrn.io.packed_series import load_packed_series
-from apmgsrn.io.series_file import PACKED_SERIES_KIND, SERIES_KIND
-from apmgsrn.models.series_field import SeriesFieldConfig
 
 
 def plan_from_manifest(manifest: dict) -> BrickPlan:
@@ -38,7 +35,7 @@ def plan_from_manifest(manifest: dict) -> BrickPlan:
 
 
 def missing_bricks(directory: Path, plan: BrickPlan, kind: str = FIELD_KIND) -> list[Brick]:
-    """Bricks without a readable model file (of ``kind``: ``field``, or ``series`` for a time series) in
+    """Bricks without a readable model file (of ``kind``: ``field``, or a time series' kind) in
     ``directory``."""
     return [b for b in plan.bricks if not brick_file_ready(Path(directory) / brick_file_name(b.name), kind)]
 
@@ -74,8 +71,9 @@ class LoadedBricks:
         plan: the brick grid.
         layout: the typed brick entries.
         fields: one network per brick in flat-index order (series fields for a time series).
-        kind: the kind of every brick file (``field`` or ``series``).
+        kind: the kind of every brick file (``field``, or a time series' kind).
         file_bytes: bytes of the manifest and every brick file.
+        config: the spatial field config of the bricks (as their files describe it).
     """
 
     directory: Path
@@ -85,6 +83,7 @@ class LoadedBricks:
     fields: list
     kind: str
     file_bytes: int
+    config: object = None
 
 
 def load_bricks(directory: Path, device: torch.device) -> LoadedBricks:
@@ -112,8 +111,8 @@ def load_bricks(directory: Path, device: torch.device) -> LoadedBricks:
             f"{directory}: brick model is unfinished ({state}); run the same brick training again to finish it"
         )
     layout = brick_layout(manifest)
-    load = {SERIES_KIND: load_series, PACKED_SERIES_KIND: load_packed_series}.get(kind, load_field)
-    fields = []
+    load = file_loader(kind)  # every brick file is of the manifest's kind (registered by its package)
+    fields, config = [], None
     total_bytes = manifest_path(directory).stat().st_size
     for brick, entry in zip(plan.bricks, layout.entries):
         if entry.name != brick.name or entry.start != brick.start or entry.stop != brick.stop:
@@ -134,8 +133,9 @@ def load_bricks(directory: Path, device: torch.device) -> LoadedBricks:
         ):
             raise ApmgsrnError(f"{brick_path}: not the model of {brick.name}; re-train the model")
         fields.append(field)
+        config = description.config if config is None else config
         total_bytes += description.file_bytes
-    return LoadedBricks(directory, manifest, plan, layout, fields, kind, total_bytes)
+    return LoadedBricks(directory, manifest, plan, layout, fields, kind, total_bytes, config)
 
 
 def brick_description(bricks: LoadedBricks, parameters: int, series: SeriesLayout | None = None) -> ModelDescription:
@@ -144,10 +144,9 @@ def brick_description(bricks: LoadedBricks, parameters: int, series: SeriesLayou
     value_range = manifest.get("value_range") or [min(f.value_min for f in fields), max(f.value_max for f in fields)]
     if not all(math.isfinite(v) for v in value_range):
         raise ApmgsrnError(f"{manifest_path(bricks.directory)}: value range is not finite; re-train the model")
-    config = fields[0].config
     return ModelDescription(
         kind=BRICKS_KIND,
-        config=config.field if isinstance(config, SeriesFieldConfig) else config,
+        config=bricks.config,
         volume_shape=tuple(manifest["volume_shape"]),
         value_range=(float(value_range[0]), float(value_range[1])),
         transform=fields[0].transform.kind,

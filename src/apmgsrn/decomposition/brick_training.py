@@ -18,21 +18,47 @@ import numpy as np
 import torch
 
 from apmgsrn.data import open_volume
+from apmgsrn.data.fingerprint import volume_fingerprint
 from apmgsrn.data.memory_map import MemoryMappedVolume
 from apmgsrn.data.readers import SUPPORTED_SUFFIXES
 from apmgsrn.decomposition.executor import BRICK_RESOURCE
 from apmgsrn.decomposition.planner import Brick
 from apmgsrn.device import resolve_device
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.data.series import VolumeSeries
-from apmgsrn.io import SeriesStepInfo, SourceInfo
+from apmgsrn.io import SourceInfo
+from apmgsrn.io.field_file import FIELD_KIND
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.recipes import BRICKS
 from apmgsrn.training.fit import fit, prepare_values
-from apmgsrn.training.series_packing import SeriesPacking
-from apmgsrn.training.series_qat import budgeted
-from apmgsrn.training.series_steps import StepwiseConfig, series_trainer
 from apmgsrn.training.trainer import TrainConfig
+
+
+class VolumeBricks:
+    """The kind of a brick job of one volume: what the bricks' models are, how a brick's box is read and fitted,
+    what a rerun must match. Data of another kind brings its own subclass, carried by :attr:`BrickJob.kind` (a
+    time series: :class:`apmgsrn.series.bricks.SeriesBricks`, every brick a time-series model of its box over
+    the steps); instances travel to the workers, so they must pickle (module-level classes, plain fields).
+    """
+
+    #: The kind of every brick's model file (the manifest's ``brick_kind``).
+    file_kind: str = FIELD_KIND
+
+    def settings(self) -> dict:
+        """Entries the run's settings (:func:`~apmgsrn.decomposition.coordinator.training_settings`) start
+        with: what else decides the bricks' models."""
+        return {}
+
+    def fingerprint(self, volume) -> dict:
+        """What identifies the data (a rerun must continue on the same)."""
+        return volume_fingerprint(volume)
+
+    def read(self, volume, brick: Brick) -> np.ndarray:
+        """The brick's box of ``volume``, float32 ``[d, h, w]`` (:func:`read_brick`)."""
+        return read_brick(volume, brick)
+
+    def fit_options(self, job: BrickJob, region: np.ndarray, device: torch.device) -> dict:
+        """More keyword arguments of :func:`~apmgsrn.training.fit.fit` for this brick (``train=``, ``output=``)."""
+        return {}
 
 
 @dataclass(frozen=True)
@@ -41,10 +67,11 @@ class BrickJob:
 
     Attributes:
         volume: the :class:`apmgsrn.data.Volume` (pickles as a recipe; the file must be readable on the
-            worker under the same path), or a :class:`VolumeRecipe` for readers that do not pickle, or a
-            :class:`~apmgsrn.data.series.VolumeSeries` (its steps' files, opened by the worker one at a time).
+            worker under the same path), or a :class:`VolumeRecipe` for readers that do not pickle, or what
+            ``kind`` reads (a :class:`~apmgsrn.series.data.VolumeSeries`: its steps' files, opened by the worker
+            one at a time).
         brick: which box to read and fit.
-        field_config: the model to build for the brick (a series config when ``volume`` is a series).
+        field_config: the model to build for the brick (a series config for the bricks of a series).
         train_config: how to train it (its ``seed`` is already the brick's own: run seed + brick index).
         model_path: the brick's model file (written atomically when done).
         transform: value transform kind (fitted on the brick's own values).
@@ -56,9 +83,8 @@ class BrickJob:
         psnr_voxels: measure the brick's PSNR on a regular subset of about this many voxels (None: all
             of them); for very large bricks on slow devices, where the full pass would cost more than
             the training.
-        stepwise: a time series trained step by step (its ``field_config`` one grid set per step); None: one
-            joint model of the steps.
-        packing: a stepwise series' packed file (None: float32).
+        kind: what the bricks are (None: a :class:`VolumeBricks`; a time series:
+            :class:`apmgsrn.series.bricks.SeriesBricks`, which says how its steps train and pack).
     """
 
     volume: object
@@ -72,8 +98,11 @@ class BrickJob:
     threads: int | None = None
     source: SourceInfo = SourceInfo()
     psnr_voxels: int | None = None
-    stepwise: StepwiseConfig | None = None
-    packing: SeriesPacking | None = None
+    kind: VolumeBricks | None = None
+
+    @property
+    def job_kind(self) -> VolumeBricks:
+        return VolumeBricks() if self.kind is None else self.kind
 
 
 @dataclass(frozen=True)
@@ -207,12 +236,9 @@ def read_brick(volume, brick: Brick, slab_bytes: int = 16 << 20) -> np.ndarray:
         slab_bytes: bytes of mapped rows per slab of a memory-mapped (raw, .npy) volume.
 
     Returns:
-        float32 ``[d, h, w]`` (``[T, d, h, w]`` for a :class:`~apmgsrn.data.series.VolumeSeries`).
+        float32 ``[d, h, w]``.
     """
     z, y, x = brick.slices()
-    if isinstance(volume, VolumeSeries):
-        # A time series: the box of every step, one step's file open at a time.
-        return np.stack([volume.read(t, z, y, x) for t in range(len(volume))])  # [T, d, h, w]
     if not isinstance(volume, MemoryMappedVolume):
         region = volume.read(z, y, x)
         volume.close()
@@ -251,7 +277,7 @@ def train_brick(job: BrickJob) -> BrickResult:
         elif device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
         volume = job.volume.open() if isinstance(job.volume, VolumeRecipe) else job.volume
-        region = read_brick(volume, brick)  # [d, h, w] ([T, d, h, w] for a series) float32: this brick only
+        region = job.job_kind.read(volume, brick)  # [d, h, w] ([T, d, h, w] for a series) float32: this brick only
         return _fit_region(job, region, device, worker, volume.path)
     except ApmgsrnError as exc:
         return BrickResult(brick.name, brick.index, ok=False, message=str(exc), worker=worker)
@@ -269,19 +295,10 @@ def _fit_region(job: BrickJob, region: np.ndarray, device: torch.device, worker:
            "start": list(brick.start), "stop": list(brick.stop)}
     fingerprint = {"brick": brick.name, "box": [list(brick.start), list(brick.stop)],
                    "source": job.source.to_dict(), "field": job.field_config.to_dict()}
-    steps = None
-    if isinstance(job.volume, VolumeSeries):  # each step's number, file and value range in the brick's box
-        steps = [SeriesStepInfo(label, job.volume.step_name(t), (float(region[t].min()), float(region[t].max())))
-                 for t, label in enumerate(job.volume.labels)]
-    # A series trained stepwise: its steps' fine-tunes and the one towards the packing share one budget.
-    stepwise, packing, tune_packed, tune_decoder = budgeted(job.stepwise, job.packing, job.train_config,
-                                                            region.shape[0], job.field_config, region.shape[1:],
-                                                            device, show_progress=False)
     # A brick always resumes its own checkpoint: the job may be a retry after a crash.
     result = fit(prepared, region, job.field_config, job.train_config, Path(job.model_path), job.source,
-                 fingerprint, resume=True, psnr_voxels=job.psnr_voxels, summary_extra={"brick": box}, steps=steps,
-                 train=series_trainer(stepwise, show_progress=False), packing=packing, tune_packed=tune_packed,
-                 tune_decoder=tune_decoder)
+                 fingerprint, resume=True, psnr_voxels=job.psnr_voxels, summary_extra={"brick": box},
+                 **job.job_kind.fit_options(job, region, device))
     peak_device = int(torch.cuda.max_memory_allocated(device)) if device.type == "cuda" else 0
     return BrickResult(
         name=brick.name,

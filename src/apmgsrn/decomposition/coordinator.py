@@ -16,12 +16,11 @@ from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TextIO
 
-from apmgsrn.data.fingerprint import series_fingerprint, volume_fingerprint
-from apmgsrn.data.series import VolumeSeries
 from apmgsrn.decomposition.brick_model import missing_bricks
 from apmgsrn.decomposition.brick_training import (
     BrickJob,
     BrickResult,
+    VolumeBricks,
     brick_policy,
     brick_train_config,
     peak_rss_bytes,
@@ -41,12 +40,9 @@ from apmgsrn.io.brick_folder import (
     read_manifest,
     write_manifest,
 )
-from apmgsrn.io.series_file import PACKED_SERIES_KIND, SERIES_KIND
+from apmgsrn.io.field_file import FIELD_KIND
 from apmgsrn.models.registry import FieldConfig
-from apmgsrn.models.series_field import SeriesFieldConfig
 from apmgsrn.progress import Progress
-from apmgsrn.training.series_packing import SeriesPacking
-from apmgsrn.training.series_steps import StepwiseConfig
 from apmgsrn.training.trainer import TrainConfig, as_json, current_names
 
 
@@ -158,14 +154,12 @@ def missing_names(summary: BrickTrainingSummary) -> list[str]:
 
 
 def training_settings(volume, plan: BrickPlan, field_config: FieldConfig, train_config: TrainConfig,
-                      transform: str, log_offset: float, stepwise: StepwiseConfig | None = None,
-                      packing: SeriesPacking | None = None) -> dict:
-    """Everything that decides the bricks' models; a rerun must match it to reuse finished bricks."""
+                      transform: str, log_offset: float, kind: VolumeBricks | None = None) -> dict:
+    """Everything that decides the bricks' models (``kind``: what the bricks are, its own settings first); a
+    rerun must match it to reuse finished bricks."""
     steps = getattr(volume, "steps", None)  # a series: every step's file and time index
-    series_training = {} if stepwise is None else {  # absent for the runs before stepwise bricks
-        "stepwise": stepwise.settings(), "packing": None if packing is None else packing.settings()}
     return as_json({
-        **series_training,
+        **(kind or VolumeBricks()).settings(),
         "volume": {"path": Path(str(volume.path)).name, "variable": volume.variable,
                    "time": getattr(volume, "time", None), "shape": list(volume.shape),
                    **({"steps": [s.name() for s in steps]} if steps is not None else {})},
@@ -272,9 +266,8 @@ def train_bricks(
 
     Args:
         volume: a :class:`apmgsrn.data.Volume`; only its recipe is sent to the jobs, each of which reads its
-            own brick. File-backed volumes must be readable under the same path on every worker. A
-            :class:`~apmgsrn.data.series.VolumeSeries` makes every brick a time-series model of its box over
-            every step (``field_config`` then a :class:`~apmgsrn.models.series_field.SeriesFieldConfig`).
+            own brick. File-backed volumes must be readable under the same path on every worker. (A time
+            series on bricks: :func:`apmgsrn.series.bricks.train_series_bricks`.)
         decomposition: brick counts (x, y, z), ghost cells and the blend flag saved with the model.
         field_config: the model of every brick.
         train_config: how to train every brick, through :func:`~apmgsrn.decomposition.brick_training.brick_policy`
@@ -315,10 +308,9 @@ class BrickRun:
 
 def open_brick_run(volume, decomposition: DecompositionConfig, field_config, train_config: TrainConfig, out: Path,
                    transform: str, log_offset: float, device: str, threads: int | None,
-                   psnr_voxels: int | None, stepwise: StepwiseConfig | None = None,
-                   packing: SeriesPacking | None = None) -> BrickRun:
+                   psnr_voxels: int | None, kind: VolumeBricks | None = None) -> BrickRun:
     """Plan the bricks, prepare the folder and its manifest, and make a job for every missing brick
-    (``stepwise``, ``packing``: a time series trained step by step, see :class:`BrickJob`).
+    (``kind``: what the bricks are, :attr:`BrickJob.kind`; None: one volume's).
 
     Raises:
         ApmgsrnError: the folder holds another model, or the bricks do not fit the volume.
@@ -326,16 +318,17 @@ def open_brick_run(volume, decomposition: DecompositionConfig, field_config, tra
     plan = plan_bricks(volume.shape, decomposition, str(volume.path))
     source = SourceInfo.of_volume(volume)
     train_config = brick_policy(train_config)
-    settings = training_settings(volume, plan, field_config, train_config, transform, log_offset, stepwise, packing)
-    data = as_json(series_fingerprint(volume) if isinstance(volume, VolumeSeries) else volume_fingerprint(volume))
+    job_kind = kind or VolumeBricks()
+    settings = training_settings(volume, plan, field_config, train_config, transform, log_offset, job_kind)
+    data = as_json(job_kind.fingerprint(volume))
     manifest = _prepare_directory(out, settings, data) or new_manifest(
         plan.volume_shape, plan.counts, plan.config.ghost_cells, decomposition.blend, plan.bricks, settings, source
     )
     manifest["data"] = data
     manifest["blend"] = decomposition.blend
     manifest["complete"] = False
-    if isinstance(field_config, SeriesFieldConfig):
-        manifest["brick_kind"] = SERIES_KIND if packing is None else PACKED_SERIES_KIND
+    if job_kind.file_kind != FIELD_KIND:
+        manifest["brick_kind"] = job_kind.file_kind
     write_manifest(out, manifest)
     todo = missing_bricks(out, plan, brick_kind(manifest))
     todo_names = {b.name for b in todo}
@@ -353,8 +346,7 @@ def open_brick_run(volume, decomposition: DecompositionConfig, field_config, tra
             threads=threads,
             source=source.crop(brick.start, brick.stop),  # the brick file describes its own voxels
             psnr_voxels=psnr_voxels,
-            stepwise=stepwise,
-            packing=packing,
+            kind=kind,
         )
         for brick in todo
     ]

@@ -1,5 +1,5 @@
-"""Reconstruct a volume (or the steps of a time-series model) from a field, slab by slab, at its own or another
-resolution, whole or a region."""
+"""Reconstruct a volume from a field, slab by slab, at its own or another resolution, whole or a region (the steps
+of a time-series model: :mod:`apmgsrn.series.decode`)."""
 
 from __future__ import annotations
 
@@ -37,39 +37,13 @@ def decode_volume(field, out: Path, shape: tuple[int, int, int], batch_size: int
     """
     with VolumeWriter(out, shape, **writer_options) as writer, \
             Progress(math.prod(shape), unit="voxel", description="decode", enabled=progress) as shown:
-        _write_field(writer, field, shape, None, shown, batch_size, slab_voxels, box)
+        write_field(writer, field, shape, None, shown, batch_size, slab_voxels, box)
 
 
-def decode_series(step_field, out: Path, shape: tuple[int, int, int], indices, time_values=None,
-                  batch_size: int = RUNTIME.query_batch, slab_voxels: int = RUNTIME.slab_voxels, progress: bool = False,
-                  box: Box | None = None, **writer_options) -> None:
-    """Write several steps of a time-series model to one file with a leading time dimension.
-
-    One step's field is materialised at a time and written slab by slab; the file appears atomically when
-    every step is complete.
-
-    Args:
-        step_field: ``step index -> field`` (``[N, 3] -> [N, 1]`` in data units).
-        out: the file to write (.nc with dims ``(time, z, y, x)``, or .raw/.npy with the steps in order).
-        shape: ``(D, H, W)`` of every step.
-        indices: the steps to write, in order.
-        time_values: the NetCDF ``time`` coordinate of those steps (default: their indices).
-        batch_size: points per forward pass.
-        slab_voxels: voxels per slab.
-        progress: show progress (see :mod:`apmgsrn.progress`).
-        box: the lattice spans this box of ``[-1, 1]^3`` (default: all of it).
-        writer_options: as for :func:`decode_volume` (``variable``, ``attributes``, ``axes``...).
-    """
-    indices = list(indices)
-    with VolumeWriter(out, shape, **writer_options, steps=len(indices),
-                      time_values=indices if time_values is None else time_values) as writer, \
-            Progress(len(indices) * math.prod(shape), unit="voxel", description="decode", enabled=progress) as shown:
-        for position, index in enumerate(indices):
-            _write_field(writer, step_field(index), shape, position, shown, batch_size, slab_voxels, box)
-
-
-def _write_field(writer: VolumeWriter, field, shape, step: int | None, shown: Progress, batch_size: int,
-                 slab_voxels: int, box: Box | None = None) -> None:
+def write_field(writer: VolumeWriter, field, shape, step: int | None, shown: Progress, batch_size: int,
+                slab_voxels: int, box: Box | None = None) -> None:
+    """Write ``field`` sampled on ``shape`` slab by slab into ``writer`` (at time step ``step`` of a file with a
+    time axis; None: none), counting the voxels on ``shown``."""
     for z, values in field_slabs(field, shape, slab_voxels, batch_size=batch_size, box=box):
         writer.write(z, values.numpy(), step=step)
         shown.update(values.numel())

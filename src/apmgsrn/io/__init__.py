@@ -2,14 +2,21 @@
 typed model descriptions and the loader registry.
 
 Layer: above :mod:`apmgsrn.models` (it builds fields from files), below :mod:`apmgsrn.training` (which
-saves through it); it imports no training, decomposition, render or CLI code.
+saves through it); it imports no training, decomposition, render, series or CLI code. Time-series files are
+:mod:`apmgsrn.series`'s (:mod:`apmgsrn.series.file`), which registers their loaders here.
 """
 
 from apmgsrn.atomic import atomic_write, atomic_write_text, check_output_path
 from apmgsrn.io.description import BrickEntry, BrickLayout, ModelDescription, SeriesLayout, SeriesStepInfo, SourceInfo
 from apmgsrn.io.field_file import load_field, save_field
-from apmgsrn.io.registry import LoadedModel, model_kind, open_model, register_loader
-from apmgsrn.io.series_file import load_series, save_series
+from apmgsrn.io.registry import (
+    LoadedModel,
+    file_loader,
+    model_kind,
+    open_model,
+    register_folder_kind,
+    register_loader,
+)
 
 __all__ = [
     "BrickEntry",
@@ -22,11 +29,11 @@ __all__ = [
     "atomic_write",
     "atomic_write_text",
     "check_output_path",
+    "file_loader",
     "load_field",
-    "load_series",
     "model_kind",
     "open_model",
+    "register_folder_kind",
     "register_loader",
     "save_field",
-    "save_series",
 ]

@@ -36,7 +36,7 @@ from apmgsrn.io.description import (
     require_ints,
 )
 from apmgsrn.io.field_file import FIELD_KIND, MAX_VOLUME_AXIS
-from apmgsrn.io.series_file import PACKED_SERIES_KIND, SERIES_KIND, model_file_description
+from apmgsrn.io.packed import model_file_description
 
 BRICKS_KIND = "bricks"
 MANIFEST_NAME = "manifest.json"
@@ -44,6 +44,15 @@ BRICK_SUFFIX = ".apmgsrn"
 #: Brick grids beyond this many bricks are refused (a hostile manifest could ask for billions of modules).
 MAX_BRICKS = 1_000_000
 _BRICK_NAME = re.compile(r"^brick_\d{3,7}_\d{3,7}_\d{3,7}$")
+#: Kinds a brick's model file may be (a manifest's ``brick_kind``): a single field, and what other packages
+#: register (the time-series package: its series kinds, :func:`register_brick_file_kind`).
+BRICK_FILE_KINDS = [FIELD_KIND]
+
+
+def register_brick_file_kind(kind: str) -> None:
+    """Let a manifest's ``brick_kind`` name ``kind`` (a model file kind with a loader in the registry)."""
+    if kind not in BRICK_FILE_KINDS:
+        BRICK_FILE_KINDS.append(kind)
 
 
 def brick_file_name(name: str) -> str:
@@ -127,7 +136,7 @@ def _check_manifest(manifest: dict) -> None:
     for flag in ("blend", "complete"):
         if not isinstance(manifest.get(flag), bool):
             raise DescriptionError(f"{flag} is not true or false")
-    if manifest.get("brick_kind", FIELD_KIND) not in (FIELD_KIND, SERIES_KIND, PACKED_SERIES_KIND):
+    if manifest.get("brick_kind", FIELD_KIND) not in BRICK_FILE_KINDS:
         raise DescriptionError("brick_kind is not a model kind")
     for key in ("settings", "training"):
         if manifest.get(key) is not None:

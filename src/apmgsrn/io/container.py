@@ -35,8 +35,8 @@ MAX_HEADER_BYTES = 64 * 1024 * 1024
 #: (:mod:`apmgsrn.io.packed`). A model of either kind may replace a model file of the other.
 FIELD_KIND, PACKED_KIND = "field", "packed-field"
 MODEL_FILE_KINDS = (FIELD_KIND, PACKED_KIND)
-#: Kinds of time-series model files: float32 (:mod:`apmgsrn.io.series_file`) and packed
-#: (:mod:`apmgsrn.io.packed_series`). Either may replace a file of the other, never a single-volume model.
+#: Kinds of time-series model files: float32 (:mod:`apmgsrn.series.file`) and packed
+#: (:mod:`apmgsrn.series.packed_file`). Either may replace a file of the other, never a single-volume model.
 SERIES_KIND, PACKED_SERIES_KIND = "series", "packed-series"
 SERIES_FILE_KINDS = (SERIES_KIND, PACKED_SERIES_KIND)
 #: Element sizes of the dtypes a model file may hold.

@@ -18,7 +18,6 @@ from apmgsrn.data.grid import AxisCoordinates, VolumeMetadata
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.io.container import FORMAT, FORMAT_VERSION, parse_json
 from apmgsrn.models.registry import FieldConfig
-from apmgsrn.models.series_field import SeriesConfig
 
 #: Bounds of the source's recorded metadata: more is not a variable's description but a way to bloat a file.
 MAX_ATTRIBUTES = 256
@@ -241,14 +240,15 @@ class SeriesStepInfo:
 
 @dataclass(frozen=True)
 class SeriesLayout:
-    """The time axis of a time-series model (docs/method.md §10).
+    """The time axis of a time-series model (docs/method.md §10): what the core layers (rendering, decoding,
+    ``info``) need of a model with several steps. The series themselves live in :mod:`apmgsrn.series`.
 
     Attributes:
-        config: steps, basis size and kind of weights.
+        config: steps, basis size and kind of weights (a :class:`apmgsrn.series.field.SeriesConfig`).
         steps: one entry per step, in order.
     """
 
-    config: SeriesConfig
+    config: object
     steps: tuple[SeriesStepInfo, ...]
 
     def step_index(self, time: int) -> int:

@@ -20,7 +20,7 @@ parameter against the shapes the config implies; each section's decompressed siz
 shapes (never read from the file), bounded by what LZMA can expand to, and decompression stops there.
 Dequantising gives float32 parameters, so the loaded field evaluates any point on CPU or GPU like any other.
 
-The packed time-series file (:mod:`apmgsrn.io.packed_series`) is laid out and read the same way, through the
+The packed time-series file (:mod:`apmgsrn.series.packed_file`) is laid out and read the same way, through the
 public helpers here (:func:`payload_file_bytes`, :func:`read_payload_file`, :func:`parse_tensor_entries`,
 :func:`decode_tensors`, :func:`packing_summary`).
 """
@@ -46,6 +46,7 @@ from apmgsrn.io.container import (
     header_of_kind,
     load_tensors,
     parse_json,
+    read_header,
     write_file_bytes,
 )
 from apmgsrn.io.description import (
@@ -254,6 +255,19 @@ class PayloadFile:
     sections: list[int]
     chunks: list[bytes]
     description: dict
+
+
+def model_file_description(path: str | os.PathLike) -> dict:
+    """A model file's description, read without decoding its parameters: a float32 file's header, a packed
+    file's description section.
+
+    Raises:
+        ApmgsrnError: not a readable model file.
+    """
+    header = read_header(path)
+    if set(header.tensors) == {PAYLOAD}:  # a packed file: the description is its first coded section
+        return read_payload_file(Path(path), header.kind, "a model file").description
+    return header.description
 
 
 def read_payload_file(path: Path, kind: str, what: str) -> PayloadFile:

@@ -1,10 +1,12 @@
 """The fitting pipeline: prepare the values, build the field, train it, measure it, save it.
 
 Every fit goes through here: ``apmgsrn train`` (:func:`fit_volume`;
-:func:`~apmgsrn.training.series_fit.fit_series` for a time series, one model for every step), each brick of a
+:func:`~apmgsrn.series.fit.fit_series` for a time series, one model for every step), each brick of a
 brick model (:mod:`apmgsrn.decomposition.brick_training`) and the replay behind the grid animation
 (:func:`train_prepared` with a callback). The steps take an array and plain metadata, not a volume
-object, so data that is not one volume (a time series) can be prepared its own way and fitted the same.
+object, so data that is not one volume (a time series) can be prepared its own way and fitted the same: it
+brings its own field class (:func:`register_field_class`), trainer (``train=``) and end of the fit (``output=``,
+a :class:`FieldOutput`'s interface), and this module knows nothing of it.
 
 1. :func:`prepare_values`: finite check, value transform, scaling to ``[0, 1]``, onto the device.
 2. :func:`train_prepared`: build the field from its config and seed, train it (resuming from a
@@ -15,7 +17,6 @@ object, so data that is not one volume (a time series) can be prepared its own w
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from dataclasses import field as dataclass_field
@@ -27,23 +28,26 @@ import torch
 from apmgsrn.data import Volume
 from apmgsrn.data.fingerprint import volume_fingerprint
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.inference.evaluate import Evaluation, SeriesEvaluation, evaluate, evaluate_series
-from apmgsrn.io import SeriesStepInfo, SourceInfo, save_field, save_series
-from apmgsrn.io.container import PACKED_SERIES_KIND, SERIES_KIND, check_replaceable
+from apmgsrn.inference.evaluate import Evaluation, evaluate
+from apmgsrn.io import SourceInfo, save_field
+from apmgsrn.io.container import check_replaceable
 from apmgsrn.io.field_file import FIELD_KIND
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
-from apmgsrn.models.series_field import SeriesField, SeriesFieldConfig
 from apmgsrn.models.value_transform import ValueTransform, fit_value_transform
 from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.checkpoint import checkpoint_path_for
-from apmgsrn.training.series_packing import (
-    PackedSeries,
-    SeriesPacking,
-    series_packing_report,
-    write_packed_series,
-)
-from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, TrainingInterrupted, TrainingState
+from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, TrainingState
+
+#: Field classes of model configs other than :class:`FieldConfig` (config type -> class built with the same
+#: arguments as :class:`NeuralField`); the time-series package registers its own (:func:`register_field_class`).
+_FIELD_CLASSES: dict[type, type] = {}
+
+
+def register_field_class(config_type: type, field_class: type) -> None:
+    """Make :func:`build_field` (and so :func:`train_prepared`) build ``field_class`` for configs of
+    ``config_type``."""
+    _FIELD_CLASSES[config_type] = field_class
 
 
 @dataclass(frozen=True)
@@ -140,17 +144,18 @@ class TrainedField:
             start step and every step's iterations).
     """
 
-    field: NeuralField | SeriesField
+    field: NeuralField
     state: TrainingState
     resumed_from: int
     summary: dict = dataclass_field(default_factory=dict)
 
 
-def build_field(prepared: PreparedValues, field_config: FieldConfig | SeriesFieldConfig,
-                volume_shape: tuple[int, int, int], seed: int) -> NeuralField | SeriesField:
-    """A fresh field of ``field_config`` (a :class:`SeriesField` for a series config) with the value scaling of
-    ``prepared``, initialised from ``seed``, on the values' device."""
-    field_class = SeriesField if isinstance(field_config, SeriesFieldConfig) else NeuralField
+def build_field(prepared: PreparedValues, field_config: FieldConfig, volume_shape: tuple[int, int, int],
+                seed: int) -> NeuralField:
+    """A fresh field of ``field_config`` (of the class registered for its type, :func:`register_field_class`; a
+    series config: a series field) with the value scaling of ``prepared``, initialised from ``seed``, on the
+    values' device."""
+    field_class = _FIELD_CLASSES.get(type(field_config), NeuralField)
     return field_class(
         field_config,
         fit_min=prepared.fit_min,
@@ -165,7 +170,7 @@ def build_field(prepared: PreparedValues, field_config: FieldConfig | SeriesFiel
 
 def train_prepared(
     prepared: PreparedValues,
-    field_config: FieldConfig | SeriesFieldConfig,
+    field_config: FieldConfig,
     train_config: TrainConfig,
     volume_shape: tuple[int, int, int],
     checkpoint: Path | None = None,
@@ -176,7 +181,7 @@ def train_prepared(
 
     Args:
         prepared: the values and their scaling (``[T, D, H, W]`` values for a series).
-        field_config: the model to build: a :class:`FieldConfig`, or a :class:`SeriesFieldConfig` for a series.
+        field_config: the model to build: a :class:`FieldConfig`, or another registered config (a series').
         train_config: how to train.
         volume_shape: ``(D, H, W)`` of the data (of every step of a series), saved with the field.
         checkpoint: periodic training checkpoints go here; one already there is resumed (None: none).
@@ -209,11 +214,12 @@ class FitResult:
         frozen_at: iteration where the grids stopped moving.
         stopped_early: training ended before the budget (early stop, or a constant volume).
         resumed_from: iteration the run resumed at (0: fresh).
-        evaluation: PSNR and largest error against the truth, data units (per step and overall for a series).
+        evaluation: PSNR and largest error against the truth, data units (what the fit's output measures: per
+            step and overall for a series).
         training: what the training function added to the file's summary (:attr:`TrainedField.summary`).
     """
 
-    field: NeuralField | SeriesField
+    field: NeuralField
     model_path: Path
     model_bytes: int
     seconds: float
@@ -221,7 +227,7 @@ class FitResult:
     frozen_at: int | None
     stopped_early: bool
     resumed_from: int
-    evaluation: Evaluation | SeriesEvaluation
+    evaluation: Evaluation
     training: dict = dataclass_field(default_factory=dict)
 
     @property
@@ -233,10 +239,31 @@ class FitResult:
         return self.evaluation.max_abs_error
 
 
+@dataclass(frozen=True)
+class FieldOutput:
+    """How :func:`fit` ends for one volume: the field rounded to what its file stores, measured against the
+    truth, saved as a ``field`` file. Data of another kind brings its own object with this interface (a time
+    series: :class:`apmgsrn.series.fit.SeriesOutput`, which packs and measures every step)."""
+
+    #: The kind of file written (what ``out`` may replace: :func:`check_output`).
+    kind: str = FIELD_KIND
+
+    def finish(self, trained: TrainedField, prepared: PreparedValues, truth: np.ndarray, train_config: TrainConfig,
+               checkpoint: Path, psnr_voxels: int | None) -> tuple[Evaluation, dict, Callable[..., object]]:
+        """Make the trained field what the file gives back and measure it.
+
+        Returns:
+            The evaluation, entries the training summary starts with, and what writes the file
+            (``write(out, field, source, summary)``).
+        """
+        trained.field.round_to_storage()  # measure what the file will give back
+        return evaluate(trained.field, truth, max_voxels=psnr_voxels), {}, save_field
+
+
 def fit(
     prepared: PreparedValues,
     truth: np.ndarray,
-    field_config: FieldConfig | SeriesFieldConfig,
+    field_config: FieldConfig,
     train_config: TrainConfig,
     out: Path,
     source: SourceInfo,
@@ -245,11 +272,8 @@ def fit(
     callbacks: Sequence[TrainingCallback] = (),
     psnr_voxels: int | None = None,
     summary_extra: dict | None = None,
-    steps: Sequence[SeriesStepInfo] | None = None,
     train: Callable[..., TrainedField] = train_prepared,
-    packing: SeriesPacking | None = None,
-    tune_packed: Callable[..., tuple[int, float]] | None = None,
-    tune_decoder: Callable[..., tuple[int, float]] | None = None,
+    output: FieldOutput | None = None,
 ) -> FitResult:
     """Train a field on prepared values, measure it against the truth and save it to ``out``.
 
@@ -259,7 +283,7 @@ def fit(
         prepared: the values and their scaling (:func:`prepare_values`).
         truth: ``[D, H, W]`` the same values in data units, for the final PSNR and largest error;
             ``[T, D, H, W]`` for a series.
-        field_config: the model to build (a :class:`SeriesFieldConfig` for a series).
+        field_config: the model to build (a series' config for a series).
         train_config: how to train.
         out: model file to write (atomically).
         source: description of the data, saved in the file.
@@ -268,66 +292,22 @@ def fit(
         callbacks: called around every iteration (e.g. :class:`~apmgsrn.training.callbacks.TrainingProgress`).
         psnr_voxels: measure on a regular subset of about this many voxels (None: every voxel).
         summary_extra: more entries of the training summary (e.g. the brick's box).
-        steps: a series: each step's number, name and value range, saved in the file.
         train: trains the field (:func:`train_prepared`'s signature; a series trained step by step passes
-            :func:`~apmgsrn.training.series_steps.train_stepwise`).
-        packing: a series: how to pack its grids (a ``packed-series`` file; None: the series file of its
-            config's storage dtype).
-        tune_packed: a series packed with ``qat_iterations``: fine-tunes the field towards its first packing
-            (:func:`~apmgsrn.training.series_qat.fine_tune_rounded`'s signature, less ``show_progress``).
-        tune_decoder: a series packed with ``decoder_iterations``: fine-tunes its decoder to the coded grids
-            (:func:`~apmgsrn.training.series_decoder.fine_tune_decoder`'s signature, less ``show_progress``).
+            :func:`~apmgsrn.series.steps.train_stepwise`).
+        output: how the fit ends: what it measures and the file it writes (None: :class:`FieldOutput`, one
+            volume's ``field`` file; a series: :class:`apmgsrn.series.fit.SeriesOutput`).
 
     Raises:
-        TrainingInterrupted: Ctrl-C in training or in a series' packing, with a checkpoint to resume from.
+        TrainingInterrupted: Ctrl-C in training (or in what ``output`` does after it, a series' packing), with a
+            checkpoint to resume from.
     """
     out = Path(out)
-    series = isinstance(field_config, SeriesFieldConfig)
-    kind = (PACKED_SERIES_KIND if packing is not None else SERIES_KIND) if series else FIELD_KIND
-    check_output(out, resume, kind)
+    output = FieldOutput() if output is None else output
+    check_output(out, resume, output.kind)
     checkpoint = checkpoint_path_for(out)
     trained = train(prepared, field_config, train_config, tuple(truth.shape[-3:]), checkpoint, fingerprint, callbacks)
-    packed = None
-    if packing is None:
-        trained.field.round_to_storage()  # measure what the file will give back
-    if series:
-        if packing is not None:
-            before = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
-            # The packing search and the fine-tune towards it are part of making the model: they count in its
-            # training time (the evaluations, as for one volume, do not).
-            started = time.perf_counter()
-            try:
-                packed = packing.pack(trained.field)
-                if packing.qat_iterations and tune_packed is None:
-                    raise ValueError("packing.qat_iterations needs tune_packed")
-                if packing.decoder_iterations and tune_decoder is None:
-                    raise ValueError("packing.decoder_iterations needs tune_decoder")
-
-                def tune(to: PackedSeries, iterations: int) -> None:  # towards the packing's steps
-                    ran, _ = tune_packed(trained.field, prepared.values, to, train_config, iterations)
-                    trained.state.iteration += ran
-
-                packed, tuned = packing.fine_tune(trained.field, packed, tune)
-
-                def decoder(iterations: int) -> int:  # to the grids as coded
-                    return tune_decoder(trained.field, prepared.values, train_config, iterations)[0]
-
-                packed, decoder_tuned = packing.tune_decoder(trained.field, packed, decoder)
-                trained.state.iteration += decoder_tuned
-            except KeyboardInterrupt:  # the checkpoint holds the training: a resume packs again
-                if not checkpoint.exists():
-                    raise
-                raise TrainingInterrupted(trained.state.iteration, checkpoint) from None
-            trained.state.elapsed += time.perf_counter() - started
-            trained.field.load_state_dict(packed.state)  # measure what the file will give back
-        evaluation = evaluate_series(trained.field.step_field, truth, max_voxels=psnr_voxels)
-        if packed is not None:
-            report = series_packing_report(trained.field, packed.bit_width, before, evaluation, packing.target_bytes,
-                                           tuned, len(packed.restored), decoder_tuned)
-        summary_extra = {"steps": [{"psnr": e.psnr, "max_abs_error": e.max_abs_error} for e in evaluation.steps],
-                         **(summary_extra or {})}
-    else:
-        evaluation = evaluate(trained.field, truth, max_voxels=psnr_voxels)
+    evaluation, first_entries, write = output.finish(trained, prepared, truth, train_config, checkpoint, psnr_voxels)
+    summary_extra = {**first_entries, **(summary_extra or {})}
     state = trained.state
     summary = {
         "iterations": state.iteration,
@@ -342,15 +322,10 @@ def fit(
         "device": str(prepared.values.device),
         "config": asdict(train_config),
         "history": state.history,
-        **(summary_extra or {}),
+        **summary_extra,
         **trained.summary,
     }
-    if packed is not None:
-        write_packed_series(out, trained.field, packed, source, summary, list(steps), report)
-    elif series:
-        save_series(out, trained.field, source, summary, list(steps))
-    else:
-        save_field(out, trained.field, source, summary)
+    write(out, trained.field, source, summary)
     if checkpoint.exists():
         checkpoint.unlink()
     return FitResult(

@@ -26,7 +26,7 @@ from apmgsrn.io.description import DescriptionError
 from apmgsrn.models.encoders.base import Encoder
 from apmgsrn.models.field import NeuralField
 from apmgsrn.ops.trilinear import sample_volume
-from apmgsrn.recipes import SERIES, VOLUME
+from apmgsrn.recipes import VOLUME
 from apmgsrn.threads import ThreadGovernor, thread_candidates
 from apmgsrn.training.checkpoint import (
     CHECKPOINT_KIND,
@@ -98,7 +98,7 @@ class TrainConfig:
             loss, between ``density_start`` and the freeze. ``"reconstruction"``: the reconstruction error
             itself, from the first iteration until the freeze, at ``placement_lr`` scaled by the network's
             schedule; no density loss. It follows structures that moved (a time series' step fine-tuned from
-            its neighbour's grids, :mod:`apmgsrn.training.series_steps`) and costs about 1.4 times the
+            its neighbour's grids, :mod:`apmgsrn.series.steps`) and costs about 1.4 times the
             iteration time on CPU (the fused kernel gives the placement's gradient; elsewhere the reference
             multi-grid path runs, about 2.4 times).
         error_sampling: share of the voxel points (``voxel_fraction``) drawn in proportion to the model's
@@ -205,15 +205,6 @@ def default_budget(device: torch.device) -> tuple[int, int]:
     return VOLUME.cpu_iterations, VOLUME.cpu_batch_size
 
 
-def series_budget(iterations: int, steps: int) -> int:
-    """Iterations of a time series of ``steps`` steps, given those of one volume.
-
-    Consecutive steps share most of what they hold, and every iteration trains the shared grids and decoder
-    on several steps at once, so the series needs far less than one budget per step.
-    """
-    return max(1, round(iterations * min(float(steps), SERIES.joint_budget_steps)))
-
-
 class TrainingInterrupted(Exception):
     """Raised after Ctrl-C once the checkpoint is safely written."""
 
@@ -266,7 +257,7 @@ class Trainer:
     Args:
         field: the model (its ``fit_min``/``fit_max`` give the scaling to data units).
         volume: ``[D, H, W]`` fitted values scaled to ``[0, 1]``, on the training device; ``[T, D, H, W]``
-            for a :class:`~apmgsrn.models.series_field.SeriesField` (one volume per step).
+            for a :class:`~apmgsrn.series.field.SeriesField` (one volume per step).
         config: how to train.
         checkpoint_path: where periodic training checkpoints go (None: no checkpoints).
         fingerprint: description of the run that a resumed checkpoint must match.

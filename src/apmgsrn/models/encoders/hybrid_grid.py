@@ -307,7 +307,7 @@ class HybridGridEncoder(Encoder):
     def features_of(self, points: torch.Tensor, level_table: torch.Tensor, grids: torch.Tensor,
                     matrices: torch.Tensor, translations: torch.Tensor, detach_placement: bool = False) -> torch.Tensor:
         """Features at ``points`` of this layout holding the given parameters (shaped as the encoder's own;
-        a time series passes one step's, :mod:`apmgsrn.models.series_hybrid`)."""
+        a time series passes one step's, :mod:`apmgsrn.series.hybrid`)."""
         table = torch.cat([level_table, grids.reshape(-1)])  # the layout's flat table
         maps = self.maps(detach_placement, matrices, translations)
         return level_grid_features(points, maps, table, self.layout, self.config.backend)

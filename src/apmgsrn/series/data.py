@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from apmgsrn.data.fingerprint import volume_fingerprint
 from apmgsrn.data.readers import open_volume
 from apmgsrn.data.volume import Volume, format_xyz
 from apmgsrn.errors import ApmgsrnError
@@ -419,3 +420,16 @@ def _pvd_steps(path: Path) -> tuple[list[SeriesStep], list[float]]:
         if not file.exists():
             raise ApmgsrnError(f"{path}: lists {file}, which does not exist; check the collection's folder")
     return [SeriesStep(file) for _, file in entries], [value for value, _ in entries]
+
+
+def series_fingerprint(series: VolumeSeries) -> dict:
+    """A JSON-able identity of every step of a series (:func:`volume_fingerprint` of each, in order).
+
+    Returns:
+        ``{"steps": [fingerprint of step 0, ...]}``.
+    """
+    steps = []
+    for index in range(len(series)):
+        with series.volume(index) as volume:
+            steps.append(volume_fingerprint(volume))
+    return {"steps": steps}

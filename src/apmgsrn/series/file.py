@@ -1,7 +1,7 @@
 """The time-series model file: one network for every step of a series (kind ``series``).
 
 Layout (a :mod:`~apmgsrn.io.container` file): the tensors are the
-:class:`~apmgsrn.models.series_field.SeriesField`'s ``state_dict`` (the basis grids ``[K, M, C, D, H, W]``, the
+:class:`~apmgsrn.series.field.SeriesField`'s ``state_dict`` (the basis grids ``[K, M, C, D, H, W]``, the
 learned weights ``[T, M, C, K]`` unless they are keyframes, the shared grid maps and decoder); the description
 holds every entry of a single-field file (:func:`~apmgsrn.io.field_file.field_description`: the spatial
 field's config, the series' value scaling and transform, the shape of every step, source, training) plus
@@ -47,10 +47,10 @@ from apmgsrn.io.field_file import (
     restore_field,
     stored_tensors,
 )
-from apmgsrn.io.packed import read_payload_file
+from apmgsrn.io.packed import model_file_description  # noqa: F401 - where a series' bricks read theirs
 from apmgsrn.models.encoders.adaptive_multigrid import MAX_RESOLUTION
-from apmgsrn.models.series_field import SeriesConfig, SeriesField, SeriesFieldConfig
-from apmgsrn.models.series_options import COEFFICIENT_KINDS, MAX_BASIS, MAX_STEPS, PLACEMENT_KINDS, STORAGE_KINDS
+from apmgsrn.series.field import SeriesConfig, SeriesField, SeriesFieldConfig
+from apmgsrn.series.options import COEFFICIENT_KINDS, MAX_BASIS, MAX_STEPS, PLACEMENT_KINDS, STORAGE_KINDS
 
 
 def save_series(path: str | os.PathLike, field: SeriesField, source: SourceInfo, training: dict,
@@ -136,19 +136,6 @@ def parse_step_entries(value, count: int) -> tuple[SeriesStepInfo, ...]:
             value_range=(low, high),
         ))
     return tuple(entries)
-
-
-def model_file_description(path: str | os.PathLike) -> dict:
-    """A model file's description, read without decoding its parameters: a float32 file's header, a packed
-    series file's description section.
-
-    Raises:
-        ApmgsrnError: not a readable model file.
-    """
-    header = read_header(path)
-    if header.kind == PACKED_SERIES_KIND:
-        return read_payload_file(Path(path), PACKED_SERIES_KIND, "a time-series model").description
-    return header.description
 
 
 def declared_steps(path: str | os.PathLike) -> int:

@@ -1,4 +1,4 @@
-"""Packing a time-series field into a small file (kind ``packed-series``, :mod:`apmgsrn.io.packed_series`).
+"""Packing a time-series field into a small file (kind ``packed-series``, :mod:`apmgsrn.series.packed_file`).
 
 At a bit width ``B`` the feature grids are quantised uniformly (:mod:`apmgsrn.io.quantization`):
 
@@ -47,10 +47,9 @@ import torch
 
 from apmgsrn.arguments import check_int
 from apmgsrn.errors import InvalidArgument
-from apmgsrn.inference.evaluate import SeriesEvaluation
 from apmgsrn.io import SeriesStepInfo, SourceInfo
 from apmgsrn.io.packed import PackedTensor, encode_float32, encode_quantized_all
-from apmgsrn.io.packed_series import packed_series_bytes, save_packed_series, series_predictors
+from apmgsrn.series.packed_file import packed_series_bytes, save_packed_series, series_predictors
 from apmgsrn.io.quantization import (
     MAX_BITS,
     MAX_GROUPS,
@@ -63,7 +62,8 @@ from apmgsrn.io.quantization import (
     steps_for_bits,
 )
 from apmgsrn.models.registry import stored_bytes
-from apmgsrn.models.series_field import SeriesField
+from apmgsrn.series.evaluate import SeriesEvaluation
+from apmgsrn.series.field import SeriesField
 from apmgsrn.recipes import PACKING, SERIES, PackingRecipe, SeriesRecipe, model_recipe
 from apmgsrn.training.packing import group_means, parameter_sensitivity
 
@@ -82,7 +82,7 @@ class PackedSeries:
         finer: their steps are ``2^finer`` times finer than those of ``bits`` (0 <= finer < 1;
             :meth:`SeriesPacking.pack` refines a size target's bit width this way).
         steps: name -> ``[K * G]`` float16 steps of each of :data:`SHARED_STEP_TENSORS` as quantised (what a
-            quantisation-aware fine-tune, :mod:`apmgsrn.training.series_qat`, trains towards).
+            quantisation-aware fine-tune, :mod:`apmgsrn.series.qat`, trains towards).
         restored: the steps whose values from before a quantisation-aware fine-tune were packed instead, so that
             the file fits its target (:meth:`SeriesPacking.repack`).
     """
@@ -290,9 +290,9 @@ class SeriesPacking:
         strict: refuse to pack when not even ``min_bits`` fits (False: pack at ``min_bits`` anyway, as the
             default cap of ``train`` does).
         qat_iterations: a quantisation-aware fine-tune of every step before coding, this many iterations each
-            (:mod:`apmgsrn.training.series_qat`; 0: none). Needs the data: ``train`` runs it.
+            (:mod:`apmgsrn.series.qat`; 0: none). Needs the data: ``train`` runs it.
         decoder_iterations: a fine-tune of the shared decoder to the grids as coded, on all steps at once, this
-            many iterations (:mod:`apmgsrn.training.series_decoder`; 0: none). Needs the data: ``train`` runs it.
+            many iterations (:mod:`apmgsrn.series.decoder`; 0: none). Needs the data: ``train`` runs it.
         recipe: the packing's margins and search lattice (a run's fingerprint leaves them out: :meth:`settings`).
     """
 
@@ -451,7 +451,7 @@ class SeriesPacking:
         (a :class:`SeriesFieldConfig` fitted to its steps' shape) of ``steps`` steps at :attr:`bits` a value, each
         step as if coded with nothing taken from its neighbour: then the packing never has to narrow the bits for
         what consecutive steps do not share, and the steps need not be pulled towards each other
-        (:func:`~apmgsrn.training.series_qat.budgeted`). False without a target."""
+        (:func:`~apmgsrn.series.qat.budgeted`). False without a target."""
         if self.target_bytes is None:
             return False
         shapes = field_config.parameter_shapes()

@@ -1,14 +1,14 @@
 """Quantisation-aware fine-tune of a stepwise series: every step's feature grids (or tables) trained towards the
 integers the packed file stores them as.
 
-Packing a series rounds every step's grids to steps shared by all steps (:mod:`apmgsrn.training.series_packing`);
+Packing a series rounds every step's grids to steps shared by all steps (:mod:`apmgsrn.series.packing`);
 where the file must hold 30 steps in five single-step files that rounding costs most of what separates the
 steps from their own models (the 30 viscous-finger steps: 0.8 dB at 7.25 bits). Here each step, once the
 packing's steps are known, gets a short fine-tune in which the forward pass sees its grids rounded to those
 steps and the gradient moves the float values beneath (straight-through), the decoder and placement kept.
 Its voxel points are drawn where the rounded step is wrong, as a step's fine-tune draws them: with uniform
 draws the same fine-tune lost 1.1 dB instead of gaining. The field then holds the float values; packing it on
-the same steps stores what was trained (:meth:`~apmgsrn.training.series_packing.SeriesPacking.repack`).
+the same steps stores what was trained (:meth:`~apmgsrn.series.packing.SeriesPacking.repack`).
 
 The steps are independent here, so a CPU process with several threads fine-tunes as many steps at once, one
 thread each (:func:`qat_lanes`): on two threads the 30 viscous-finger steps take 46-47 s instead of 58-61, and
@@ -34,13 +34,13 @@ import torch
 
 from apmgsrn.errors import ApmgsrnError, InvalidArgument
 from apmgsrn.io.quantization import group_ids
-from apmgsrn.models.series_field import SeriesField
+from apmgsrn.series.field import SeriesField
 from apmgsrn.progress import Progress
 from apmgsrn.recipes import PACKING, PackingRecipe
 from apmgsrn.threads import work_threads
-from apmgsrn.training.series_decoder import fine_tune_decoder
-from apmgsrn.training.series_packing import SHARED_STEP_TENSORS, PackedSeries, SeriesPacking, packed_group
-from apmgsrn.training.series_steps import (
+from apmgsrn.series.decoder import fine_tune_decoder
+from apmgsrn.series.packing import SHARED_STEP_TENSORS, PackedSeries, SeriesPacking, packed_group
+from apmgsrn.series.steps import (
     StepwiseConfig,
     load_step,
     shortened_measurements,
@@ -107,13 +107,13 @@ def fine_tune_rounded(series: SeriesField, values: torch.Tensor, packed: PackedS
     Args:
         series: the trained series field (its decoder and placement are kept).
         values: ``[T, D, H, W]`` the training values.
-        packed: the field packed once (its :attr:`~apmgsrn.training.series_packing.PackedSeries.steps`).
+        packed: the field packed once (its :attr:`~apmgsrn.series.packing.PackedSeries.steps`).
         config: the start model's training (the fine-tune takes its learning rate times the recipe's
             ``qat_lr_share``, the steps' batch share on a CPU, its voxel share, guided at ``qat_guided_share``).
         iterations: each step's iterations.
         show_progress: one line of progress over the steps.
         measurements: times each step's fine-tune measures where it is wrong (fewer where a long series shortened
-            it: :func:`~apmgsrn.training.series_steps.shortened_measurements`).
+            it: :func:`~apmgsrn.series.steps.shortened_measurements`).
         recipe: the fine-tune's learning-rate share, guided share and measured parts.
 
     Returns:
@@ -185,16 +185,16 @@ def budgeted(stepwise: StepwiseConfig | None, packing: SeriesPacking | None, con
                         Callable[..., tuple[int, float]]]:
     """What ``fit`` trains a model of ``field_config`` on ``steps`` steps with. A series trained stepwise: its
     steps' fine-tunes and the quantisation-aware one after them under one budget
-    (:meth:`~apmgsrn.training.series_steps.StepwiseConfig.budget_scale`): the stepwise config that counts the
+    (:meth:`~apmgsrn.series.steps.StepwiseConfig.budget_scale`): the stepwise config that counts the
     packing's fine-tune, the packing with that fine-tune shortened with the steps', and the fine-tune (``fit``'s
     ``tune_packed``) measuring as often per iteration as an unshortened one. Anything else (no ``stepwise``: a
     joint series, one volume): as given, with the fine-tune as it is. Last, the decoder's fine-tune to the coded
-    grids (``fit``'s ``tune_decoder``, :func:`~apmgsrn.training.series_decoder.fine_tune_decoder`), outside the
+    grids (``fit``'s ``tune_decoder``, :func:`~apmgsrn.series.decoder.fine_tune_decoder`), outside the
     budget: 300 iterations take about 10 s, the steps' fine-tunes shortened by as many points lost more than it
     gains (docs/time_series.md).
 
     A series whose packing target holds every step coded alone at its bit width
-    (:meth:`~apmgsrn.training.series_packing.SeriesPacking.holds_every_step_alone`: a few steps; eight of the small
+    (:meth:`~apmgsrn.series.packing.SeriesPacking.holds_every_step_alone`: a few steps; eight of the small
     hybrid's within five files at 10 bits) is trained unpulled (``step_sparsity`` 0) unless a pull was asked for.
     The pull only saves bytes, which such a series does not lack, and over the long fine-tunes of steps that change
     much it held them far from their data: on three steps 40 apart (t010, t050, t090) t010 fine-tuned from t050

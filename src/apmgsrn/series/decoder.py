@@ -1,7 +1,7 @@
 """The shared decoder of a packed stepwise series fine-tuned to the grids the file stores.
 
-A stepwise series (:mod:`apmgsrn.training.series_steps`) keeps the start model's decoder frozen while every other
-step's grids are fitted to it, and the packing then rounds those grids (:mod:`apmgsrn.training.series_packing`).
+A stepwise series (:mod:`apmgsrn.series.steps`) keeps the start model's decoder frozen while every other
+step's grids are fitted to it, and the packing then rounds those grids (:mod:`apmgsrn.series.packing`).
 The decoder has seen neither the other steps nor the rounded values. Here, once the file's integers are fixed,
 the decoder alone is trained a little on all steps at once, every step's grids held at what the file gives back.
 The decoder is stored exactly (float32), so this costs no byte, and the integers stay the same.
@@ -26,11 +26,11 @@ import time
 
 import torch
 
-from apmgsrn.models.series_field import SeriesField
+from apmgsrn.series.field import SeriesField
 from apmgsrn.progress import Progress
 from apmgsrn.recipes import PACKING
 from apmgsrn.training.points import draw_batch
-from apmgsrn.training.series_steps import check_sample
+from apmgsrn.series.steps import check_sample
 from apmgsrn.training.trainer import TrainConfig
 
 

@@ -4,14 +4,14 @@ The adaptive grids extend into time through a small basis. Every grid ``i`` hold
 ``B_ik`` (``[K, M, C, D, H, W]`` in all); the features of step ``t`` are the per-grid combination
 ``F_i(t) = sum_k w_tik B_ik`` with weights ``w`` ``[T, M, C, K]``. The grid placement (``A_i``, ``t_i``) and
 the decoder are shared by every step (with one grid set per step, the placement may be per step too: series
-whose structures travel, see :mod:`apmgsrn.training.series_steps`). Two ways to set the weights:
+whose structures travel, see :mod:`apmgsrn.series.steps`). Two ways to set the weights:
 
 - ``"keyframes"``: fixed hat functions over ``K`` evenly spaced keyframes: the grids are 4-D and step ``t``
   interpolates its two neighbouring keyframes linearly in time (the paper's future-work grids).
 - ``"learned"``: the weights are parameters (initialised to those hat functions), so every step and
   every grid chooses its own mix of the basis; with ``K = T`` this is one small grid set per step.
 
-A series of the hybrid model (:mod:`apmgsrn.models.series_hybrid`) has no basis: every step holds all its own
+A series of the hybrid model (:mod:`apmgsrn.series.hybrid`) has no basis: every step holds all its own
 encoder parameters (level table, grids, placement), filled step by step; the decoder is shared the same way.
 
 Step ``t`` of ``T`` sits at time coordinate ``-1 + 2 t / (T - 1)``, corner-aligned like space; between two
@@ -39,8 +39,8 @@ from apmgsrn.models.encoders.adaptive_multigrid import (
 from apmgsrn.models.encoders.base import STORAGE_DTYPES, Encoder
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
-from apmgsrn.models.series_hybrid import SeriesHybridEncoder
-from apmgsrn.models.series_options import (
+from apmgsrn.series.hybrid import SeriesHybridEncoder
+from apmgsrn.series.options import (
     COEFFICIENT_KINDS,
     MAX_BASIS,
     MAX_STEPS,

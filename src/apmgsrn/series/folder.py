@@ -34,7 +34,7 @@ from apmgsrn.io.description import (
     require_int,
     require_number,
 )
-from apmgsrn.models.series_options import MAX_STEPS
+from apmgsrn.series.options import MAX_STEPS
 
 SERIES_BRICKS_KIND = "series-bricks"
 SERIES_MANIFEST_NAME = "series.json"

@@ -1,5 +1,5 @@
 """The choices of a time-series model users type, torch-free (the command line lists them without importing
-torch); :mod:`apmgsrn.models.series_field` builds the model."""
+torch); :mod:`apmgsrn.series.field` builds the model."""
 
 from apmgsrn.choices import SERIES_COEFFICIENTS as COEFFICIENT_KINDS
 from apmgsrn.choices import SERIES_STORAGE as STORAGE_KINDS

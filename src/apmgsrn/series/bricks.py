@@ -1,11 +1,13 @@
 """A long time series on bricks: one job per (brick, group of consecutive steps), resumable like bricks.
 
 The series is cut into groups of ``group_steps`` consecutive steps; each group is a brick-model folder whose
-bricks are time-series models of their box over the group's steps (format: :mod:`apmgsrn.io.series_folder`).
-Every job of every group goes into one queue at once; each job reads only its box of its steps. Running the
-same call again after a crash trains only the (brick, group) pairs whose files are missing.
+bricks are time-series models of their box over the group's steps (format: :mod:`apmgsrn.series.folder`).
+Every job of every group goes into one queue at once; each job reads only its box of its steps
+(:class:`SeriesBricks`, the brick job kind of :mod:`apmgsrn.decomposition`). Running the same call again after a
+crash trains only the (brick, group) pairs whose files are missing.
 
-Importing this module registers the ``series-bricks`` loader with :func:`apmgsrn.io.open_model`.
+:mod:`apmgsrn.series` registers :func:`load_series_bricks` as the ``series-bricks`` loader of
+:func:`apmgsrn.io.open_model`.
 """
 
 from __future__ import annotations
@@ -15,11 +17,12 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import nn
 
-from apmgsrn.data.series import VolumeSeries
 from apmgsrn.decomposition.brick_model import brick_description, load_bricks
+from apmgsrn.decomposition.brick_training import BrickJob, VolumeBricks
 from apmgsrn.decomposition.bricked_field import BrickedField
 from apmgsrn.decomposition.coordinator import (
     BrickProgress,
@@ -29,11 +32,12 @@ from apmgsrn.decomposition.coordinator import (
     run_brick_jobs,
 )
 from apmgsrn.decomposition.executor import JobQueue
-from apmgsrn.decomposition.planner import DecompositionConfig
+from apmgsrn.decomposition.planner import Brick, DecompositionConfig
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.io import SeriesLayout, SeriesStepInfo, SourceInfo, register_loader
+from apmgsrn.io import SeriesLayout, SeriesStepInfo, SourceInfo
 from apmgsrn.io.brick_folder import brick_file_name
-from apmgsrn.io.series_folder import (
+from apmgsrn.series.data import VolumeSeries, series_fingerprint
+from apmgsrn.series.folder import (
     SERIES_BRICKS_KIND,
     group_folder_name,
     manifest_groups,
@@ -42,11 +46,57 @@ from apmgsrn.io.series_folder import (
     series_manifest_path,
     write_series_manifest,
 )
-from apmgsrn.io.series_file import PACKED_SERIES_KIND, SERIES_KIND, model_file_description
-from apmgsrn.models.series_field import SeriesConfig, SeriesFieldConfig
-from apmgsrn.training.series_packing import SeriesPacking
-from apmgsrn.training.series_steps import StepwiseConfig
+from apmgsrn.series.field import SeriesConfig, SeriesFieldConfig
+from apmgsrn.series.file import PACKED_SERIES_KIND, SERIES_KIND, model_file_description
+from apmgsrn.series.fit import SeriesOutput
+from apmgsrn.series.packing import SeriesPacking
+from apmgsrn.series.qat import budgeted
+from apmgsrn.series.steps import StepwiseConfig, series_trainer
 from apmgsrn.training.trainer import TrainConfig, as_json
+
+
+@dataclass(frozen=True)
+class SeriesBricks(VolumeBricks):
+    """The brick job kind of a time series (:attr:`~apmgsrn.decomposition.brick_training.BrickJob.kind`): every
+    brick a time-series model of its box over every step of its :class:`~apmgsrn.series.data.VolumeSeries`.
+
+    Attributes:
+        stepwise: train step by step (the job's field config one grid set per step); None: one joint model.
+        packing: a stepwise series' packed file (None: float32).
+    """
+
+    stepwise: StepwiseConfig | None = None
+    packing: SeriesPacking | None = None
+
+    @property
+    def file_kind(self) -> str:
+        return SERIES_KIND if self.packing is None else PACKED_SERIES_KIND
+
+    def settings(self) -> dict:
+        if self.stepwise is None:  # absent for the runs before stepwise bricks
+            return {}
+        return {"stepwise": self.stepwise.settings(),
+                "packing": None if self.packing is None else self.packing.settings()}
+
+    def fingerprint(self, volume: VolumeSeries) -> dict:
+        return series_fingerprint(volume)
+
+    def read(self, volume: VolumeSeries, brick: Brick) -> np.ndarray:
+        """The box of every step, ``[T, d, h, w]`` float32, one step's file open at a time."""
+        z, y, x = brick.slices()
+        return np.stack([volume.read(t, z, y, x) for t in range(len(volume))])
+
+    def fit_options(self, job: BrickJob, region: np.ndarray, device: torch.device) -> dict:
+        """The series' trainer and the end of its fit: each step's number, file and value range in the brick's
+        box; stepwise, the steps' fine-tunes and the one towards the packing share one budget."""
+        series = job.volume
+        steps = [SeriesStepInfo(label, series.step_name(t), (float(region[t].min()), float(region[t].max())))
+                 for t, label in enumerate(series.labels)]
+        stepwise, packing, tune_packed, tune_decoder = budgeted(self.stepwise, self.packing, job.train_config,
+                                                                region.shape[0], job.field_config, region.shape[1:],
+                                                                device, show_progress=False)
+        return {"train": series_trainer(stepwise, show_progress=False),
+                "output": SeriesOutput(steps, packing, tune_packed, tune_decoder)}
 
 
 def step_groups(steps: int, group_steps: int | None) -> list[range]:
@@ -109,7 +159,7 @@ def train_series_bricks(
         progress: the display (None: none).
         poll_seconds: how often the display refreshes.
         stepwise: train every (brick, group) step by step from the group's own start step (``config`` then one
-            grid set per step: :func:`~apmgsrn.training.series_steps.stepwise_config`); None: one joint model.
+            grid set per step: :func:`~apmgsrn.series.steps.stepwise_config`); None: one joint model.
         packing: stepwise: pack every brick's file (None: float32).
 
     Raises:
@@ -133,7 +183,7 @@ def train_series_bricks(
         folder.mkdir(exist_ok=True)
         runs.append(open_brick_run(series.subseries(group), decomposition, group_config(config, len(group)),
                                    train_config, folder, transform, log_offset, device, queue.threads_per_job, None,
-                                   stepwise, packing))
+                                   SeriesBricks(stepwise, packing)))
     summaries = run_brick_jobs(runs, queue, progress or BrickProgress(enabled=False), poll_seconds, started)
     complete = all(s.complete for s in summaries)
     if complete:
@@ -259,5 +309,3 @@ def load_series_bricks(path: Path, device: torch.device):
                           source=SourceInfo.from_dict(manifest.get("source", {})))
     return field, description
 
-
-register_loader(SERIES_BRICKS_KIND, load_series_bricks)

@@ -4,11 +4,11 @@ Built like the packed single-field file (:mod:`apmgsrn.io.packed`): a :mod:`~apm
 holding one ``U8`` tensor, ``payload``, cut into sections whose compressed sizes the header lists:
 
 0. the description: what a float32 series file's description holds
-   (:func:`~apmgsrn.io.series_file.series_description`: the spatial field's config, value scaling and
+   (:func:`~apmgsrn.series.file.series_description`: the spatial field's config, value scaling and
    transform, the shape of every step, ``series``, ``steps``, source, and the training summary without its
    loss history) plus ``tensors`` (how each parameter is stored) and ``packing`` (what packing measured),
    coded with :func:`~apmgsrn.io.codec.compress_description`;
-1. one section per parameter of :meth:`~apmgsrn.models.series_field.SeriesFieldConfig.parameter_shapes`, in
+1. one section per parameter of :meth:`~apmgsrn.series.field.SeriesFieldConfig.parameter_shapes`, in
    that order, stored as a packed field stores it (``quantized`` or ``float32``). Only the tensors with a
    leading time (or basis) axis, the grids ``[K, M, C, D, H, W]`` and residuals ``[T, M, C, r, r, r]`` (a
    hybrid series: its grids ``[T, M, R, R, R, C]`` and level tables ``[T, P]``), may use the ``time`` predictor (:func:`~apmgsrn.io.codec.series_predictors_for`).
@@ -18,7 +18,7 @@ field's entries, then the series config and step entries as a series file reads 
 against the shapes the configs imply and their total against
 :data:`~apmgsrn.io.packed.MAX_PACKED_PARAMETERS`; each section's decompressed size is computed from those
 shapes, bounded by what LZMA can expand to, and decompression stops there. Dequantising gives a float32
-:class:`~apmgsrn.models.series_field.SeriesField`, the same as a float32 series file gives.
+:class:`~apmgsrn.series.field.SeriesField`, the same as a float32 series file gives.
 """
 
 from __future__ import annotations
@@ -51,8 +51,8 @@ from apmgsrn.io.packed import (
     read_payload_file,
     trimmed_training,
 )
-from apmgsrn.io.series_file import parse_series_config, parse_step_entries, series_description
-from apmgsrn.models.series_field import SeriesField, SeriesFieldConfig
+from apmgsrn.series.file import parse_series_config, parse_step_entries, series_description
+from apmgsrn.series.field import SeriesField, SeriesFieldConfig
 
 #: Parameters with a leading time (or basis) axis: the only ones the ``time`` predictor may code.
 TIME_AXIS_TENSORS = ("encoder.grids", "encoder.residuals", "encoder.level_table")

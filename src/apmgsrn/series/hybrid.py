@@ -1,6 +1,6 @@
 """The hybrid encoder over the steps of a series: every step its own feature tables and grid placement.
 
-What a stepwise series of hybrid models fills (:mod:`apmgsrn.training.series_steps`): the start step's
+What a stepwise series of hybrid models fills (:mod:`apmgsrn.series.steps`): the start step's
 hybrid model, then every other step fine-tuned from its neighbour. Every parameter of a
 :class:`~apmgsrn.models.encoders.hybrid_grid.HybridGridEncoder` gains a leading step axis: ``level_table``
 ``[T, P]``, ``grids`` ``[T, M, R, R, R, C]``, ``matrices`` ``[T, M, 3, 3]``, ``translations`` ``[T, M, 3]``.
@@ -55,4 +55,4 @@ class SeriesHybridEncoder(HybridGridEncoder):
         return placed_boxes(self.matrices[step], self.translations[step])
 
     def initialize_from_volume(self, values: torch.Tensor) -> None:
-        """Nothing: the steps start from their start model (:mod:`apmgsrn.training.series_steps`)."""
+        """Nothing: the steps start from their start model (:mod:`apmgsrn.series.steps`)."""

@@ -28,7 +28,7 @@ docs/time_series.md):
    is fine-tuned with a moving placement first (the motion usually goes on), and with the placement kept
    only if that ends more than ``SERIES.track_db`` below.
 
-The result is a :class:`~apmgsrn.models.series_field.SeriesField` with one basis slice per step (keyframe
+The result is a :class:`~apmgsrn.series.field.SeriesField` with one basis slice per step (keyframe
 weights, ``K = T``: the identity), so decoding, rendering and querying a step cost what a single-step model
 costs. Consecutive steps' grids are close, which is what the packed series file's time predictor codes.
 
@@ -55,7 +55,7 @@ from apmgsrn.io.container import file_bytes, load_tensors, read_header
 from apmgsrn.io.description import DescriptionError, require_int, require_number
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
-from apmgsrn.models.series_field import SeriesConfig, SeriesField, SeriesFieldConfig
+from apmgsrn.series.field import SeriesConfig, SeriesField, SeriesFieldConfig
 from apmgsrn.ops.trilinear import voxel_coordinates
 from apmgsrn.progress import Progress
 from apmgsrn.recipes import SERIES, ModelRecipe, SeriesRecipe, model_recipe
@@ -63,7 +63,7 @@ from apmgsrn.training.checkpoint import CHECKPOINT_KIND, TrainingState, check_te
 from apmgsrn.training.fit import PreparedValues, TrainedField, build_field, train_prepared
 from apmgsrn.training.optimizer import pull_towards
 from apmgsrn.training.points import draw_batch
-from apmgsrn.training.series_packing import series_growth
+from apmgsrn.series.packing import series_growth
 from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, TrainingInterrupted, as_json
 
 STEPS_CHECKPOINT_KIND = "series-steps"
@@ -87,7 +87,7 @@ class StepwiseConfig:
             The more entries keep their neighbour's value, the fewer bytes the packed file's time predictor
             spends on the step, and the less closely the step fits its data.
         qat_iterations: the quantisation-aware fine-tune every step gets once all are trained (the packing's,
-            :attr:`~apmgsrn.training.series_packing.SeriesPacking.qat_iterations`), before
+            :attr:`~apmgsrn.series.packing.SeriesPacking.qat_iterations`), before
             :meth:`budget_scale` shortens it with the steps': it shares their budget.
         recipe: the tuned numbers of the steps' training (a run's fingerprint leaves them out: :meth:`settings`).
     """
@@ -173,7 +173,7 @@ class StepwiseConfig:
 
     def _allowed(self, config: TrainConfig, steps: int, start_share: float) -> float:
         """The points :meth:`budget_scale` lets the fine-tunes of ``steps`` steps after the start take
-        (``SERIES.steps_budget_cap`` times the series' :func:`~apmgsrn.training.series_packing.series_growth`)."""
+        (``SERIES.steps_budget_cap`` times the series' :func:`~apmgsrn.series.packing.series_growth`)."""
         recipe = self.recipe
         cap = recipe.steps_budget_cap * series_growth(steps + 1, recipe) - recipe.start_point_cost * (start_share - 1)
         return cap * config.iterations - (steps + 1) * recipe.step_fixed_cost
