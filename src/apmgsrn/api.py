@@ -177,7 +177,8 @@ class Model(nn.Module):
 
     def save_decoded(self, out: str | os.PathLike, shape: tuple[int, int, int] | None = None,
                      region: Region | str | dict | None = None, time: int | None = None,
-                     region_units: str = "index", batch_size: int = RUNTIME.query_batch, progress: bool = False) -> DecodePlan:
+                     region_units: str = "index", batch_size: int = RUNTIME.query_batch,
+                     progress: bool = False) -> DecodePlan:
         """Decode to a file (``.nc``, ``.vti``, ``.raw``, ``.npy``), slab by slab, written atomically.
 
         Args:
@@ -318,9 +319,7 @@ def fit(data, preset: str = "small", model: str | None = None, iterations: int |
                               {}, callbacks=[TrainingProgress(enabled=progress)],
                               summary_extra={"plan": resolved.record()})
         if resolved.packing is not None:
-            training = {"iterations": result.iterations, "batch_size": resolved.training.batch_size,
-                        "seconds": round(result.seconds, 3), "frozen_at": result.frozen_at,
-                        "stopped_early": result.stopped_early, "device": resolved.device}  # a packed file keeps no plan
+            training = result.packed_summary(resolved.training.batch_size, resolved.device)
             pack_volume_model(result.field, volume, resolved.packing, training, target, out,
                               log=print if progress else (lambda line: None))
 

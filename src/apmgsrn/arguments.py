@@ -96,3 +96,28 @@ def _range_text(low: int | None, high: int | None) -> str:
     if low is not None:
         return f"an integer >= {low}"
     return f"an integer <= {high}"
+
+
+def parse_triple(value, name: str) -> tuple[int, int, int]:
+    """Three positive sizes from ``R``, ``"R"``, ``"A,B,C"`` (or ``"AxBxC"``) or ``(A, B, C)``; one size means
+    a cube.
+
+    Raises:
+        InvalidArgument: anything else (named as ``name=``).
+    """
+    if isinstance(value, str):
+        try:
+            values = [int(v) for v in value.replace("x", ",").split(",")]
+        except ValueError:
+            raise InvalidArgument(f"{name}={value!r}: expected an integer or three integers like 16,16,16",
+                                  arguments=(name,)) from None
+    elif isinstance(value, (int, tuple, list)) and not isinstance(value, bool):
+        values = [value] if isinstance(value, int) else list(value)
+    else:
+        raise InvalidArgument(f"{name}={value!r}: give an integer or three", arguments=(name,))
+    if len(values) == 1:
+        values = values * 3
+    if len(values) != 3 or not all(isinstance(v, int) and not isinstance(v, bool) for v in values) or min(values) < 1:
+        raise InvalidArgument(f"{name}={value!r}: expected an integer or three positive integers like 16,16,16",
+                              arguments=(name,))
+    return tuple(values)

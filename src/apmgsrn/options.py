@@ -227,11 +227,6 @@ class TrainOptions:
     # device
     device: str = option("auto", group=DEVICE, help="auto (default), cpu, cuda or cuda:I")
 
-    def given(self) -> dict:
-        """The options that differ from their defaults (what the user asked for)."""
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
-                if getattr(self, f.name) != f.default}
-
     @classmethod
     def from_namespace(cls, args: argparse.Namespace) -> TrainOptions:
         """The options of a parsed command line (fields its parser lacks keep their defaults)."""
@@ -250,6 +245,26 @@ class TrainOptions:
             raise ApmgsrnError(f"unknown option{'s' if len(unknown) > 1 else ''} {', '.join(unknown)}: the options "
                                f"are {', '.join(names)}", arguments=tuple(unknown))
         return cls(**kwargs)
+
+
+def read_options(options, allow_series: bool = False) -> dict:
+    """Keyword arguments of :func:`~apmgsrn.data.open_volume` (or, with ``allow_series``,
+    :func:`~apmgsrn.series.data.open_series`) from the input options of ``options`` (:class:`TrainOptions`, or
+    any command's parsed arguments: options a command lacks are None).
+
+    Raises:
+        ApmgsrnError: a time selection of several steps where one volume is read.
+    """
+    time = getattr(options, "time", None)
+    if not allow_series and time is not None and not isinstance(time, int):
+        raise ApmgsrnError(f"time={time} selects several steps, but this reads one volume; pass time=INDEX",
+                           arguments=("time",))
+    from apmgsrn.data import parse_shape
+
+    shape = getattr(options, "shape", None)
+    return {"variable": getattr(options, "variable", None), "time": time,
+            "shape": parse_shape(shape) if isinstance(shape, str) else (tuple(shape) if shape else None),
+            "dtype": getattr(options, "dtype", None), "fill_nonfinite": getattr(options, "fill_nonfinite", None)}
 
 
 def option_names(group: str | None = None) -> tuple[str, ...]:

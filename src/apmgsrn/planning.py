@@ -18,24 +18,20 @@ from pathlib import Path
 import torch
 
 from apmgsrn import recipes
+from apmgsrn.arguments import parse_triple
 from apmgsrn.choices import default_model
-from apmgsrn.data import Volume, open_volume, parse_shape
-from apmgsrn.series.data import TimeSelection, VolumeSeries, is_series_input, open_series
+from apmgsrn.data import Volume, open_volume
 from apmgsrn.decomposition.planner import DecompositionConfig
 from apmgsrn.device import resolve_device
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.models.registry import preset_config, training_defaults
+from apmgsrn.options import TrainOptions, read_options
+from apmgsrn.series.data import TimeSelection, VolumeSeries, is_series_input, open_series
 from apmgsrn.series.field import series_config
-from apmgsrn.options import TrainOptions
-from apmgsrn.training.packing import PackConfig, anchored_grids_for, config_for_bytes
-from apmgsrn.series.packing import (
-    SeriesPacking,
-    default_series_decoder,
-    default_series_packing,
-    default_series_qat,
-)
 from apmgsrn.series.fit import series_budget
+from apmgsrn.series.packing import SeriesPacking, default_series_decoder, default_series_packing, default_series_qat
 from apmgsrn.series.steps import StepwiseConfig, stepwise_config
+from apmgsrn.training.packing import PackConfig, anchored_grids_for, config_for_bytes
 from apmgsrn.training.trainer import TrainConfig, default_budget
 
 #: The packing options: a model is packed when any of them is given.
@@ -158,7 +154,7 @@ def resolve(data, options: TrainOptions | None = None) -> Plan:
         raise ApmgsrnError(f"{len(paths)} inputs given where one volume is read; name one file")
     _refuse_series_options(options)
     # Brick workers reopen the file by path, possibly from another folder.
-    volume = open_volume(os.path.abspath(paths[0]) if options.bricks else paths[0], **_volume_options(options))
+    volume = open_volume(os.path.abspath(paths[0]) if options.bricks else paths[0], **read_options(options))
     return _volume_plan(volume, (paths[0],), options, device)
 
 
@@ -231,23 +227,12 @@ def series_packing(options, raw_bytes: int) -> SeriesPacking | None:
     return None
 
 
-def _volume_options(options: TrainOptions) -> dict:
-    """Keyword arguments of :func:`~apmgsrn.data.open_volume` / :func:`~apmgsrn.series.data.open_series`."""
-    shape = options.shape
-    return {"variable": options.variable, "time": options.time,
-            "shape": parse_shape(shape) if isinstance(shape, str) else (tuple(shape) if shape else None),
-            "dtype": options.dtype, "fill_nonfinite": options.fill_nonfinite}
-
-
 def _refuse_series_options(options: TrainOptions) -> None:
     """The options only a time series takes, refused for one volume (``storage`` is also the hybrid's tables).
 
     Raises:
         ApmgsrnError: such an option given.
     """
-    if options.time is not None and not isinstance(options.time, int):
-        raise ApmgsrnError(f"time={options.time} selects several steps, but this reads one volume; pass time=INDEX",
-                           arguments=("time",))
     hybrid = options.model in (None, "hybrid")
     for name in (*JOINT_OPTIONS, *(() if hybrid else ("storage",)), "series_training", *STEPWISE_OPTIONS,
                  "group_steps"):
@@ -255,30 +240,6 @@ def _refuse_series_options(options: TrainOptions) -> None:
             also = " or a hybrid model" if name == "storage" else ""
             raise ApmgsrnError(f"{name}= applies to a time series (several files, a glob, a .pvd or time=all)"
                                f"{also}; drop {name}= for one volume", arguments=(name, "time"))
-
-
-def _triple(value, name: str) -> tuple[int, int, int]:
-    """``R``, ``"R"``, ``"A,B,C"`` or ``(A, B, C)`` as three sizes.
-
-    Raises:
-        ApmgsrnError: anything else.
-    """
-    if isinstance(value, str):
-        try:
-            values = [int(v) for v in value.replace("x", ",").split(",")]
-        except ValueError:
-            raise ApmgsrnError(f"{name}={value!r}: expected an integer or three integers like 16,16,16",
-                               arguments=(name,)) from None
-    elif isinstance(value, (int, tuple, list)) and not isinstance(value, bool):
-        values = [value] if isinstance(value, int) else list(value)
-    else:
-        raise ApmgsrnError(f"{name}={value!r}: give an integer or three", arguments=(name,))
-    if len(values) == 1:
-        values = values * 3
-    if len(values) != 3 or not all(isinstance(v, int) and not isinstance(v, bool) for v in values) or min(values) < 1:
-        raise ApmgsrnError(f"{name}={value!r}: expected an integer or three positive integers like 16,16,16",
-                           arguments=(name,))
-    return tuple(values)
 
 
 def _configs(options: TrainOptions, model: str, device: torch.device, steps: int | None, stepwise: bool):
@@ -300,7 +261,7 @@ def _configs(options: TrainOptions, model: str, device: torch.device, steps: int
     overrides = {
         "grids": options.grids,
         "features": options.features,
-        "resolution": _triple(options.resolution, "resolution") if options.resolution is not None else None,
+        "resolution": parse_triple(options.resolution, "resolution") if options.resolution is not None else None,
         "init": options.grid_init,
         "backend": options.backend,
         "hidden_layers": options.hidden_layers,
@@ -348,7 +309,7 @@ def _bricks(options: TrainOptions) -> DecompositionConfig | None:
     if packing_requested(options):
         raise ApmgsrnError("packing options (bits=, max_error=, ...) apply to single models and time series, "
                            "not bricks=", arguments=("bits", "max_error", "bricks"))
-    return DecompositionConfig(_triple(options.bricks, "bricks"), options.ghost_cells, options.blend)
+    return DecompositionConfig(parse_triple(options.bricks, "bricks"), options.ghost_cells, options.blend)
 
 
 def _volume_plan(volume: Volume, paths: tuple[str, ...], options: TrainOptions, device: torch.device) -> Plan:
@@ -389,7 +350,7 @@ def _series_plan(paths: list[str], options: TrainOptions, device: torch.device) 
                                arguments=(name, "series_training"))
     bricks = _bricks(options)
     run = _brick_run(options, bricks)
-    series = open_series(paths, **_volume_options(options))
+    series = open_series(paths, **read_options(options, allow_series=True))
     if bricks is not None:
         series = series.absolute()  # workers reopen the steps by path
     steps = len(series)

@@ -6,7 +6,7 @@ import argparse
 
 from apmgsrn.choices import DECODER_PRECISIONS
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.options import INPUT, add_option_arguments
+from apmgsrn.options import INPUT, add_option_arguments, read_options
 
 
 def add_data_arguments(parser: argparse.ArgumentParser) -> None:
@@ -15,24 +15,9 @@ def add_data_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def volume_options(args: argparse.Namespace, allow_series: bool = False) -> dict:
-    """Keyword arguments of :func:`apmgsrn.data.open_volume` (or, with ``allow_series``,
-    :func:`apmgsrn.series.data.open_series`) from the data options of ``args``.
-
-    Raises:
-        ApmgsrnError: ``--time all`` or ``A:B`` where one volume is read.
-    """
-    from apmgsrn.data import parse_shape
-
-    time = getattr(args, "time", None)
-    if not allow_series and time is not None and not isinstance(time, int):
-        raise ApmgsrnError(f"--time {time} selects several steps, but this reads one volume; pass --time INDEX")
-    return {
-        "variable": getattr(args, "variable", None),
-        "time": time,
-        "shape": parse_shape(args.shape) if getattr(args, "shape", None) else None,
-        "dtype": getattr(args, "dtype", None),
-        "fill_nonfinite": getattr(args, "fill_nonfinite", None),
-    }
+    """Keyword arguments of :func:`apmgsrn.data.open_volume` (or, with ``allow_series``, of a series' opener) from
+    the data options of ``args`` (:func:`apmgsrn.options.read_options`)."""
+    return read_options(args, allow_series)
 
 
 def open_data(args: argparse.Namespace, path: str):
@@ -56,19 +41,6 @@ def add_precision_argument(parser: argparse.ArgumentParser, default: str, purpos
              "slower than the fused float32 kernels of APMGSRN and the hybrid everywhere measured; values move by "
              "up to about 0.5 %% of the range, and a --max-error bound is not kept); auto = bfloat16 on such CPUs "
              "for a model without a fused float32 kernel, float32 elsewhere")
-
-
-def parse_triple(text: str, option: str) -> tuple[int, int, int]:
-    """``"R"`` -> (R, R, R); ``"A,B,C"`` -> (A, B, C)."""
-    try:
-        values = [int(v) for v in text.replace("x", ",").split(",")]
-    except ValueError:
-        raise ApmgsrnError(f"{option} {text!r}: expected an integer or three integers like 16,16,16") from None
-    if len(values) == 1:
-        values = values * 3
-    if len(values) != 3 or min(values) < 1:
-        raise ApmgsrnError(f"{option} {text!r}: expected an integer or three positive integers like 16,16,16")
-    return tuple(values)
 
 
 def format_bytes(count: float) -> str:

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import apmgsrn
 from apmgsrn.choices import REGION_UNITS
-from apmgsrn.cli.common import add_device_argument, add_precision_argument, parse_triple
+from apmgsrn.arguments import parse_triple
+from apmgsrn.cli.common import add_device_argument, add_precision_argument
 from apmgsrn.options import time_value
 from apmgsrn.cli.paths import CommandPaths, Output
 from apmgsrn.errors import ApmgsrnError
@@ -60,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     model = apmgsrn.load(args.model, device=args.device, precision=args.precision)
     shape = None
     if args.shape:
-        x, y, z = parse_triple(args.shape, "--shape")
+        x, y, z = parse_triple(args.shape, "shape")
         shape = (z, y, x)
     region = Region.parse(args.region, args.region_units) if args.region else None
     time = args.time

@@ -20,35 +20,16 @@ from apmgsrn.recipes import PACKING, SERIES
 
 #: Placeholder of ``decode --time all --out``: one file per step.
 STEP_FIELD = "{step}"
-#: Options of a joint series model (refused for stepwise training).
-JOINT_OPTIONS = ("basis", "coefficients", "residual", "steps_per_iteration")
-#: Options of a stepwise series (refused for a joint one).
-STEPWISE_OPTIONS = ("start_step", "step_iterations", "step_sparsity", "decoder_iterations")
-
-
-def is_series(args: argparse.Namespace) -> bool:
-    """Whether the command's DATA names a series rather than one volume."""
-    from apmgsrn.series.data import is_series_input
-
-    return is_series_input(args.data, getattr(args, "time", None))
 
 
 def single_input(args: argparse.Namespace) -> str:
-    """The one DATA path of a command that reads one volume (several name a series); the options that only a
-    series takes are refused.
+    """The one DATA path of a command that reads one volume (several name a series).
 
     Raises:
-        ApmgsrnError: several inputs, or a series option given.
+        ApmgsrnError: several inputs.
     """
     if len(args.data) != 1:
         raise ApmgsrnError(f"{len(args.data)} inputs given where one volume is read; name one file")
-    hybrid = getattr(args, "model", None) in (None, "hybrid")  # --storage: the hybrid's tables (None: default)
-    for option in (*JOINT_OPTIONS, *(() if hybrid else ("storage",)), "series_training", *STEPWISE_OPTIONS):
-        if getattr(args, option, None) is not None:
-            flag = "--" + option.replace("_", "-")
-            also = " or a hybrid model" if option == "storage" else ""
-            raise ApmgsrnError(f"{flag} applies to a time series (several files, a glob, a .pvd or --time all)"
-                               f"{also}; drop {flag} for one volume")
     return args.data[0]
 
 

@@ -144,13 +144,11 @@ def run(args: argparse.Namespace) -> int:
     compression = compression_figures(voxels, str(volume.dtype), volume.dtype.itemsize, result.model_bytes)
     packed = None
     if packing is not None:
-        training = {"iterations": result.iterations, "batch_size": train_config.batch_size,
-                    "seconds": round(result.seconds, 3), "frozen_at": result.frozen_at,
-                    "stopped_early": result.stopped_early, "device": str(device)}  # a packed file keeps no plan
         from apmgsrn.training.packing import pack_volume_model
 
-        packed = pack_volume_model(result.field, volume, packing, training, device, out,
-                            log=(lambda line: None) if args.json else print)
+        kept = result.packed_summary(train_config.batch_size, device)
+        packed = pack_volume_model(result.field, volume, packing, kept, device, out,
+                                   log=(lambda line: None) if args.json else print)
         compression = compression_figures(voxels, str(volume.dtype), volume.dtype.itemsize, packed.file_bytes)
     summary = {
         "model": str(out),

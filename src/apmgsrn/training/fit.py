@@ -230,6 +230,12 @@ class FitResult:
     evaluation: Evaluation
     training: dict = dataclass_field(default_factory=dict)
 
+    def packed_summary(self, batch_size: int, device) -> dict:
+        """The training summary a packed file of this fit keeps: no loss history and no plan (a packed file's
+        bytes are the point of packing)."""
+        return {"iterations": self.iterations, "batch_size": batch_size, "seconds": round(self.seconds, 3),
+                "frozen_at": self.frozen_at, "stopped_early": self.stopped_early, "device": str(device)}
+
     @property
     def psnr(self) -> float:
         return self.evaluation.psnr
