@@ -33,7 +33,7 @@ from apmgsrn.training.packing import group_means
 from apmgsrn.series.packing import (
     pack_series,
     packed_series_field,
-    parameter_budget,
+    series_overhead,
     sensitivity_steps,
     series_sensitivity,
     shared_steps,
@@ -343,8 +343,9 @@ def test_pack_a_series_to_a_size_takes_the_finest_steps_that_fit(field, pattern,
     save_series(float32, field, SourceInfo(), {}, step_entries(4))
     sensitivity = series_sensitivity(field)
     sizes = {bits: pack_series(field, bits, sensitivity).parameter_bytes for bits in (7, 8)}
-    large = 1 << 40
-    overhead = large - parameter_budget(large, 4)  # the description and framing a target allows for
+    loaded = apmgsrn.load(float32)  # the description and framing a target allows for, as pack measures them
+    overhead = series_overhead(loaded.field, loaded.description.source, loaded.description.training,
+                               list(loaded.description.series.steps))
     budget = (sizes[7] + sizes[8]) // 2 + overhead
     code, packed = run_json(["pack", str(float32), pattern, "--out", str(tmp_path / "p.apmgsrn"),
                              "--size", str(budget)], capsys)
@@ -476,7 +477,7 @@ def test_a_size_search_codes_its_trials_with_the_first_ones_predictors_and_keeps
     """``pack_series(predictors=...)`` codes a tensor with those predictors only (never smaller than the best of
     all); a size target's search takes its trials that way and codes the width it keeps with every predictor
     again: the packing kept is the unrestricted one of its width, and fits."""
-    from apmgsrn.series.packing import SeriesPacking, chosen_predictors, parameter_budget
+    from apmgsrn.series.packing import SeriesPacking, chosen_predictors
 
     field = hybrid_series
     sensitivity = series_sensitivity(field)
@@ -485,13 +486,12 @@ def test_a_size_search_codes_its_trials_with_the_first_ones_predictors_and_keeps
     forced = pack_series(field, 6, sensitivity, predictors={"encoder.level_table": ("none",)})
     table = {t.name: t for t in forced.tensors}["encoder.level_table"]
     assert table.predictor == "none" and forced.parameter_bytes > free.parameter_bytes
-    large = 1 << 40
     target = (pack_series(field, 6, sensitivity).parameter_bytes + pack_series(field, 7, sensitivity).parameter_bytes
-              ) // 2 + large - parameter_budget(large, field.steps)
+              ) // 2 + series_overhead(field)
     kept = SeriesPacking(8, target, 4).pack(field)
     assert kept.bits == 6 and 0 <= kept.finer < 1  # 6 fits, 7 does not; the sixteenths follow the coding
     again = pack_series(field, kept.bits, sensitivity, kept.finer)
-    assert kept.parameter_bytes == again.parameter_bytes <= parameter_budget(target, field.steps)
+    assert kept.parameter_bytes == again.parameter_bytes <= target - series_overhead(field)
     assert [t.predictor for t in kept.tensors] == [t.predictor for t in again.tensors]
 
 
@@ -502,15 +502,14 @@ def test_a_size_search_takes_the_finest_sixteenth_of_a_bit_that_fits_in_few_tria
     fits, the next sixteenth of a bit does not, and the search coded fewer trials than a bisection of the
     lattice would (the 96 sixteenths from 4 bits to 10 take it 7; besides the top and the width kept)."""
     from apmgsrn.series import packing as series_packing
-    from apmgsrn.series.packing import SeriesPacking, parameter_budget
+    from apmgsrn.series.packing import SeriesPacking
 
     field = hybrid_series
     sensitivity = series_sensitivity(field)
     lower, upper, share = between
     sizes = [pack_series(field, bits, sensitivity).parameter_bytes for bits in (lower, upper)]
-    large = 1 << 40
-    target = round(sizes[0] + share * (sizes[1] - sizes[0])) + large - parameter_budget(large, field.steps)
-    budget = parameter_budget(target, field.steps)
+    target = round(sizes[0] + share * (sizes[1] - sizes[0])) + series_overhead(field)
+    budget = target - series_overhead(field)
     trials = []
     original = series_packing.pack_series
     monkeypatch.setattr(series_packing, "pack_series",

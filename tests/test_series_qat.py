@@ -29,7 +29,7 @@ from apmgsrn.series.packing import (
     default_series_qat,
     pack_series,
     packed_series_field,
-    parameter_budget,
+    series_overhead,
     series_sensitivity,
 )
 from apmgsrn.series.qat import (
@@ -66,11 +66,10 @@ def hybrid_series(prepared):
                           show_progress=False).field
 
 
-def file_bytes_for(parameter_bytes: int, steps: int) -> int:
-    """The file size whose packing budget (parameter_budget: what the description and framing leave) of a series of
-    ``steps`` steps is ``parameter_bytes``."""
-    large = 1 << 40
-    return parameter_bytes + large - parameter_budget(large, steps)
+def file_bytes_for(parameter_bytes: int, field) -> int:
+    """The file size whose packing budget for the series ``field`` (what its description and framing leave:
+    series_overhead) is ``parameter_bytes``."""
+    return parameter_bytes + series_overhead(field)
 
 
 def test_packing_on_the_steps_a_packing_used_gives_the_same_file(hybrid_series):
@@ -205,8 +204,8 @@ def test_repack_undoes_the_fine_tune_of_as_few_steps_as_make_the_file_fit(hybrid
     grown = pack_series(tuned, 6, finer=to_tune.finer, steps=to_tune.steps).parameter_bytes
     assert grown > to_tune.parameter_bytes
     budget = (grown + to_tune.parameter_bytes) // 2
-    packing = SeriesPacking(6, target_bytes=file_bytes_for(budget, tuned.steps), min_bits=4)
-    assert parameter_budget(packing.target_bytes, tuned.steps) == budget
+    packing = SeriesPacking(6, target_bytes=file_bytes_for(budget, tuned), min_bits=4)
+    assert packing.target_bytes - series_overhead(tuned) == budget
     repacked = packing.repack(tuned, to_tune, before)
     assert repacked.parameter_bytes <= budget
     assert repacked.restored and set(repacked.restored) <= {1, 3} and repacked.bit_width == to_tune.bit_width
@@ -233,11 +232,10 @@ def test_the_packing_to_tune_towards_leaves_room_for_the_fine_tuned_values(hybri
     """With a size target the packing a fine-tune trains towards keeps PACKING.tuned_bytes_margin of the target free, so
     the fine-tuned field, packed on the same steps, still fits (without the margin, a target the bisection
     filled would send it back to packing anew on other steps)."""
-    steps = hybrid_series.steps
-    tight = SeriesPacking(8, target_bytes=file_bytes_for(pack_series(hybrid_series, 6).parameter_bytes, steps),
+    tight = SeriesPacking(8, target_bytes=file_bytes_for(pack_series(hybrid_series, 6).parameter_bytes, hybrid_series),
                           min_bits=4, qat_iterations=20)
     plain, to_tune = replace(tight, qat_iterations=0).pack(hybrid_series), tight.pack(hybrid_series)
-    budget = parameter_budget(tight.target_bytes, steps)
+    budget = tight.target_bytes - series_overhead(hybrid_series)
     assert plain.parameter_bytes <= budget and to_tune.parameter_bytes <= (1 - PACKING.tuned_bytes_margin) * tight.target_bytes
     # a smaller budget, a width no finer (how many sixteenths finer the margin costs follows the values' coding)
     assert to_tune.bit_width <= plain.bit_width
@@ -254,13 +252,13 @@ def test_a_packing_that_leaves_less_room_than_the_margin_shortens_the_fine_tune_
     fine-tune towards it runs in proportion to the room left (what it would code larger does not fit, and would be
     undone); with the margin left, or no target, it runs whole; with no room, not at all."""
     floor = SeriesPacking(6, min_bits=6).pack(hybrid_series).parameter_bytes
-    framing = file_bytes_for(0, hybrid_series.steps)  # parameter_budget's allowance
+    framing = series_overhead(hybrid_series)  # the description and framing
 
     def tuned(target: int) -> tuple[int, int]:
         packing = SeriesPacking(6, target_bytes=target, min_bits=6, strict=False, qat_iterations=40)
         packed = packing.pack(hybrid_series)
         assert packed.bit_width == 6  # at its floor whatever the target
-        return packing.tune_iterations(packed, hybrid_series.steps), packed.parameter_bytes
+        return packing.tune_iterations(packed), packed.parameter_bytes
 
     roomy = int((floor + framing) / (1 - PACKING.tuned_bytes_margin)) + 8
     assert tuned(roomy) == (40, floor)
@@ -269,7 +267,7 @@ def test_a_packing_that_leaves_less_room_than_the_margin_shortens_the_fine_tune_
     assert 19 <= iterations <= 21
     assert tuned(floor + framing - 1)[0] == 0  # over the target already
     assert SeriesPacking(6, min_bits=6, qat_iterations=40).tune_iterations(
-        SeriesPacking(6, min_bits=6).pack(hybrid_series), hybrid_series.steps) == 40  # no target
+        SeriesPacking(6, min_bits=6).pack(hybrid_series)) == 40  # no target
 
 
 @pytest.mark.parametrize("iterations", [7, 0])
@@ -279,7 +277,7 @@ def test_train_fine_tunes_towards_the_packing_as_long_as_the_room_allows(pattern
     records them and counts them."""
     from apmgsrn.series import qat as series_qat
 
-    monkeypatch.setattr(SeriesPacking, "tune_iterations", lambda self, packed, steps: iterations)
+    monkeypatch.setattr(SeriesPacking, "tune_iterations", lambda self, packed: iterations)
     calls = []
 
     def spy(*args, **kwargs):
@@ -524,7 +522,7 @@ def test_a_packing_past_its_target_still_takes_the_fine_tuned_decoder(hybrid_ser
     field = copy.deepcopy(hybrid_series)
     packing = SeriesPacking(5, 4000, min_bits=5, strict=False, decoder_iterations=40)
     packed = packing.pack(field)
-    assert packed.parameter_bytes > parameter_budget(4000, 4)
+    assert packed.parameter_bytes > 4000 - series_overhead(field)
     again, ran = packing.tune_decoder(field, packed,
                                       lambda n: fine_tune_decoder(field, prepared.values, CONFIG, n)[0])
     assert ran == 40 and again is not packed
@@ -538,8 +536,8 @@ def test_a_packing_whose_decoder_is_fine_tuned_after_coding_leaves_it_room(hybri
     wide = replace(PACKING, decoder_bytes_margin=3.0)
     decoder_bytes = 4 * sum(p.numel() for p in hybrid_series.decoder.parameters())
     eight = pack_series(hybrid_series, 8, series_sensitivity(hybrid_series))
-    target = eight.parameter_bytes + 1024 + 64 * 4  # 8 bits fit, to the byte
-    budget = parameter_budget(target, 4)
+    target = eight.parameter_bytes + series_overhead(hybrid_series)  # 8 bits fit, to the byte
+    budget = target - series_overhead(hybrid_series)
     plain = SeriesPacking(8, target, 2, recipe=wide).pack(hybrid_series)
     room = SeriesPacking(8, target, 2, decoder_iterations=10, recipe=wide).pack(hybrid_series)
     assert plain.bit_width == 8 and plain.parameter_bytes <= budget
@@ -634,7 +632,7 @@ def test_a_series_whose_target_holds_every_step_coded_alone_is_trained_unpulled(
     last = holding[-1]
     for steps in (last, last + 1):
         chosen, packing, config = trained_with(steps)
-        holds = fresh_bytes(packing, config) <= parameter_budget(packing.target_bytes, steps)
+        holds = fresh_bytes(packing, config) <= packing.target_bytes
         assert holds == (steps == last) == (chosen.step_sparsity == 0.0)
     assert trained_with(30)[0].step_sparsity is None  # the kind's pull (StepwiseConfig.sparsity)
     assert trained_with(3, StepwiseConfig(step_sparsity=0.01))[0].step_sparsity == 0.01

@@ -204,6 +204,8 @@ class PackingRecipe:
     level_table_group: int = 1024
     #: a sensitivity-allocated step is at most this many bits finer than the uniform one
     finest_share_bits: int = 8
+    #: a single field's size search: log10 of its coarsest and finest sensitivity scale, and the lattice step
+    scale_lattice: tuple[float, float, float] = (6.0, -12.0, 0.004)
     #: the lattice of bit widths a size target's search takes the finest fitting one of
     finer_resolution: float = 1 / 16
     #: share of a size target kept free for a quantisation-aware fine-tune; 250 iterations code 2.5 % larger

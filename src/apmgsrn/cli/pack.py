@@ -129,6 +129,7 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
     from apmgsrn.series.packing import (
         SeriesPacking,
         packed_series_field,
+        series_overhead,
         series_packing_report,
         write_packed_series,
     )
@@ -151,7 +152,8 @@ def run_series_pack(args: argparse.Namespace, model) -> int:
         if not field.config.series.per_step_grids:
             raise joint_series_qat() if packing.qat_iterations else ApmgsrnError(JOINT_SERIES_DECODER)
     values = None
-    packed = packing.pack(field)
+    packed = packing.pack(field, series_overhead(field, model.description.source, model.description.training,
+                                                 list(layout.steps)))
     options = dict(trained_shape=model.description.volume_shape, progress=not args.json)
     log(f"measuring the float32 model on {len(series)} steps")
     before = evaluate_series(field.step_field, series, **options)

@@ -26,7 +26,13 @@ from apmgsrn.series.data import VolumeSeries, series_fingerprint
 from apmgsrn.series.evaluate import SeriesEvaluation, evaluate_series
 from apmgsrn.series.field import SeriesFieldConfig
 from apmgsrn.series.file import save_series
-from apmgsrn.series.packing import PackedSeries, SeriesPacking, series_packing_report, write_packed_series
+from apmgsrn.series.packing import (
+    PackedSeries,
+    SeriesPacking,
+    series_overhead,
+    series_packing_report,
+    write_packed_series,
+)
 from apmgsrn.series.qat import budgeted
 from apmgsrn.series.steps import StepwiseConfig, series_trainer
 from apmgsrn.training.callbacks import TrainingProgress
@@ -58,12 +64,15 @@ class SeriesOutput:
             (:func:`~apmgsrn.series.qat.fine_tune_rounded`'s signature, less ``show_progress``).
         tune_decoder: with ``packing.decoder_iterations``: fine-tunes its decoder to the coded grids
             (:func:`~apmgsrn.series.decoder.fine_tune_decoder`'s signature, less ``show_progress``).
+        source: where the data came from, as the file will say (a size target allows for its description:
+            :func:`~apmgsrn.series.packing.series_overhead`; None: a placeholder of usual length).
     """
 
     steps: Sequence[SeriesStepInfo]
     packing: SeriesPacking | None = None
     tune_packed: Callable[..., tuple[int, float]] | None = None
     tune_decoder: Callable[..., tuple[int, float]] | None = None
+    source: SourceInfo | None = None
 
     @property
     def kind(self) -> str:
@@ -90,7 +99,8 @@ class SeriesOutput:
             # training time (the evaluations, as for one volume, do not).
             started = time.perf_counter()
             try:
-                packed = packing.pack(trained.field)
+                overhead = series_overhead(trained.field, self.source, trained.summary, steps)
+                packed = packing.pack(trained.field, overhead)
                 if packing.qat_iterations and self.tune_packed is None:
                     raise ValueError("packing.qat_iterations needs tune_packed")
                 if packing.decoder_iterations and self.tune_decoder is None:
@@ -180,5 +190,5 @@ def fit_series(
     display = TrainingProgress("train" if stepwise is None else "start step", enabled=progress)
     return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
                callbacks=[display], train=series_trainer(stepwise, progress),
-               output=SeriesOutput(steps, packing, tune_packed, tune_decoder),
+               output=SeriesOutput(steps, packing, tune_packed, tune_decoder, source),
                summary_extra={"plan": plan} if plan else None)

@@ -65,6 +65,7 @@ from apmgsrn.models.registry import stored_bytes
 from apmgsrn.series.evaluate import SeriesEvaluation
 from apmgsrn.series.field import SeriesField
 from apmgsrn.recipes import PACKING, SERIES, PackingRecipe, SeriesRecipe, model_recipe
+from apmgsrn.training.budget import coded_budget, largest_fitting, overhead_bytes
 from apmgsrn.training.packing import group_means, parameter_sensitivity
 
 #: Per-step tensors whose groups share one step over all steps (what the ``time`` predictor needs).
@@ -85,6 +86,8 @@ class PackedSeries:
             quantisation-aware fine-tune, :mod:`apmgsrn.series.qat`, trains towards).
         restored: the steps whose values from before a quantisation-aware fine-tune were packed instead, so that
             the file fits its target (:meth:`SeriesPacking.repack`).
+        overhead: the bytes the file's description and framing take beside :attr:`parameter_bytes`, as the
+            packing measured them (:func:`series_overhead`; None: not measured, a packing without a target).
     """
 
     tensors: list[PackedTensor]
@@ -93,6 +96,7 @@ class PackedSeries:
     finer: float = 0.0
     steps: dict[str, np.ndarray] = dataclass_field(default_factory=dict)
     restored: tuple[int, ...] = ()
+    overhead: int | None = None
 
     @property
     def bit_width(self) -> float:
@@ -285,7 +289,7 @@ class SeriesPacking:
     Attributes:
         bits: the bit width (the largest tried, with a target).
         target_bytes: bytes the file may take (None: no limit; the description and framing are allowed for,
-            :func:`parameter_budget`).
+            as measured: :func:`series_overhead`).
         min_bits: the smallest bit width tried for a target.
         strict: refuse to pack when not even ``min_bits`` fits (False: pack at ``min_bits`` anyway, as the
             default cap of ``train`` does).
@@ -317,25 +321,34 @@ class SeriesPacking:
         """The fields as a run's fingerprint records them: all but :attr:`recipe`, which the code fixes."""
         return {name: value for name, value in asdict(self).items() if name != "recipe"}
 
-    def pack(self, field: SeriesField) -> PackedSeries:
+    def pack(self, field: SeriesField, overhead: int | None = None) -> PackedSeries:
         """The packed field (with a target the finest bit width from ``bits`` down to ``min_bits``, in
         ``PACKING.finer_resolution`` of a bit, whose coded parameters fit: :meth:`_search`).
 
         With :attr:`qat_iterations` the field is to be fine-tuned towards these steps and packed on them again
         (:meth:`repack`): a target is then met within ``PACKING.tuned_bytes_margin`` less, where it can be, so that
         the fine-tuned values, which code a little larger, still fit; and the width kept is not coded with every
-        predictor again, since only its steps are used."""
-        if self.qat_iterations and self.target_bytes is not None:
+        predictor again, since only its steps are used.
+
+        Args:
+            overhead: the bytes the file's description and framing take (:func:`series_overhead` with what the
+                file will describe; None: measured with placeholders of the same length).
+        """
+        if self.target_bytes is None:
+            return self._pack(field, None, final=not self.qat_iterations, overhead=None)
+        overhead = series_overhead(field) if overhead is None else overhead
+        if self.qat_iterations:
             try:
                 margin = self.recipe.tuned_bytes_margin
-                return self._pack(field, max(1, round(self.target_bytes * (1 - margin))), final=False)
+                return self._pack(field, max(1, round(self.target_bytes * (1 - margin))), final=False,
+                                  overhead=overhead)
             except InvalidArgument:  # fits the target only without the margin
                 pass
-        return self._pack(field, self.target_bytes, final=not self.qat_iterations)
+        return self._pack(field, self.target_bytes, final=not self.qat_iterations, overhead=overhead)
 
-    def tune_iterations(self, packed: PackedSeries, steps: int) -> int:
-        """The quantisation-aware fine-tune's iterations per step towards ``packed`` (:meth:`pack` of a series of
-        ``steps`` steps): :attr:`qat_iterations`, shortened in proportion where the packing could not leave
+    def tune_iterations(self, packed: PackedSeries) -> int:
+        """The quantisation-aware fine-tune's iterations per step towards ``packed`` (:meth:`pack`):
+        :attr:`qat_iterations`, shortened in proportion where the packing could not leave
         ``PACKING.tuned_bytes_margin`` of the target free for what the fine-tuned values code larger (its bit width
         at ``min_bits``), none where it left nothing free.
 
@@ -343,7 +356,7 @@ class SeriesPacking:
         iterations it ran on them are lost; where the margin is free every iteration counts (docs/time_series.md)."""
         if not self.qat_iterations or self.target_bytes is None:
             return self.qat_iterations
-        free = parameter_budget(self.target_bytes, steps) - packed.parameter_bytes
+        free = coded_budget(self.target_bytes, packed.overhead or 0) - packed.parameter_bytes
         share = free / (self.recipe.tuned_bytes_margin * self.target_bytes)
         return self.qat_iterations if share >= 1 else max(0, round(self.qat_iterations * share))
 
@@ -355,7 +368,7 @@ class SeriesPacking:
         Returns:
             (the packing, the fine-tune's iterations per step: 0, and ``packed`` itself, where none ran).
         """
-        iterations = self.tune_iterations(packed, field.steps)
+        iterations = self.tune_iterations(packed)
         if iterations:
             before = step_tensors(field)
             tune(packed, iterations)
@@ -384,10 +397,11 @@ class SeriesPacking:
         if not iterations:
             return packed, 0
         again = replace(pack_series(field, packed.bits, finer=packed.finer, steps=packed.steps,
-                                    predictors=chosen_predictors(packed)), restored=packed.restored)
+                                    predictors=chosen_predictors(packed)), restored=packed.restored,
+                        overhead=packed.overhead)
         if self.target_bytes is not None:
             # a packing already past the target (at min_bits, not strict) may grow by as much as one within it
-            limit = max(parameter_budget(self.target_bytes, field.steps),
+            limit = max(coded_budget(self.target_bytes, _overhead(field, packed)),
                         packed.parameter_bytes + self._decoder_margin(field))
             if again.parameter_bytes > limit:
                 field.decoder.load_state_dict(kept)
@@ -407,12 +421,14 @@ class SeriesPacking:
         and the field keeps what was packed (:attr:`PackedSeries.restored` names them); without, the field is
         packed anew (:meth:`pack`, the fine-tune lost)."""
         predictors = chosen_predictors(packed)
-        again = pack_series(field, packed.bits, finer=packed.finer, steps=packed.steps, predictors=predictors)
-        budget = None if self.target_bytes is None else self._coded_budget(self.target_bytes, field)
+        again = replace(pack_series(field, packed.bits, finer=packed.finer, steps=packed.steps, predictors=predictors),
+                        overhead=packed.overhead)
+        budget = (None if self.target_bytes is None
+                  else self._coded_budget(self.target_bytes, field, _overhead(field, packed)))
         if budget is None or again.parameter_bytes <= budget:
             return again
         if before is None:
-            return replace(self, qat_iterations=0).pack(field)
+            return replace(self, qat_iterations=0).pack(field, _overhead(field, packed))
         tuned = step_tensors(field)
         moved = np.zeros(field.steps)
         for name, values in tuned.items():
@@ -432,7 +448,8 @@ class SeriesPacking:
         def restoring(count: int) -> PackedSeries:
             restore(count)
             return replace(pack_series(field, packed.bits, finer=packed.finer, steps=packed.steps,
-                                       predictors=predictors), restored=tuple(sorted(order[:count])))
+                                       predictors=predictors), restored=tuple(sorted(order[:count])),
+                           overhead=packed.overhead)
 
         low, high = 0, field.steps  # restoring `high` steps fits (all of them: `packed`), `low` does not
         best = replace(packed, restored=tuple(range(field.steps)))
@@ -451,18 +468,19 @@ class SeriesPacking:
         (a :class:`SeriesFieldConfig` fitted to its steps' shape) of ``steps`` steps at :attr:`bits` a value, each
         step as if coded with nothing taken from its neighbour: then the packing never has to narrow the bits for
         what consecutive steps do not share, and the steps need not be pulled towards each other
-        (:func:`~apmgsrn.series.qat.budgeted`). False without a target."""
+        (:func:`~apmgsrn.series.qat.budgeted`). False without a target. Decided before any training, so against
+        the whole target: the description and framing are a few hundred bytes of it."""
         if self.target_bytes is None:
             return False
         shapes = field_config.parameter_shapes()
         values = sum(math.prod(shapes[name]) for name in SHARED_STEP_TENSORS if name in shapes)  # every step's
-        return values * self.bits / 8 <= parameter_budget(self.target_bytes, steps)
+        return values * self.bits / 8 <= self.target_bytes
 
-    def _coded_budget(self, target_bytes: int, field: SeriesField) -> int:
-        """Bytes the coded parameters of ``field`` may take in a file of ``target_bytes``
-        (:func:`parameter_budget`), less, where the decoder is fine-tuned after coding (:meth:`tune_decoder`),
+    def _coded_budget(self, target_bytes: int, field: SeriesField, overhead: int) -> int:
+        """Bytes the coded parameters of ``field`` may take in a file of ``target_bytes`` whose description and
+        framing take ``overhead`` (:func:`~apmgsrn.training.budget.coded_budget`), less, where the decoder is fine-tuned after coding (:meth:`tune_decoder`),
         ``PACKING.decoder_bytes_margin`` of its float32 bytes: its new weights code a few bytes larger or smaller."""
-        return max(1, parameter_budget(target_bytes, field.steps) - self._decoder_margin(field))
+        return max(1, coded_budget(target_bytes, overhead) - self._decoder_margin(field))
 
     def _decoder_margin(self, field: SeriesField) -> int:
         """``PACKING.decoder_bytes_margin`` of ``field``'s decoder's float32 bytes where it is fine-tuned after coding,
@@ -471,69 +489,52 @@ class SeriesPacking:
             return 0
         return math.ceil(self.recipe.decoder_bytes_margin * 4 * sum(p.numel() for p in field.decoder.parameters()))
 
-    def _pack(self, field: SeriesField, target_bytes: int | None, final: bool) -> PackedSeries:
-        """:meth:`pack` to ``target_bytes``; ``final``: the width a search kept coded with every predictor
-        (else with those of its trials)."""
-        budget = None if target_bytes is None else self._coded_budget(target_bytes, field)
+    def _pack(self, field: SeriesField, target_bytes: int | None, final: bool, overhead: int | None
+              ) -> PackedSeries:
+        """:meth:`pack` to ``target_bytes`` with ``overhead`` bytes of description and framing; ``final``: the
+        width a search kept coded with every predictor (else with those of its trials)."""
+        budget = None if target_bytes is None else self._coded_budget(target_bytes, field, overhead)
         sensitivity = series_sensitivity(field)
-        packed = pack_series(field, self.bits, sensitivity)
+        packed = replace(pack_series(field, self.bits, sensitivity), overhead=overhead)
         if budget is None or packed.parameter_bytes <= budget:
             return packed
         # The trials below code every tensor with the predictor this first one chose (LZMA, one predictor
         # instead of each: most of a trial's time); the width kept is coded with each again, never larger.
         best = self._search(field, packed, sensitivity, budget, self.min_bits, self.recipe.finer_resolution)
         if best is not None:
-            return pack_series(field, best.bits, sensitivity, best.finer) if final else best
+            return replace(pack_series(field, best.bits, sensitivity, best.finer) if final else best,
+                           overhead=overhead)
         if self.strict:
             raise InvalidArgument(f"target_bytes={target_bytes}: the series' parameters alone take "
                                   f"{pack_series(field, self.min_bits, sensitivity).parameter_bytes:,} bytes even "
                                   f"at {self.min_bits} bits; allow more bytes or train a smaller model",
                                   arguments=("target_bytes",))
-        return pack_series(field, self.min_bits, sensitivity)
+        return replace(pack_series(field, self.min_bits, sensitivity), overhead=overhead)
 
     @staticmethod
     def _search(field: SeriesField, top: PackedSeries, sensitivity: dict[str, np.ndarray], budget: int,
                 min_bits: int, resolution: float) -> PackedSeries | None:
         """The finest packing from ``min_bits`` up to below ``top``'s width (which does not fit the ``budget``)
-        on the lattice of ``PACKING.finer_resolution`` that fits, its trials coded with ``top``'s predictors; None
-        if not even ``min_bits`` fits.
-
-        Bytes grow with the width, nearly linearly over a bit or two, so a trial is taken where the line through
-        the ends of the bracket meets the budget (the first where the line from zero through ``top`` does, then
-        ``min_bits`` if that did not fit), on the lattice, strictly inside the bracket. Where one end moved twice
-        in a row the other's excess over the budget is halved in the line (the Illinois rule), so a curved
-        size never makes the search creep one sixteenth at a time. The viscous-finger series' default target
-        takes 3 trials this way where whole bits down and then a bisection of the last one took 7."""
+        on the lattice of ``PACKING.finer_resolution`` that fits (:func:`~apmgsrn.training.budget.largest_fitting`),
+        its trials coded with ``top``'s predictors; None if not even ``min_bits`` fits."""
         predictors = chosen_predictors(top)
         unit = round(1 / resolution)
-        low_k, high_k = min_bits * unit, round(top.bit_width * unit)
-        if low_k >= high_k:
-            return None
-        high_excess = float(top.parameter_bytes - budget)  # > 0
-        k = min(max(math.floor(high_k * budget / top.parameter_bytes), low_k), high_k - 1)
-        low, low_spare, moved = None, 0.0, None
-        while True:
+        fitting: dict[int, PackedSeries] = {}  # the finest trial that fits so far (the search only moves up)
+
+        def size(k: int) -> int:
             tried = pack_series(field, k // unit, sensitivity, (k % unit) / unit, predictors=predictors)
-            side = "low" if tried.parameter_bytes <= budget else "high"
-            if side == "low":
-                low_k, low, low_spare = k, tried, float(budget - tried.parameter_bytes)
-            else:
-                high_k, high_excess = k, float(tried.parameter_bytes - budget)
-            if low is None:  # nothing fits yet: the narrowest width does, or none
-                if k == low_k:
-                    return None
-                k = low_k
-                continue
-            if high_k - low_k <= 1:
-                return low
-            if side == moved:  # the Illinois rule: the end that stayed counts half as far from the budget
-                if side == "low":
-                    high_excess /= 2
-                else:
-                    low_spare /= 2
-            moved = side
-            share = low_spare / (low_spare + high_excess) if low_spare + high_excess > 0 else 0.5
-            k = min(max(low_k + math.floor((high_k - low_k) * share), low_k + 1), high_k - 1)
+            if tried.parameter_bytes <= budget:
+                fitting.clear()
+                fitting[k] = tried
+            return tried.parameter_bytes
+
+        found = largest_fitting(size, budget, min_bits * unit, round(top.bit_width * unit), top.parameter_bytes)
+        return None if found is None else fitting[found[0]]
+
+
+def _overhead(field: SeriesField, packed: PackedSeries) -> int:
+    """The overhead ``packed`` measured, or, for a packing without a target, that of ``field`` with placeholders."""
+    return series_overhead(field) if packed.overhead is None else packed.overhead
 
 
 def series_growth(steps: int, recipe: SeriesRecipe = SERIES) -> float:
@@ -573,10 +574,36 @@ def default_series_packing(field_config, volume_shape: tuple[int, int, int], ite
                          decoder_iterations=default_series_decoder(model, iterations))
 
 
-def parameter_budget(file_bytes: int, steps: int) -> int:
-    """Bytes the coded parameters may take in a packed series file of ``file_bytes`` with ``steps`` steps (the
-    description, which lists every step, and the container framing take the rest)."""
-    return max(1, file_bytes - 1024 - 64 * steps)
+def series_overhead(field: SeriesField, source: SourceInfo | None = None, training: dict | None = None,
+                    steps: list[SeriesStepInfo] | None = None) -> int:
+    """The bytes a packed series file of ``field`` takes beside its coded parameters: the description and the
+    container's framing (:func:`~apmgsrn.training.budget.overhead_bytes`), measured on the file itself with no
+    parameter bytes, every figure packing has not measured yet a placeholder of the same length.
+
+    Args:
+        source, training, steps: what the file will describe (None: placeholders, a source and step names as long
+            as usual files', a training summary of every entry a packed series keeps).
+    """
+    count = field.steps
+    draws = np.random.default_rng(0)
+
+    def figure(digits: int = 17) -> float:  # as long, and as little compressible, as a measured figure
+        return float(f"{100 * draws.random() + 10:.{digits}g}")
+
+    source = source or SourceInfo(f"{'step':_<24}.vti", "v" * 8, f"{'step':_<24}.vti 256x256x256 (x*y*z) float32",
+                                  "float32")
+    steps = steps or [SeriesStepInfo(t, f"{'step':_<20}{t:04d}.vti", (figure(), figure())) for t in range(count)]
+    training = {"iterations": 10**6, "batch_size": 1 << 15, "seconds": figure(), "frozen_at": 10**6,
+                "stopped_early": False, "device": "cpu", "psnr": figure(), "max_abs_error": figure(),
+                **(training or {}), "steps": [{"psnr": figure(), "max_abs_error": figure()} for _ in range(count)]}
+    report = {"mode": "size", "bits": figure(6), "target_bytes": 10**9, "float32_psnr": figure(6),
+              "float32_max_abs_error": figure(6), "float32_parameter_bytes": 10**9, "qat_iterations": 10**4,
+              "qat_restored_steps": count, "decoder_iterations": 10**4, "psnr": figure(6),
+              "max_abs_error": figure(6), "psnr_cost": figure(6), "worst_step_psnr_cost": figure(6)}
+    tensors = [PackedTensor(name, "quantized", b"", group_size(shape), "lorenzo", 2)
+               if name in (*SHARED_STEP_TENSORS, "encoder.residuals") else PackedTensor(name, "float32", b"")
+               for name, shape in field.config.parameter_shapes().items()]
+    return overhead_bytes(len(packed_series_bytes(field, tensors, source, training, steps, report)), [])
 
 
 def packed_series_field(field: SeriesField, packed: PackedSeries) -> SeriesField:

@@ -60,6 +60,7 @@ from apmgsrn.models.corrected_field import CorrectedField
 from apmgsrn.models.field import NeuralField
 from apmgsrn.ops.trilinear import sample_volume
 from apmgsrn.recipes import PACKING
+from apmgsrn.training.budget import coded_budget, largest_fitting, overhead_bytes
 
 #: ``bits=FLOAT32_BITS`` keeps every parameter exactly (float32, entropy-coded): for an error bound alone.
 FLOAT32_BITS = 32
@@ -630,51 +631,71 @@ def _mend(correction: VoxelCorrection, corrected: CorrectedField, truth: np.ndar
                            np.array([v for _, v in kept], dtype=np.int64))
 
 
-def _scale_for_size(field, sensitivity, target: int, source, training, report, low: float | None = None) -> float:
-    """The smallest scale (finest steps) whose file fits in ``target`` bytes (bisection in log scale).
+def _lattice_scale(k: int) -> float:
+    """The sensitivity scale at lattice point ``k`` (0: the coarsest; larger: finer steps, more bytes)."""
+    return 10.0 ** (PACKING.scale_lattice[0] - k * PACKING.scale_lattice[2])
 
-    The predictors are chosen once, at the first probe, and kept while bisecting (each probe then codes
-    every tensor once); the final coding may only pick smaller ones.
+
+def _lattice_point(scale: float) -> int:
+    """The lattice point of ``scale`` (rounded towards coarser steps)."""
+    return max(0, math.floor((PACKING.scale_lattice[0] - math.log10(scale)) / PACKING.scale_lattice[2] + 1e-9))
+
+
+def _scale_for_size(field, sensitivity, target: int, source, training, report, low: float | None = None) -> float:
+    """The smallest scale (finest steps) on the lattice whose file fits in ``target`` bytes
+    (:func:`~apmgsrn.training.budget.largest_fitting`, the file's overhead measured once:
+    :func:`~apmgsrn.training.budget.overhead_bytes`).
+
+    The predictors are chosen at the coarsest and finest probes and kept while searching (each probe then codes
+    every tensor once); a second search, in a narrow bracket, uses those that suit the first one's answer. The
+    final coding may only pick smaller ones.
+
+    Args:
+        low: a scale known to be no finer than the answer (a search before a fine-tune): the search starts there.
 
     Raises:
         ApmgsrnError: not even the coarsest steps fit (the description alone, or a network too large).
     """
     predictors: dict[str, str] = {}
 
-    def size(log_scale: float, choose: bool = False) -> int:
-        quantizer = sensitivity_quantizer(field, sensitivity, 10.0**log_scale)
-        tensors, _ = encode_field(field, quantizer, None if choose else predictors)
+    def coded(k: int, choose: bool = False) -> list[PackedTensor]:
+        tensors, _ = encode_field(field, sensitivity_quantizer(field, sensitivity, _lattice_scale(k)),
+                                  None if choose else predictors)
         if choose:
             predictors.update({t.name: t.predictor for t in tensors})
-        return len(packed_file_bytes(field, tensors, source, training, report))
+        return tensors
 
-    high = 6.0
-    if size(high, choose=True) > target:
+    def size(k: int, choose: bool = False) -> int:
+        return sum(len(t.data) for t in coded(k, choose))
+
+    coarsest = coded(0, choose=True)
+    file_bytes = len(packed_file_bytes(field, coarsest, source, training, report))
+    overhead = overhead_bytes(file_bytes, [t.data for t in coarsest])
+    budget = coded_budget(target, overhead)
+    if file_bytes > target:
         raise ApmgsrnError(
             f"target_bytes={target}: even with every parameter at its coarsest this model packs to "
-            f"{size(high)} bytes; pass a larger target (a lower ratio) or a smaller model",
+            f"{file_bytes} bytes; pass a larger target (a lower ratio) or a smaller model",
             arguments=("target_bytes",),
         )
-    low = math.log10(low) if low else -12.0
-    if size(low, choose=True) <= target:
-        return 10.0**low
-    # Two rounds: the second with the predictors that suit the first round's answer, in a narrow bracket.
-    for round_ in range(2):
-        if round_:
-            found = high
-            size(found, choose=True)
-            low, high = found - 0.2, found + 0.2
-            while size(low) <= target and low > -12.0:
-                low -= 0.2
-            while size(high) > target and high < 6.0:
-                high += 0.2
-        while high - low > 0.004:
-            middle = (low + high) / 2
-            if size(middle) <= target:
-                high = middle
-            else:
-                low = middle
-    return 10.0**high
+    finest = _lattice_point(low if low else 10.0 ** PACKING.scale_lattice[1])
+    finest_size = size(finest, choose=True)
+    if finest_size <= budget:
+        return _lattice_scale(finest)
+    found = largest_fitting(size, budget, 0, finest, finest_size)[0]
+    # Again with the predictors that suit the answer, in a bracket of 50 lattice points each side.
+    size(found, choose=True)
+    below, above = max(found - 50, 0), min(found + 50, finest)
+    while below > 0 and size(below) > budget:
+        below = max(below - 50, 0)
+    above_size = size(above)
+    while above < finest and above_size <= budget:
+        above = min(above + 50, finest)
+        above_size = size(above)
+    if above_size <= budget:
+        return _lattice_scale(above)
+    again = largest_fitting(size, budget, below, above, above_size)
+    return _lattice_scale(again[0] if again is not None else found)
 
 
 def _scale_for_psnr_loss(field, sensitivity, truth, float32: Evaluation, config: PackConfig) -> float:
