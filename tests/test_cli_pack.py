@@ -133,11 +133,11 @@ def test_train_to_a_ratio_chooses_the_model_size_and_lands_under_it(neghip, tmp_
 def test_a_tiny_size_target_shrinks_the_decoder_and_the_grid_count_unless_they_were_given():
     from apmgsrn.models.registry import preset_config
     from apmgsrn.recipes import PACKING
-    from apmgsrn.training.packing import config_for_bytes
+    from apmgsrn.training.packing import config_for_bytes, packed_overhead
 
     def estimate(config):
         parameters = sum(int(np.prod(shape)) for shape in config.parameter_shapes().values())
-        return parameters * PACKING.bits_per_parameter / 8 + PACKING.overhead_bytes
+        return parameters * PACKING.bits_per_parameter / 8 + packed_overhead(small)
 
     small = preset_config("apmgsrn", "small")
     large = config_for_bytes(small, 300_000)  # about 90:1 on a 256^3 uint8 volume: the preset's shape

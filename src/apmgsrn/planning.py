@@ -24,6 +24,7 @@ from apmgsrn.data import Volume, open_volume
 from apmgsrn.decomposition.planner import DecompositionConfig
 from apmgsrn.device import resolve_device
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.io import SourceInfo
 from apmgsrn.models.registry import preset_config, training_defaults
 from apmgsrn.options import TrainOptions, read_options
 from apmgsrn.series.data import TimeSelection, VolumeSeries, is_series_input, open_series
@@ -31,7 +32,7 @@ from apmgsrn.series.field import series_config
 from apmgsrn.series.fit import series_budget
 from apmgsrn.series.packing import SeriesPacking, default_series_decoder, default_series_packing, default_series_qat
 from apmgsrn.series.steps import StepwiseConfig, stepwise_config
-from apmgsrn.training.packing import PackConfig, anchored_grids_for, config_for_bytes
+from apmgsrn.training.packing import PackConfig, anchored_grids_for, config_for_bytes, packed_overhead
 from apmgsrn.training.trainer import TrainConfig, default_budget
 
 #: The packing options: a model is packed when any of them is given.
@@ -322,7 +323,8 @@ def _volume_plan(volume: Volume, paths: tuple[str, ...], options: TrainOptions, 
     if byte_target and options.resolution is None:
         fixed = (*(("grids",) if options.grids is not None else ()),
                  *(("decoder",) if options.width is not None or options.hidden_layers is not None else ()))
-        field_config = config_for_bytes(field_config, packing.target_bytes, fixed)  # packs to the target
+        overhead = packed_overhead(field_config, tuple(volume.shape), SourceInfo.of_volume(volume))
+        field_config = config_for_bytes(field_config, packing.target_bytes, fixed, overhead=overhead)
         if options.anchored_grids is None:
             train_config = replace(train_config, anchored_grids=anchored_grids_for(field_config))
     return Plan("volume", paths, tuple(volume.shape), None, volume.stored_bytes, str(device), model, field_config,
@@ -332,7 +334,7 @@ def _volume_plan(volume: Volume, paths: tuple[str, ...], options: TrainOptions, 
 
 def _brick_run(options: TrainOptions, bricks) -> tuple:
     if bricks is None:
-        return None, None, 2, None
+        return None, None, options.retries, None
     if options.group_steps is not None and options.group_steps < 1:
         raise ApmgsrnError(f"group_steps={options.group_steps}: must be 1 or more", arguments=("group_steps",))
     return options.workers, options.scheduler, options.retries, options.group_steps

@@ -176,8 +176,6 @@ class PackingRecipe:
 
     #: stored bits per parameter at a small PSNR cost, to size a model for a byte target (4.5-7.4 at 0.1 dB)
     bits_per_parameter: float = 6.0
-    #: bytes a packed file spends besides its coded parameters (350-450 on the shared volumes)
-    overhead_bytes: int = 420
     #: decoders (hidden layers, width) a size target may shrink to, largest first
     decoder_ladder: tuple[tuple[int, int], ...] = ((2, 64), (2, 32), (1, 32), (1, 16))
     #: the largest share of a size target's parameters the decoder takes; an eighth costs up to 2.8 dB

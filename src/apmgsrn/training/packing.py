@@ -131,16 +131,43 @@ def anchored_grids_for(config) -> int:
     return 1 if 0 < getattr(config.encoder, "grids", 0) <= PACKING.anchor_max_grids else 0
 
 
+def packed_overhead(config, volume_shape: tuple[int, int, int] = (256, 256, 256),
+                    source: SourceInfo | None = None) -> int:
+    """The bytes a packed file of a model of ``config`` fitted to ``volume_shape`` takes beside its coded
+    parameters: the description and framing (:func:`~apmgsrn.training.budget.overhead_bytes`), measured on
+    such a file with no parameter bytes, every figure training and packing record a placeholder of the same
+    length. ``source``: the data it will describe (None: a name and text of usual length)."""
+    draws = np.random.default_rng(0)
+    figures = [float(f"{10 + 100 * v:.17g}") for v in draws.random(4)]  # as long as measured ones
+    field = NeuralField(config, *figures, volume_shape=volume_shape)
+    source = source or SourceInfo(f"{'volume':_<24}.nc", "v" * 8, f"{'volume':_<24}.nc 256x256x256 (x*y*z) float32",
+                                  "float32")
+    tensors = [PackedTensor(name, "quantized", b"", group_size(shape), "lorenzo", 2)
+               for name, shape in field.config.parameter_shapes().items()]
+    training = {"iterations": 10**6, "batch_size": 1 << 15, "seconds": figures[0] * 10, "frozen_at": 10**6,
+                "stopped_early": False, "device": "cpu"}
+    return overhead_bytes(len(packed_file_bytes(field, tensors, source, training,
+                                                _placeholder_report("size", None, 10**9))), [])
+
+
+def _placeholder_report(mode: str, bits: int | None, target_bytes: int | None) -> dict:
+    """A packing report as long as the one :func:`pack_field` writes (a size search counts its bytes)."""
+    report = {"mode": mode, "bits": bits, "target_bytes": target_bytes, "float32_psnr": math.pi,
+              "float32_max_abs_error": math.pi, "float32_parameter_bytes": 10**9, "qat_iterations": 0,
+              "scale": math.pi, "psnr": math.pi, "max_abs_error": math.pi, "psnr_cost": math.pi}
+    return _rounded(report)
+
+
 def config_for_bytes(config, target_bytes: int, fixed: tuple[str, ...] = (),
-                     bits_per_parameter: float = PACKING.bits_per_parameter):
+                     bits_per_parameter: float = PACKING.bits_per_parameter, overhead: int | None = None):
     """A config like ``config`` (a :class:`~apmgsrn.models.registry.FieldConfig` of an encoder with a
     ``resolution``: apmgsrn, fvsrn) whose packed file comes to about ``target_bytes``.
 
     Chooses, unless ``fixed`` names it (``"grids"``, ``"decoder"``): the decoder, from the packing recipe's
     ``decoder_ladder`` by its ``decoder_share`` (:class:`~apmgsrn.recipes.PackingRecipe`); the number of grids
     (apmgsrn), halved while each would be coarser than its ``min_resolution``; then the largest resolution (2^3 ..
-    256^3, one axis finer at a time) whose ``parameters * bits_per_parameter / 8`` plus its ``overhead_bytes``
-    fits. Features and every other setting stay as given.
+    256^3, one axis finer at a time) whose ``parameters * bits_per_parameter / 8`` plus the file's ``overhead``
+    fits (None: :func:`packed_overhead` of ``config``). Features and every other setting stay as given.
 
     Raises:
         ApmgsrnError: the encoder has no resolution to choose, or even resolution 2 does not fit.
@@ -148,7 +175,8 @@ def config_for_bytes(config, target_bytes: int, fixed: tuple[str, ...] = (),
     if not hasattr(config.encoder, "resolution"):
         raise ApmgsrnError(f"target_bytes={target_bytes}: choosing the size of a {config.model} model is not "
                            "supported; give its size options and pack to the target", arguments=("target_bytes",))
-    budget = max(target_bytes - PACKING.overhead_bytes, 0) * 8 / bits_per_parameter  # parameters
+    overhead = packed_overhead(config) if overhead is None else overhead
+    budget = max(target_bytes - overhead, 0) * 8 / bits_per_parameter  # parameters
 
     def parameters(candidate) -> int:
         return sum(math.prod(shape) for shape in candidate.parameter_shapes().values())
@@ -190,7 +218,7 @@ def config_for_bytes(config, target_bytes: int, fixed: tuple[str, ...] = (),
     if resolution is None:
         smallest = with_resolution(candidate, (2, 2, 2))
         raise ApmgsrnError(f"target_bytes={target_bytes}: even grids of 2^3 take about "
-                           f"{parameters(smallest) * bits_per_parameter / 8 + PACKING.overhead_bytes:.0f} bytes; "
+                           f"{parameters(smallest) * bits_per_parameter / 8 + overhead:.0f} bytes; "
                            "pass a larger target (a lower ratio), or fewer grids or a narrower decoder",
                            arguments=("target_bytes",))
     return with_resolution(candidate, resolution)
@@ -532,8 +560,9 @@ def pack_field(
               "float32_psnr": float32.psnr, "float32_max_abs_error": float32.max_abs_error,
               "float32_parameter_bytes": 4 * field.parameter_count(), "qat_iterations": 0}
     # What the final report adds, with values as long as the real ones: a size target counts them.
-    placeholder = _rounded({**report, "scale": math.pi, "psnr": math.pi, "max_abs_error": math.pi,
-                            "psnr_cost": math.pi})
+    placeholder = _rounded({**report, **{k: v for k, v in _placeholder_report(config.mode, config.bits,
+                                                                               config.target_bytes).items()
+                                         if k not in report}})
     quantizer, sensitivity, target = None, None, config.target_bytes
     if config.mode == "bits":
         quantizer = bits_quantizer(field, config.bits)
