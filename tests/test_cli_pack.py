@@ -93,7 +93,7 @@ def test_pack_to_a_ratio_lands_at_or_under_it(float32_model, neghip, tmp_path, c
     (["--bits", "40"], "--bits"),
     (["--bits", "8", "--size", "5000"], "--bits 8 and --size 5000"),
     (["--size", "5000", "--ratio", "10"], "--size and --ratio"),
-    (["--ratio", "-3"], "--ratio -3"),
+    (["--ratio", "-3"], "--ratio: -3: must be a finite number > 0"),
     (["--max-error", "0"], "--max-error"),
     (["--qat-iterations", "5", "--bits", "32"], "--qat-iterations"),
     (["--size", "50"], "--size 50: even with every parameter at its coarsest"),

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 from safetensors import safe_open
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file
 
 import apmgsrn
 from apmgsrn.bench.compress import CompressPlan
@@ -33,6 +33,7 @@ from apmgsrn.decomposition.planner import DecompositionConfig
 from apmgsrn.errors import ApmgsrnError, InvalidArgument
 from apmgsrn.inference.query import query
 from apmgsrn.io import SourceInfo, save_field
+from apmgsrn.io.container import sealed_file_bytes
 from apmgsrn.models.registry import preset_config
 from apmgsrn.models.value_transform import fit_value_transform
 from apmgsrn.rendering import Camera, RendererConfig
@@ -349,7 +350,7 @@ def _tampered(checkpoint: Path, tmp_path: Path, change) -> Path:
     change(tensors, description)
     metadata["description"] = json.dumps(description)
     copy = tmp_path / "m.apmgsrn.ckpt"
-    save_file(tensors, str(copy), metadata=metadata)
+    copy.write_bytes(sealed_file_bytes(tensors, metadata))  # checksums made anew
     return copy
 
 

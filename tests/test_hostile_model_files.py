@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file
 
 import apmgsrn
 from apmgsrn.cli.main import main
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.io import SourceInfo, save_field
-from apmgsrn.io.container import FORMAT, FORMAT_VERSION
+from apmgsrn.io.container import FORMAT, FORMAT_VERSION, sealed_file_bytes
 from apmgsrn.models import field as field_module
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config
@@ -32,7 +32,8 @@ def good_model(tmp_path) -> Path:
 
 
 def rewrite(path: Path, out: Path, description=None, raw_description: str | None = None, tensors=None) -> Path:
-    """A copy of ``path`` with its description (or raw description text, or tensors) replaced."""
+    """A copy of ``path`` with its description (or raw description text, or tensors) replaced, its checksums
+    made anew (a hostile writer can: they detect damage, not forgery)."""
     with open(path, "rb") as f:
         length = int.from_bytes(f.read(8), "little")
         meta = json.loads(f.read(length))["__metadata__"]
@@ -43,7 +44,7 @@ def rewrite(path: Path, out: Path, description=None, raw_description: str | None
     stored = load_file(str(path))
     if tensors is not None:
         tensors(stored)  # mutates in place
-    save_file(stored, str(out), metadata=meta)
+    out.write_bytes(sealed_file_bytes(stored, meta))
     return out
 
 
@@ -273,7 +274,7 @@ def test_packed_files_of_format_version_1_load(good_packed_parts, tmp_path, monk
     old = write_packed_parts(tmp_path / "v1.apmgsrn", description, sections, coding=None)
     monkeypatch.undo()
     loaded = apmgsrn.load(old)
-    assert loaded.description.format_version == 1 and current.description.format_version == 2
+    assert loaded.description.format_version == 1 and current.description.format_version == FORMAT_VERSION
     points = torch.rand(1000, 3) * 2 - 1
     assert torch.equal(loaded.field(points), current.field(points))
 

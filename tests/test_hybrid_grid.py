@@ -343,7 +343,9 @@ def test_storage_option_chooses_the_tables_dtype_of_a_hybrid_only(neghip_crop, t
 
 
 def test_a_table_stored_in_another_dtype_than_the_config_says_is_refused(tmp_path):
-    from safetensors.torch import load_file, save_file
+    from safetensors.torch import load_file
+
+    from apmgsrn.io.container import sealed_file_bytes
 
     field = NeuralField(preset_config("hybrid", "small", levels=6, grids=2, width=16), volume_shape=(20, 12, 40))
     path = tmp_path / "h.apmgsrn"
@@ -352,21 +354,23 @@ def test_a_table_stored_in_another_dtype_than_the_config_says_is_refused(tmp_pat
         meta = json.loads(f.read(int.from_bytes(f.read(8), "little")))["__metadata__"]
     tensors = load_file(str(path))
     tensors["encoder.grids"] = tensors["encoder.grids"].float()  # the config says float16
-    save_file(tensors, str(tmp_path / "f32.apmgsrn"), metadata=meta)
+    (tmp_path / "f32.apmgsrn").write_bytes(sealed_file_bytes(tensors, meta))  # checksums made anew
     with pytest.raises(ApmgsrnError, match="encoder.grids is stored as F32, not F16"):
         apmgsrn.load(tmp_path / "f32.apmgsrn")
 
 
 def _rewrite_encoder(path, out, key, value):
     """A copy of a model file whose stored encoder config says ``key = value``."""
-    from safetensors.torch import load_file, save_file
+    from safetensors.torch import load_file
+
+    from apmgsrn.io.container import sealed_file_bytes
 
     with open(path, "rb") as f:
         meta = json.loads(f.read(int.from_bytes(f.read(8), "little")))["__metadata__"]
     description = json.loads(meta["description"])
     description["field"]["encoder"][key] = value
     meta["description"] = json.dumps(description)
-    save_file(load_file(str(path)), str(out), metadata=meta)
+    out.write_bytes(sealed_file_bytes(load_file(str(path)), meta))  # checksums made anew
     return out
 
 

@@ -222,7 +222,7 @@ def test_resume_after_kill_reaches_the_same_series_model(pattern, tmp_path):
     (["--max-error", "0.1"], "a time series packs to a bit width or a size only"),
     (["--qat-iterations", "5", "--storage", "float32"], "--storage keeps them unpacked: give one"),
     (["--series-training", "joint", "--qat-iterations", "5"], "a joint series has no grids of its own per step"),
-    (["--qat-iterations", "-3"], "--qat-iterations -3: must be 0 or more"),
+    (["--qat-iterations", "-3"], "--qat-iterations: -3: must be an integer from 0"),
     (["--bricks", "2,1,1", "--bits", "8"], "packing options (--bits, --max-error, ...) apply to single models"),
     (["--model", "fvsrn"], "a time-series model extends adaptive grids (apmgsrn) or the hybrid model, not 'fvsrn'"),
 ])

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load_file
 
 import apmgsrn
 from apmgsrn.series.data import open_series
@@ -18,6 +18,7 @@ from apmgsrn.errors import ApmgsrnError
 from apmgsrn.inference.decode import decode_array
 from apmgsrn.inference.evaluate import evaluate
 from apmgsrn.io import SeriesStepInfo, SourceInfo, load_field, save_field
+from apmgsrn.io.container import sealed_file_bytes
 from apmgsrn.series import field as series_module
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config
@@ -241,7 +242,7 @@ def rewrite(path: Path, out: Path, description=None, tensors=None) -> Path:
     stored = load_file(str(path))
     if tensors is not None:
         tensors(stored)
-    save_file(stored, str(out), metadata=meta)
+    out.write_bytes(sealed_file_bytes(stored, meta))  # checksums made anew
     return out
 
 

@@ -14,11 +14,11 @@ set_openmp_wait_policy()
 keep_freed_memory()
 
 __version__ = "0.1.0"
-__all__ = ["ApmgsrnError", "Model", "Region", "fit", "load", "plan", "render", "__version__"]
+__all__ = ["ApmgsrnError", "Model", "Region", "fit", "load", "plan", "render", "verify", "__version__"]
 
 #: Names resolved on first use: torch comes with them, not with `import apmgsrn` (the CLI's start-up path).
 _LAZY = {"Model": "apmgsrn.api", "fit": "apmgsrn.api", "load": "apmgsrn.api", "plan": "apmgsrn.api",
-         "render": "apmgsrn.api", "Region": "apmgsrn.data.grid"}
+         "render": "apmgsrn.api", "verify": "apmgsrn.api", "Region": "apmgsrn.data.grid"}
 
 
 def __getattr__(name: str):

@@ -6,6 +6,11 @@ needed to fit, progress through ``tqdm.auto`` inside Jupyter (:mod:`apmgsrn.prog
     model = apmgsrn.fit(volume, preset="small")          # a numpy array, an xarray DataArray or a file
     values = model.predict(points)                        # [N, 3] in [-1, 1]^3 -> [N]
     decoded = model.decode(shape=(64, 64, 64))            # xarray.DataArray (numpy without xarray)
+
+Every bad argument of these functions is an :class:`~apmgsrn.errors.ApmgsrnError` naming it (never a
+``TypeError``, ``AttributeError`` or ``MemoryError`` from inside): sizes are checked against the memory they
+would take before anything is allocated, and every file written passes the output gate of
+:mod:`apmgsrn.atomic`.
 """
 
 from __future__ import annotations
@@ -20,6 +25,10 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
+
+from apmgsrn.arguments import check_choice, check_int, check_number
+from apmgsrn.atomic import check_output_path, check_output_target
+from apmgsrn.choices import PRESET_UNITS
 
 import apmgsrn.decomposition.brick_model  # noqa: F401 - registers the brick-model loader
 import apmgsrn.series  # noqa: F401 - registers the time-series loaders (files, brick folders)
@@ -36,6 +45,7 @@ from apmgsrn.io.container import SERIES_FILE_KINDS, check_replaceable
 from apmgsrn.io.decode_plan import DecodePlan, plan_decode
 from apmgsrn.io.description import check_time
 from apmgsrn.io.field_file import FIELD_KIND
+from apmgsrn.io.verify import FileCheck, verify_model
 from apmgsrn.models.field import NeuralField
 from apmgsrn.options import TrainOptions
 from apmgsrn.planning import Plan, resolve
@@ -166,6 +176,7 @@ class Model(nn.Module):
             ApmgsrnError: a region outside the volume, a bad shape or time step.
         """
         plan = self.plan_decode(shape, region, time, region_units)
+        _check_fits_in_memory(plan.shape)
         values = decode_array(self.step_field(plan.time), plan.shape, batch_size=batch_size, box=plan.grid.box())  # [D, H, W]
         try:
             import xarray
@@ -188,7 +199,12 @@ class Model(nn.Module):
 
         Returns:
             The plan that was written (shape, variable, coordinates).
+
+        Raises:
+            ApmgsrnError: as :meth:`decode`; ``out`` is refused by the output gate
+                (:func:`~apmgsrn.atomic.check_output_target`) or is not a volume format.
         """
+        out = check_output_target(_path(out, "out"), "decoded volume")
         plan = self.plan_decode(shape, region, time, region_units)
         options = plan.writer_options()
         if self.path is not None:
@@ -207,7 +223,7 @@ class Model(nn.Module):
         if self.description.kind not in (FIELD_KIND, *SERIES_FILE_KINDS):
             raise ApmgsrnError(f"{path}: a {self.description.kind} model is a folder written by brick training; "
                                "copy the folder instead of saving it")
-        path = Path(path)
+        path = check_output_path(_path(path, "path"), "model file")  # never a device, nor inside a brick folder
         check_replaceable(path, self.description.kind)
         if self.description.kind in SERIES_FILE_KINDS:  # a packed series saves as float32 (what it loaded as)
             save_series(path, self.field, self.description.source, self.description.training,
@@ -221,7 +237,7 @@ class Model(nn.Module):
 
         See :func:`apmgsrn.export.export_onnx`.
         """
-        return export_onnx(self.field, path)
+        return export_onnx(self.field, _path(path, "path"), self.path)
 
 
 def load(path: str | os.PathLike, device: torch.device | str = "cpu", precision: str = "float32") -> Model:
@@ -237,8 +253,19 @@ def load(path: str | os.PathLike, device: torch.device | str = "cpu", precision:
     Raises:
         ApmgsrnError: the file is missing, corrupt, foreign, hostile or from a newer version; an unknown device.
     """
-    loaded = open_model(path, _device(device))
+    loaded = open_model(_path(path, "path"), _device(device))
     return Model(loaded.field, loaded.description, path).eval().set_precision(precision)
+
+
+def verify(path: str | os.PathLike) -> list[FileCheck]:
+    """Check a model file, training checkpoint or model folder for damage without evaluating it: every
+    checksum, every description, every brick against its folder's manifest (``apmgsrn verify``).
+
+    Returns:
+        One :class:`~apmgsrn.io.verify.FileCheck` per file (``.ok``, ``.problem``, ``.line()``); problems are
+        reported there, not raised.
+    """
+    return verify_model(path)
 
 
 def plan(data, **options) -> Plan:
@@ -374,11 +401,23 @@ def render(
 
     Returns:
         ``[height, width, 4]`` uint8 RGBA (colour not premultiplied; alpha is the ray's opacity).
+
+    Raises:
+        ApmgsrnError: a model that is no :class:`Model`, or any other bad argument (named).
     """
+    if not isinstance(model, Model):
+        raise ApmgsrnError(f"model={type(model).__name__}: give a Model (apmgsrn.load or apmgsrn.fit)",
+                           arguments=("model",))
     device = model.device
-    value_range = tuple(model.description.value_range) if value_range is None else tuple(value_range)
-    transfer_function = make_transfer_function(colormap, value_range, opacity=opacity, preset_name=preset_name,
-                                               preset_units=preset_units)
+    value_range = tuple(model.description.value_range) if value_range is None else _value_range(value_range)
+    if not isinstance(colormap, (str, os.PathLike)):
+        raise ApmgsrnError(f"colormap={colormap!r}: give a colour-map name or a preset file path",
+                           arguments=("colormap",))
+    if preset_name is not None and not isinstance(preset_name, str):
+        raise ApmgsrnError(f"preset_name={preset_name!r}: give a preset's name", arguments=("preset_name",))
+    check_choice("preset_units", preset_units, PRESET_UNITS)
+    transfer_function = make_transfer_function(str(colormap), value_range, opacity=_opacity(opacity),
+                                               preset_name=preset_name, preset_units=preset_units)
     extent = extent_from_shape(model.description.volume_shape)
     config = RendererConfig(samples_per_ray=samples_per_ray, batch_size=default_batch_size(device))
     renderer = VolumeRenderer(model.field, transfer_function, config, extent=extent, device=device)
@@ -440,17 +479,94 @@ def _data_array_volume(array, time: int | None, fill_nonfinite: float | None) ->
     return ArrayVolume(np.asarray(array.values), "DataArray", name, fill_nonfinite, metadata)
 
 
+def _path(path, name: str) -> str | os.PathLike:
+    """``path`` if it names a file (a text or an ``os.PathLike``).
+
+    Raises:
+        ApmgsrnError: anything else.
+    """
+    if isinstance(path, bytes) or not isinstance(path, (str, os.PathLike)) or not str(path):
+        raise ApmgsrnError(f"{name}={path!r}: give a file path (a str or pathlib.Path)", arguments=(name,))
+    return path
+
+
+def _check_fits_in_memory(shape: tuple[int, int, int]) -> None:
+    """Refuse a decode of ``shape`` whose float32 array would not fit in memory, before it is allocated.
+
+    Raises:
+        ApmgsrnError: naming the size and the way out (a smaller shape, or ``save_decoded``).
+    """
+    from apmgsrn.data.opener import memory_budget
+
+    need = 4 * int(np.prod([int(n) for n in shape], dtype=object))
+    if need > memory_budget():
+        d, h, w = shape
+        raise ApmgsrnError(f"shape=({d}, {h}, {w}): the decoded array takes {need:,} bytes, more than the memory "
+                           "budget (half of what is free); pass a smaller shape or region, or write it slab by "
+                           "slab with save_decoded", arguments=("shape",))
+
+
+def _value_range(value_range) -> tuple[float, float]:
+    """``(min, max)``, two finite numbers with ``min < max``.
+
+    Raises:
+        ApmgsrnError: anything else.
+    """
+    try:
+        low, high = value_range
+        low, high = check_number("value_range", low), check_number("value_range", high)
+    except (TypeError, ValueError):
+        raise ApmgsrnError(f"value_range={value_range!r}: give (min, max), two finite numbers",
+                           arguments=("value_range",)) from None
+    if not low < high:
+        raise ApmgsrnError(f"value_range={value_range!r}: min must be below max", arguments=("value_range",))
+    return low, high
+
+
+def _opacity(opacity) -> tuple[tuple[float, float], ...] | None:
+    """``(position, alpha)`` pairs of finite numbers in [0, 1], or None.
+
+    Raises:
+        ApmgsrnError: anything else.
+    """
+    if opacity is None:
+        return None
+    try:
+        pairs = tuple((check_number("opacity", x, 0.0, 1.0), check_number("opacity", a, 0.0, 1.0))
+                      for x, a in opacity)
+    except (TypeError, ValueError):
+        pairs = ()
+    if not pairs:
+        raise ApmgsrnError(f"opacity={opacity!r}: give (position, alpha) pairs of numbers in [0, 1]",
+                           arguments=("opacity",))
+    return pairs
+
+
 def _device(device: torch.device | str) -> torch.device:
     return device if isinstance(device, torch.device) else resolve_device(str(device))
 
 
+#: Most samples along one side of a decoded lattice: its coordinates alone take 8 bytes a sample, and no
+#: volume this library reads comes near a million voxels a side.
+MAX_LATTICE_SIDE = 1 << 20
+
+
 def _shape(shape) -> tuple[int, int, int] | None:
+    """``(D, H, W)``: three sizes from 1 to :data:`MAX_LATTICE_SIDE`, or None.
+
+    Raises:
+        ApmgsrnError: anything else.
+    """
     if shape is None:
         return None
-    if len(tuple(shape)) != 3:
-        raise ApmgsrnError(f"shape={shape!r}: give (D, H, W), three sizes in array order (z, y, x)",
-                           arguments=("shape",))
-    return tuple(shape)
+    try:
+        sizes = tuple(check_int("shape", n, 1, MAX_LATTICE_SIDE) for n in shape)
+    except (TypeError, ValueError):
+        sizes = ()
+    if len(sizes) != 3:
+        raise ApmgsrnError(f"shape={shape!r}: give (D, H, W), three integer sizes from 1 to {MAX_LATTICE_SIDE} in "
+                           "array order (z, y, x)", arguments=("shape",))
+    return sizes
 
 
 def _region(region, units: str) -> Region | None:

@@ -30,3 +30,10 @@ class InvalidArgument(ApmgsrnError, ValueError):
 
     Also a :class:`ValueError`, which is what a config given a bad value raises in Python.
     """
+
+
+class ApmgsrnNote(UserWarning):
+    """A note about the user's input that does not stop the work (a model file written before checksums).
+
+    Issued with :func:`warnings.warn`; the command line prints it as one line, ``note: <message>``.
+    """

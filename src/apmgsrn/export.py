@@ -5,7 +5,10 @@ The graph maps ``points`` ``[N, 3]`` (float32 ``(x, y, z)`` in ``[-1, 1]^3``, an
 :meth:`apmgsrn.Model.predict` computes them. It is traced from the pure-PyTorch kernels (the fused CPU and
 Triton kernels are not ONNX operators). A brick model is exported evaluating every brick at every point and
 keeping each point's own brick (or blending, as the model does), which the graph can express without
-data-dependent shapes; it costs one network evaluation per brick and point.
+data-dependent shapes; it costs one network evaluation per brick and point, so a brick model of more than
+:data:`MAX_BRICKS` bricks is refused (export its brick files one at a time). A graph keeps what the model
+promises or is not written: a model with a voxel correction (an error bound, ``--max-error``) is refused, since
+the graph would compute the network alone.
 """
 
 from __future__ import annotations
@@ -18,9 +21,10 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from apmgsrn.atomic import atomic_write
+from apmgsrn.atomic import atomic_write, check_output_path, check_suffix
 from apmgsrn.decomposition.bricked_field import BrickedField
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.models.corrected_field import CorrectedField
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import FieldConfig
 
@@ -28,26 +32,40 @@ from apmgsrn.models.registry import FieldConfig
 #: it from release 1.17 on).
 OPSET = 20
 
+#: Most bricks of an exported brick model: the graph evaluates every brick at every point, and tracing takes
+#: seconds per brick (about 14 s for a small hybrid brick on one core), so beyond a 2 x 2 x 2 grid it costs
+#: more than eight networks per point and minutes to write.
+MAX_BRICKS = 8
 
-def export_onnx(field: nn.Module, path: str | os.PathLike) -> Path:
+
+def export_onnx(field: nn.Module, path: str | os.PathLike, source: str | os.PathLike | None = None) -> Path:
     """Write a field as an ONNX graph, atomically.
 
     Args:
         field: a :class:`~apmgsrn.models.field.NeuralField` or a brick model
             (:class:`~apmgsrn.decomposition.bricked_field.BrickedField`).
         path: the ``.onnx`` file.
+        source: the model file or folder the field came from, for messages.
 
     Returns:
         The path written.
 
     Raises:
-        ApmgsrnError: the ``onnx`` package is missing, or the field is of a kind that cannot be exported.
+        ApmgsrnError: the ``onnx`` package is missing; ``path`` is not a ``.onnx`` file name or is refused by
+            :func:`~apmgsrn.atomic.check_output_path`; the field is of a kind that cannot be exported, holds a
+            voxel correction the graph could not keep, or has more than :data:`MAX_BRICKS` bricks.
     """
+    check_suffix(path, (".onnx",), "ONNX model")
+    check_output_path(path, "ONNX model")  # before the tracing, which takes seconds per network
     try:
         import onnx  # noqa: F401 - torch's exporter needs it
     except ImportError:
         raise ApmgsrnError("exporting to ONNX needs the onnx package; run `pip install onnx`") from None
-    portable = _portable(field).cpu().eval()
+    try:
+        portable = _portable(field).cpu().eval()
+    except ApmgsrnError as exc:
+        raise ApmgsrnError(f"{source}: {exc}" if source is not None else str(exc),
+                           arguments=exc.arguments) from None
     example = torch.zeros(8, 3)
 
     def write(temporary: str) -> None:
@@ -66,9 +84,18 @@ def export_onnx(field: nn.Module, path: str | os.PathLike) -> Path:
 def _portable(field: nn.Module) -> nn.Module:
     """The same field computed with the pure-PyTorch kernels only, in a form the ONNX tracer can follow."""
     if isinstance(field, BrickedField):
+        if len(field.bricks) > MAX_BRICKS:
+            raise ApmgsrnError(f"a brick model of {len(field.bricks)} bricks: its ONNX graph would evaluate every "
+                               f"brick at every point; export at most {MAX_BRICKS} bricks, e.g. each brick file of "
+                               "the folder on its own")
         return EveryBrick(field, [_portable(brick) for brick in field.bricks])
     if not isinstance(field, NeuralField):
         raise ApmgsrnError(f"cannot export a {type(field).__name__}; export a model file or brick-model folder")
+    if isinstance(field, CorrectedField) and field.correction_count:
+        raise ApmgsrnError(f"the model keeps |model - data| <= {field.max_error:g} with a correction at "
+                           f"{field.correction_count} voxels, which an ONNX graph cannot hold: its graph would "
+                           "compute the network alone and break the bound; export its float32 model, or one packed "
+                           "without max_error=", arguments=("max_error",))
     config = field.config
     encoder = config.encoder
     if "backend" in {f.name for f in dataclasses.fields(encoder)} and encoder.backend != "torch":

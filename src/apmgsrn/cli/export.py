@@ -23,7 +23,7 @@ def register(subparsers) -> None:
 
 
 def paths(args: argparse.Namespace) -> CommandPaths:
-    return CommandPaths(reads=[args.model], writes=[Output(args.out, "--out", "ONNX model")])
+    return CommandPaths(reads=[args.model], writes=[Output(args.out, "--out", "ONNX model", suffixes=(".onnx",))])
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,15 +1,29 @@
-"""Library argument names -> command-line options: how an error's advice reaches a CLI user.
+"""Library argument names -> command-line options: how an error's advice reaches a CLI user; and the number
+gate of every option.
 
 The library names its own arguments in errors (``pass fill_nonfinite=VALUE``), which is right for a
 Python caller; the command line says the same with its options (``pass --fill-nonfinite VALUE``). This
 table is the one place that knows both names.
+
+Every number a command line gives is checked as it is parsed (:func:`register_number_types`): an ``int``
+option takes int64 at most, a ``float`` option a finite number (no NaN, no infinity, no ``1e400``); options
+with a range of their own check it there too (:mod:`apmgsrn.options`, :func:`apmgsrn.arguments.int_type`).
 """
 
 from __future__ import annotations
 
+import argparse
 import re
 
+from apmgsrn.arguments import int_type, number_type
 from apmgsrn.errors import ApmgsrnError
+
+
+def register_number_types(parser: argparse.ArgumentParser) -> None:
+    """Make ``type=int`` parse an int64 and ``type=float`` a finite float, in ``parser`` (its argument groups
+    share the table; a subparser of the same class registers its own)."""
+    parser.register("type", int, int_type())
+    parser.register("type", float, number_type())
 
 #: library argument -> the option that sets it (every option named here exists in some subcommand).
 FLAGS = {
@@ -97,7 +111,11 @@ FLAGS = {
     "macro_cells": "--macro-cells",
     "background": "--background",
     "value_range": "--range",
+    "colormap": "--colormap",
+    "preset_name": "--preset-name",
+    "opacity": "--opacity",
     "units": "--preset-units",
+    "preset_units": "--preset-units",
     "frames": "--frames",
     "fps": "--fps",
     # benchmarks and pictures
@@ -109,6 +127,10 @@ FLAGS = {
     "seeds": "--seeds",
     "bounds": "--bounds",
     "precisions": "--precisions",
+    "rates": "--rates",
+    "psnrs": "--psnrs",
+    "ratios": "--ratios",
+    "ratio_tolerance": "--ratio-tolerance",
     "query_points": "--query-points",
     "every": "--every",
 }

@@ -25,7 +25,7 @@ def register(subparsers) -> None:
 
 
 def paths(args: argparse.Namespace) -> CommandPaths:
-    writes = [Output(args.plot, "--plot", "plot")] if args.plot else []
+    writes = [Output(args.plot, "--plot", "plot", suffixes=(".png",))] if args.plot else []
     return CommandPaths(reads=[args.model], writes=writes)
 
 

@@ -7,21 +7,27 @@ Building the parser imports only the command modules and :mod:`apmgsrn.choices` 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
+import warnings
 
-from apmgsrn.cli import bench, decode, evaluate, export, grids, info, pack, render, train, view
-from apmgsrn.cli.flags import cli_message
+from apmgsrn.cli import bench, decode, evaluate, export, grids, info, pack, render, train, verify, view
+from apmgsrn.cli.flags import cli_message, register_number_types
 from apmgsrn.cli.paths import CommandPaths, check_paths
-from apmgsrn.errors import ApmgsrnError
+from apmgsrn.errors import ApmgsrnError, ApmgsrnNote
 
 # Each module defines ``register(subparsers)``, which adds its parser and sets ``func=run`` (and ``paths``,
 # what the command reads and writes, for the commands that write).
-COMMAND_MODULES = (train, pack, evaluate, decode, export, info, render, bench, grids, view)
+COMMAND_MODULES = (train, pack, evaluate, decode, export, info, verify, render, bench, grids, view)
 
 
 class ArgumentParser(argparse.ArgumentParser):
     """argparse, with its own errors (unknown option, bad number, missing argument) in the product's form:
-    one line ``error: ...`` and exit code 2, no usage block."""
+    one line ``error: ...`` and exit code 2, no usage block; numbers checked as they are parsed."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        register_number_types(self)
 
     def error(self, message: str) -> None:
         self.exit(2, f"error: {message} (see '{self.prog} --help')\n")
@@ -38,7 +44,30 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@contextlib.contextmanager
+def notes_as_lines():
+    """Print the library's notes (:class:`~apmgsrn.errors.ApmgsrnNote`) as one line ``note: ...``, other
+    warnings as Python does."""
+    python_format = warnings.formatwarning
+
+    def format_warning(message, category, filename, lineno, line=None):
+        if issubclass(category, ApmgsrnNote):
+            return f"note: {message}\n"
+        return python_format(message, category, filename, lineno, line)
+
+    warnings.formatwarning = format_warning
+    try:
+        yield
+    finally:
+        warnings.formatwarning = python_format
+
+
 def main(argv: list[str] | None = None) -> int:
+    with notes_as_lines():
+        return _main(argv)
+
+
+def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)

@@ -3,9 +3,12 @@
 Every subcommand that writes declares its files (``paths(args) -> CommandPaths``, set as the parser's
 ``paths`` default); :func:`check_paths` runs on them before any work. An output is refused when it is an
 input or lies inside an input folder (a Zarr store, a brick model) under any spelling: the same path, a
-``..`` detour, a symbolic link or a hard link. An output that is not a model is also refused where an
-apmgsrn model lies: an image, plot or decoded volume never replaces hours of training. What a model output
-may replace (an older model of its kind, never another file) the library decides when it writes.
+``..`` detour, a symbolic link or a hard link. Every output passes the library's output gate
+(:func:`apmgsrn.atomic.check_output_target`): never a device, named pipe or socket, never inside a model folder
+(a brick model's manifest or bricks); an output whose suffix names its format must carry one of its suffixes.
+An output that is not a model is also refused where an apmgsrn model lies: an image, plot or decoded volume
+never replaces hours of training. What a model output may replace (an older model of its kind, never another
+file) the library decides when it writes.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from apmgsrn.atomic import check_output_target, check_suffix
 from apmgsrn.errors import ApmgsrnError
 
 
@@ -27,12 +31,14 @@ class Output:
         option: the option that names it (``--out``), for messages.
         what: what it is (``"image"``, ``"plot"``), for messages.
         model: a model file or brick-model folder (replacing an older model is then the library's call).
+        suffixes: the suffixes naming the formats it may be written in (empty: any name).
     """
 
     path: str | os.PathLike
     option: str
     what: str
     model: bool = False
+    suffixes: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -44,7 +50,8 @@ class CommandPaths:
 
 
 def check_paths(paths: CommandPaths) -> None:
-    """Refuse outputs that would overwrite an input, a model, or each other.
+    """Refuse outputs that would overwrite an input, a model, a part of a model, a file that is not a regular
+    file, or each other, and outputs without the suffix of their format.
 
     Raises:
         ApmgsrnError: one line naming the output, the input it would destroy and the option to change.
@@ -65,10 +72,13 @@ def check_paths(paths: CommandPaths) -> None:
                     f"{target}: {overlap} {source}; writing the {output.what} there would destroy the input: "
                     f"choose another {output.option}"
                 )
+        check_output_target(target, output.what, option=output.option)  # before model_kind opens the file
         if not output.model and target.exists() and model_kind(target) is not None:
             raise ApmgsrnError(
                 f"{target}: is an apmgsrn model; the {output.what} would replace it: choose another {output.option}"
             )
+        if output.suffixes:
+            check_suffix(target, output.suffixes, output.what, output.option)
         key = os.path.realpath(target)
         if key in seen:
             raise ApmgsrnError(

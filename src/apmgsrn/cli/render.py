@@ -8,10 +8,15 @@ import math
 import time
 from pathlib import Path
 
+from apmgsrn.arguments import int_type
 from apmgsrn.choices import PRESET_UNITS
 from apmgsrn.cli.common import add_data_arguments, add_device_argument
 from apmgsrn.cli.paths import CommandPaths, Output
 from apmgsrn.errors import ApmgsrnError
+
+#: Most frames of a turntable: every frame is held in memory until the animation is written (10,000 frames of
+#: 512 x 512 RGBA are 10 GB).
+MAX_FRAMES = 10_000
 
 
 def register(subparsers) -> None:
@@ -70,7 +75,8 @@ def register(subparsers) -> None:
                        help="also render this volume with the same camera and transfer function; print PSNR "
                             "and SSIM, write the pair side by side to --out and the error to --error-out")
     extra.add_argument("--error-out", help="error image of --compare (default: OUT_error.png)")
-    extra.add_argument("--frames", type=int, help="write a turntable animation of N frames to --out (.gif/.mp4)")
+    extra.add_argument("--frames", type=int_type(1, MAX_FRAMES),
+                       help=f"write a turntable animation of N frames to --out (.gif/.mp4; at most {MAX_FRAMES})")
     extra.add_argument("--fps", type=float, default=15.0, help="frames per second of --frames (default 15)")
     add_data_arguments(parser)
     add_device_argument(parser)
@@ -86,9 +92,9 @@ def paths(args: argparse.Namespace) -> CommandPaths:
         reads.append(args.colormap)
     writes = [Output(args.out, "--out", "image")]
     if args.compare:
-        writes.append(Output(error_image_path(args), "--error-out", "error image"))
+        writes.append(Output(error_image_path(args), "--error-out", "error image", suffixes=(".png",)))
     if args.save_tf:
-        writes.append(Output(args.save_tf, "--save-tf", "transfer function"))
+        writes.append(Output(args.save_tf, "--save-tf", "transfer function", suffixes=(".json",)))
     return CommandPaths(reads=reads, writes=writes)
 
 

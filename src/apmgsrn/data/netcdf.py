@@ -9,7 +9,8 @@ from typing import Any
 import numpy as np
 
 from apmgsrn.data.grid import AxisCoordinates, VolumeMetadata, plain_attributes
-from apmgsrn.data.hdf5 import HDF5Volume
+from apmgsrn.data.hdf5 import HDF5Volume, check_hdf5_container
+from apmgsrn.data.opener import check_declared_array, check_regular, open_regular
 from apmgsrn.data.variables import ArrayInfo, choose_array, select_time
 from apmgsrn.data.volume import Volume
 from apmgsrn.errors import ApmgsrnError
@@ -19,7 +20,8 @@ NETCDF_DEFAULT_NDIMS = (3, 4)
 
 
 def open_netcdf(
-    path: Path, variable: str | None = None, time: int | None = None, fill_nonfinite: float | None = None
+    path: Path, variable: str | None = None, time: int | None = None, fill_nonfinite: float | None = None,
+    root: Path | None = None,
 ) -> Volume:
     """Open a NetCDF file with netCDF4, or with h5py when netCDF4 cannot be imported.
 
@@ -29,6 +31,7 @@ def open_netcdf(
             only 3-D or (time, z, y, x) variable.
         time: Index along a leading time dimension.
         fill_nonfinite: If set, reads replace NaN/Inf (and missing values) by this value.
+        root: The folder every file it reaches must lie in (None: anywhere).
 
     Returns:
         A `NetCDFVolume`, or a `NetCDFThroughHDF5Volume` without netCDF4.
@@ -36,8 +39,48 @@ def open_netcdf(
     try:
         import netCDF4  # noqa: F401
     except ImportError:
-        return NetCDFThroughHDF5Volume(Path(path), variable, time, fill_nonfinite)
-    return NetCDFVolume(Path(path), variable, time, fill_nonfinite)
+        return NetCDFThroughHDF5Volume(Path(path), variable, time, fill_nonfinite, root=root)
+    return NetCDFVolume(Path(path), variable, time, fill_nonfinite, root=root)
+
+
+#: Where HDF5 looks for its signature: offset 0, then 512, 1024, 2048, ... (a user block before it).
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+def _is_hdf5(path: Path) -> bool:
+    """Whether a file is HDF5-based (NetCDF-4), by the signature at 0 or a power of two from 512 on."""
+    with open_regular(path) as handle:
+        size = os.fstat(handle.fileno()).st_size
+        offset = 0
+        while offset + len(_HDF5_SIGNATURE) <= size:
+            handle.seek(offset)
+            if handle.read(len(_HDF5_SIGNATURE)) == _HDF5_SIGNATURE:
+                return True
+            offset = 512 if offset == 0 else offset * 2
+    return False
+
+
+def check_netcdf_container(path: Path, root: Path | None = None) -> int:
+    """Judge the files a NetCDF file makes the library read (a NetCDF-4 file is HDF5: its external storage
+    and links, see :func:`~apmgsrn.data.hdf5.check_hdf5_container`), before netCDF4 opens it.
+
+    Returns:
+        The bytes the file and its external storage hold together.
+
+    Raises:
+        ApmgsrnError: not a regular file inside ``root``, or a NetCDF-4 file reaching a file it may not.
+    """
+    size = check_regular(path, root).st_size
+    if not _is_hdf5(path):
+        return size
+    import h5py
+
+    try:
+        handle = h5py.File(path, "r", locking=False)
+    except (OSError, ValueError):
+        return size  # not readable as HDF5: netCDF4 says what is wrong with it
+    with handle:
+        return size + sum(check_hdf5_container(handle, path, root).values())
 
 
 def _open_netcdf_file(path: Path) -> Any:
@@ -77,16 +120,20 @@ class NetCDFVolume(Volume):
         variable: Variable name or group path; default: the only 3-D or 4-D variable.
         time: Index along a leading time dimension (required when it has more than one step).
         fill_nonfinite: If set, reads replace NaN/Inf by this value.
+        root: The folder every file it reaches must lie in (None: anywhere).
     """
 
     def __init__(
-        self, path: Path, variable: str | None = None, time: int | None = None, fill_nonfinite: float | None = None
+        self, path: Path, variable: str | None = None, time: int | None = None, fill_nonfinite: float | None = None,
+        root: Path | None = None,
     ) -> None:
         path = Path(path)
+        stored = check_netcdf_container(path, root)
         handle = _open_netcdf_file(path)
         try:
             info = choose_array(path, _list_variables(handle), variable, "variable", NETCDF_DEFAULT_NDIMS)
             time_index, shape = select_time(path, info, time, "variable")
+            check_declared_array(path, info.name, shape, info.dtype, stored)
             self.dimensions = info.dims
             super().__init__(path, info.name, shape, info.dtype, fill_nonfinite, time=time_index,
                              time_steps=info.shape[0] if len(info.shape) == 4 else None)
@@ -95,8 +142,10 @@ class NetCDFVolume(Volume):
             handle.close()
             raise
         self._handle, self._handle_pid = handle, os.getpid()
+        self._root = root
 
     def _open_handle(self) -> Any:
+        check_netcdf_container(self.path, self._root)  # the file may have changed since it was opened
         return _open_netcdf_file(self.path)
 
     def _read_stored(self, z: slice, y: slice, x: slice) -> np.ndarray:
@@ -159,10 +208,11 @@ class NetCDFThroughHDF5Volume(HDF5Volume):
     kind = "variable"
 
     def __init__(
-        self, path: Path, variable: str | None = None, time: int | None = None, fill_nonfinite: float | None = None
+        self, path: Path, variable: str | None = None, time: int | None = None, fill_nonfinite: float | None = None,
+        root: Path | None = None,
     ) -> None:
         try:
-            super().__init__(path, variable, time, fill_nonfinite, default_ndims=NETCDF_DEFAULT_NDIMS)
+            super().__init__(path, variable, time, fill_nonfinite, default_ndims=NETCDF_DEFAULT_NDIMS, root=root)
         except ApmgsrnError as exc:
             if "not a readable HDF5 file" in str(exc):
                 raise ApmgsrnError(

@@ -10,10 +10,12 @@ from typing import Any
 import numpy as np
 
 from apmgsrn.data.memory_map import MemoryMappedVolume
+from apmgsrn.data.opener import check_declared_array, check_regular
 from apmgsrn.errors import ApmgsrnError
 
 
 def _map_npy(path: Path) -> np.ndarray:
+    size = check_regular(path).st_size
     try:
         # allow_pickle=False: an .npy of Python objects could run code when loaded.
         array = np.load(path, mmap_mode="r", allow_pickle=False)
@@ -23,6 +25,7 @@ def _map_npy(path: Path) -> np.ndarray:
         ) from exc
     if not isinstance(array, np.ndarray):
         raise ApmgsrnError(f"{path}: holds no single array; save one 3-D array with numpy.save")
+    check_declared_array(path, None, array.shape, array.dtype, size)
     return array
 
 

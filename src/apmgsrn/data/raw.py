@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from apmgsrn.data.memory_map import MemoryMappedVolume
+from apmgsrn.data.opener import check_declared_array, check_regular
 from apmgsrn.data.volume import parse_shape
 from apmgsrn.errors import ApmgsrnError
 
@@ -113,7 +114,7 @@ class RawVolume(MemoryMappedVolume):
         voxel_type = parse_dtype(type_name, path)
         x_size, y_size, z_size = xyz
         expected = x_size * y_size * z_size * voxel_type.itemsize
-        actual = path.stat().st_size
+        actual = check_regular(path).st_size
         if actual != expected:
             voxels = x_size * y_size * z_size
             hint = ""
@@ -124,9 +125,11 @@ class RawVolume(MemoryMappedVolume):
                 f"{expected} bytes{hint}; the file is truncated or shape= or dtype= is wrong",
                 arguments=("shape", "dtype"),
             )
+        check_declared_array(path, None, (z_size, y_size, x_size), voxel_type, actual)
         super().__init__(path, None, (z_size, y_size, x_size), voxel_type, fill_nonfinite)
 
     def _open_handle(self) -> Any:
+        check_regular(self.path)
         try:
             return np.memmap(self.path, dtype=self.dtype, mode="r", shape=self.shape)
         except (OSError, ValueError) as exc:

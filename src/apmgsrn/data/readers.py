@@ -1,12 +1,17 @@
-"""`open_volume`: pick the reader for a path by its suffix (or Zarr directory) and open it."""
+"""`open_volume`: pick the reader for a path by its suffix (or Zarr directory) and open it.
+
+Every path goes through :mod:`apmgsrn.data.opener` first (regular files only, links resolved, inside the
+root where one is given); each reader then judges the files its container reaches and the declared size.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from apmgsrn.data.hdf5 import HDF5Volume
-from apmgsrn.data.netcdf import open_netcdf
+from apmgsrn.data.hdf5 import HDF5Volume, check_hdf5_file
+from apmgsrn.data.netcdf import check_netcdf_container, open_netcdf
 from apmgsrn.data.numpy_file import NumpyVolume
+from apmgsrn.data.opener import check_regular, real_path, walk_store
 from apmgsrn.data.raw import RawVolume
 from apmgsrn.data.volume import Volume, parse_shape
 from apmgsrn.data.vtk_xml import VTKVolume
@@ -46,6 +51,7 @@ def open_volume(
     shape: tuple[int, int, int] | str | None = None,
     dtype: str | None = None,
     fill_nonfinite: float | None = None,
+    root: str | Path | None = None,
 ) -> Volume:
     """Open a volume file lazily; nothing but metadata is read until `Volume.read`.
 
@@ -59,17 +65,22 @@ def open_volume(
             ``"X,Y,Z"``); stored as ``Volume.shape == (Z, Y, X)``.
         dtype: Voxel type of a raw file (``uint8``, ``float32``, ...).
         fill_nonfinite: If set, reads replace NaN/Inf by this value.
+        root: The folder the file, and every file it reaches, must lie in (links followed); None: anywhere.
+            A Zarr store's own files must lie in the store either way.
 
     Returns:
         The opened `Volume`.
 
     Raises:
-        ApmgsrnError: For a missing or unreadable file, an unknown format, a missing or ambiguous
-            variable, data that is not 3-D, or raw dims that do not match the file size.
+        ApmgsrnError: For a missing or unreadable file, one that is not a regular file (a pipe, a device)
+            or leads outside ``root``, an unknown format, a missing or ambiguous variable, data that is not
+            3-D, raw dims that do not match the file size, or a declared size the file cannot hold.
     """
     path = Path(path).expanduser()
     if not path.exists():
         raise ApmgsrnError(f"{path}: no such file or directory; check the path")
+    root = Path(root).expanduser() if root is not None else None
+    real_path(path, root)
     suffix = path.suffix.lower()
     if suffix not in SUPPORTED_SUFFIXES["raw"]:
         _refuse(path, "files with their own header (only raw .raw/.bin files)", "shape", shape)
@@ -81,16 +92,17 @@ def open_volume(
                 f"{path}: is a directory but not a Zarr store (no zarr.json, .zarray or .zgroup); "
                 f"give a volume file: {supported_formats()}"
             )
-        return ZarrVolume(path, variable, time, fill_nonfinite)
+        return ZarrVolume(path, variable, time, fill_nonfinite, root=root)
     if not path.is_file():
         raise ApmgsrnError(f"{path}: not a regular file; give a volume file: {supported_formats()}")
+    check_regular(path, root)
 
     if suffix in SUPPORTED_SUFFIXES["NetCDF"]:
-        return open_netcdf(path, variable, time, fill_nonfinite)
+        return open_netcdf(path, variable, time, fill_nonfinite, root=root)
     if suffix in SUPPORTED_SUFFIXES["HDF5"]:
-        return HDF5Volume(path, variable, time, fill_nonfinite)
+        return HDF5Volume(path, variable, time, fill_nonfinite, root=root)
     if suffix in SUPPORTED_SUFFIXES["Zarr"]:
-        return ZarrVolume(path, variable, time, fill_nonfinite)
+        return ZarrVolume(path, variable, time, fill_nonfinite, root=root)
     if suffix in SUPPORTED_SUFFIXES["raw"]:
         _refuse(path, "raw files (they hold a single array)", "variable", variable)
         _refuse(path, "raw files (they have no time dimension)", "time", time)
@@ -107,3 +119,28 @@ def open_volume(
     raise ApmgsrnError(
         f"{path}: unknown volume format {suffix or '(no suffix)'!r}; supported: {supported_formats()}"
     )
+
+
+def check_volume_path(path: str | Path, root: str | Path | None = None) -> None:
+    """The opener's checks of a volume that need no reader: the path and every file its container reaches
+    (a Zarr store's files, an HDF5 or NetCDF-4 file's external storage and links), without reading any data.
+    What the viewer lists is what passes here under its served folder.
+
+    Args:
+        path: a volume file or Zarr store.
+        root: the folder everything must lie in (None: anywhere).
+
+    Raises:
+        ApmgsrnError: as :func:`open_volume` for these checks.
+    """
+    path = Path(path)
+    real = real_path(path, root)
+    if real.is_dir():
+        walk_store(path, root)
+        return
+    check_regular(path, root)
+    suffix = path.suffix.lower()
+    if suffix in SUPPORTED_SUFFIXES["NetCDF"]:
+        check_netcdf_container(path, root)
+    elif suffix in SUPPORTED_SUFFIXES["HDF5"]:
+        check_hdf5_file(path, root)

@@ -23,6 +23,9 @@ from apmgsrn.data.grid import VolumeMetadata
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.recipes import RUNTIME
 
+#: Largest integer magnitude below which float32 holds every integer exactly (2^24).
+FLOAT32_EXACT_INTEGER = 1 << 24
+
 
 @dataclass(frozen=True)
 class VolumeStats:
@@ -241,8 +244,11 @@ class Volume:
         return out
 
     def _check_float32_range(self, data) -> None:
-        """Refuse finite values that float32, which everything here computes in, cannot hold."""
+        """Refuse stored values that float32, which everything here computes in, cannot hold: finite floats
+        beyond its range, and integers it would round (:meth:`_check_integers_exact`). Every reader calls it on
+        the stored values before converting them."""
         data = np.asarray(data)
+        self._check_integers_exact(data)
         if data.dtype.kind != "f" or data.dtype.itemsize <= 4 or data.size == 0:
             return
         finite = data[np.isfinite(data)]
@@ -252,6 +258,30 @@ class Volume:
                 f"{self.path}: holds {data.dtype} values up to {largest:.3g}, beyond float32's range "
                 f"({float(np.finfo(np.float32).max):.3g}) in which apmgsrn computes; store the data in other "
                 "units (rescaled) first"
+            )
+
+    def _check_integers_exact(self, data) -> None:
+        """Refuse integers that float32 cannot hold exactly (beyond +-2^24, only some are): the conversion would
+        round them silently, and values that differ, such as 2^62 + 1 and 2^62 + 2, would become one."""
+        data = np.asarray(data)
+        if data.dtype.kind not in "iu" or data.dtype.itemsize < 4 or data.size == 0:
+            return
+        beyond = data > FLOAT32_EXACT_INTEGER
+        if data.dtype.kind == "i":
+            beyond |= data < -FLOAT32_EXACT_INTEGER
+        large = data[beyond]
+        if large.size == 0:
+            return
+        rounded = large.astype(np.float32)
+        inside = rounded < float(np.iinfo(data.dtype).max) + 1.0  # rounded up past the type's range: inexact
+        exact = np.zeros(large.shape, dtype=bool)
+        exact[inside] = rounded[inside].astype(data.dtype) == large[inside]
+        if not exact.all():
+            example = int(large[~exact][0])
+            raise ApmgsrnError(
+                f"{self.path}: holds {data.dtype} values such as {example} that float32, in which apmgsrn computes, "
+                f"cannot hold exactly (integers beyond +-{FLOAT32_EXACT_INTEGER:,} round to their neighbours); "
+                "subtract an offset (e.g. the minimum) or convert the data to float32 first, accepting its rounding"
             )
 
     def read(self, z: slice = slice(None), y: slice = slice(None), x: slice = slice(None)) -> np.ndarray:
@@ -394,7 +424,9 @@ class ArrayVolume(Volume):
     def _read_stored(self, z: slice, y: slice, x: slice) -> np.ndarray:
         # Always a fresh float32 array: never hand out a view of the caller's array or of a
         # memory map (the copy is also the integer -> float32 conversion, so it costs one pass).
-        return np.array(self._source()[z, y, x], dtype=np.float32, order="C")
+        stored = self._source()[z, y, x]
+        self._check_float32_range(stored)
+        return np.array(stored, dtype=np.float32, order="C")
 
     def _source(self) -> np.ndarray:
         return self._array

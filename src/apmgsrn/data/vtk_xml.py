@@ -6,13 +6,13 @@ optional extra and is imported only here, when such a file is opened.
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
 import numpy as np
 
 from apmgsrn.data.grid import AxisCoordinates, VolumeMetadata
+from apmgsrn.data.opener import check_regular, memory_budget, open_regular
 from apmgsrn.data.variables import ArrayInfo, choose_array
 from apmgsrn.data.volume import ArrayVolume
 from apmgsrn.errors import ApmgsrnError
@@ -29,26 +29,16 @@ _READERS = {
 COMPRESSION_BOUND = {"": 1.0, "vtkZLibDataCompressor": 1100.0, "vtkLZ4DataCompressor": 300.0}
 
 
-def _available_memory() -> int:
-    """Bytes of memory available now (Linux ``/proc/meminfo``), else the physical memory size."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-
-
 def check_declared_size(path: Path, header_bytes: int = 16 << 20) -> None:
     """Refuse a VTK XML file whose declared extents it cannot hold, or that would not fit in memory,
     before VTK allocates anything (a 335-byte file declaring 2001^3 points would abort the process).
     The first ``header_bytes`` are searched for the extents (the appended data follows the XML header).
 
     Raises:
-        ApmgsrnError: the declared data is larger than the file could hold or than half the free memory.
+        ApmgsrnError: the declared data is larger than the file could hold or than the memory budget (half the
+            free memory, :func:`~apmgsrn.data.opener.memory_budget`).
     """
-    with open(path, "rb") as f:
+    with open_regular(path) as f:
         head = f.read(header_bytes)
     head = head.split(b"<AppendedData", 1)[0].decode("latin-1")
     extents = re.findall(r'\b(?:Whole)?Extent\s*=\s*"([^"]*)"', head)
@@ -66,13 +56,13 @@ def check_declared_size(path: Path, header_bytes: int = 16 << 20) -> None:
         largest = max(largest, counts[0] * counts[1] * counts[2])
     declared = largest * 4  # bytes of one float32 array of that many points
     bound = COMPRESSION_BOUND.get(compressor.group(1) if compressor else "")
-    size = path.stat().st_size
+    size = check_regular(path).st_size
     if bound is not None and declared > bound * size + 4096:
         raise ApmgsrnError(
             f"{path}: declares {largest:,} points ({declared / 2**30:.1f} GiB a float32 array) but the file is only "
             f"{size:,} bytes; it is damaged or truncated"
         )
-    if declared * arrays > _available_memory() // 2:
+    if declared * arrays > memory_budget():
         raise ApmgsrnError(
             f"{path}: declares {arrays} array(s) of {largest:,} points ({declared * arrays / 2**30:.1f} GiB), more "
             "than half the free memory; this reader holds .vti/.vtr data in memory: convert the file to NetCDF, "
@@ -92,6 +82,7 @@ def _read_vtk_arrays(path: Path) -> tuple[dict[str, tuple[ArrayInfo, np.ndarray,
             f"{path}: reading VTK files needs the optional vtk package; run `pip install apmgsrn[vtk]`"
         ) from exc
     class_name, label = _READERS[path.suffix.lower()]
+    check_regular(path)  # VTK opens the file by name: a pipe would block it
     reader = getattr(vtkIOXML, class_name)()
     if not reader.CanReadFile(str(path)):
         raise ApmgsrnError(

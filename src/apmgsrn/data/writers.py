@@ -21,6 +21,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from apmgsrn.atomic import check_output_target
 from apmgsrn.data.grid import AXES, AxisCoordinates
 from apmgsrn.errors import ApmgsrnError
 
@@ -188,6 +189,7 @@ class VolumeWriter:
             raise ApmgsrnError(
                 f"{self.path}: cannot write format {self.suffix or '(no suffix)'!r}; use one of {listed}"
             )
+        check_output_target(self.path, "volume")  # never a device, pipe or socket, nor inside a model folder
         folder = self.path.parent
         if not folder.is_dir():
             raise ApmgsrnError(f"{self.path}: output folder {folder} does not exist; create it or choose another path")

@@ -21,6 +21,7 @@ from apmgsrn.io.brick_folder import (
     brick_file_ready,
     brick_kind,
     brick_layout,
+    check_brick_file,
     manifest_path,
     read_manifest,
 )
@@ -90,8 +91,8 @@ def load_bricks(directory: Path, device: torch.device) -> LoadedBricks:
     """Load and check every brick network of a finished brick-model folder.
 
     Raises:
-        ApmgsrnError: an unfinished model, a missing or foreign brick file, or boxes that disagree with
-            the grid.
+        ApmgsrnError: an unfinished model, a missing, damaged or foreign brick file (another brick's, another
+            run's, or other bytes than the manifest recorded), or boxes that disagree with the grid.
     """
     manifest = read_manifest(directory)
     try:
@@ -114,7 +115,7 @@ def load_bricks(directory: Path, device: torch.device) -> LoadedBricks:
     load = file_loader(kind)  # every brick file is of the manifest's kind (registered by its package)
     fields, config = [], None
     total_bytes = manifest_path(directory).stat().st_size
-    for brick, entry in zip(plan.bricks, layout.entries):
+    for brick, entry, record in zip(plan.bricks, layout.entries, manifest["bricks"]):
         if entry.name != brick.name or entry.start != brick.start or entry.stop != brick.stop:
             raise ApmgsrnError(
                 f"{manifest_path(directory)}: entry of {brick.name} disagrees with the brick grid; re-train the model"
@@ -125,13 +126,7 @@ def load_bricks(directory: Path, device: torch.device) -> LoadedBricks:
                 f"{brick_path}: brick model file is missing; run the same brick training again to re-train it"
             )
         field, description = load(brick_path, device)
-        trained_as = description.training.get("brick")
-        if (
-            description.volume_shape != brick.shape
-            or not isinstance(trained_as, dict)
-            or trained_as.get("name") != brick.name
-        ):
-            raise ApmgsrnError(f"{brick_path}: not the model of {brick.name}; re-train the model")
+        check_brick_file(brick_path, record, description.volume_shape, description.training)
         fields.append(field)
         config = description.config if config is None else config
         total_bytes += description.file_bytes

@@ -85,6 +85,7 @@ class BrickJob:
             the training.
         kind: what the bricks are (None: a :class:`VolumeBricks`; a time series:
             :class:`apmgsrn.series.bricks.SeriesBricks`, which says how its steps train and pack).
+        run: the id of the training run (its folder's manifest records it), saved in the brick file.
     """
 
     volume: object
@@ -99,6 +100,7 @@ class BrickJob:
     source: SourceInfo = SourceInfo()
     psnr_voxels: int | None = None
     kind: VolumeBricks | None = None
+    run: str | None = None
 
     @property
     def job_kind(self) -> VolumeBricks:
@@ -292,7 +294,7 @@ def _fit_region(job: BrickJob, region: np.ndarray, device: torch.device, worker:
             f"y {brick.start[1]}:{brick.stop[1]} x {brick.start[2]}:{brick.stop[2]})"
     prepared = prepare_values(region, job.transform, job.log_offset, where, device)
     box = {"name": brick.name, "index": brick.index, "position": list(brick.position),
-           "start": list(brick.start), "stop": list(brick.stop)}
+           "start": list(brick.start), "stop": list(brick.stop), **({"run": job.run} if job.run else {})}
     fingerprint = {"brick": brick.name, "box": [list(brick.start), list(brick.stop)],
                    "source": job.source.to_dict(), "field": job.field_config.to_dict()}
     # A brick always resumes its own checkpoint: the job may be a retry after a crash.

@@ -34,9 +34,11 @@ from apmgsrn.io import SourceInfo
 from apmgsrn.io.brick_folder import (
     brick_file_name,
     brick_kind,
+    brick_record,
     brick_summary_from_file,
     manifest_path,
     new_manifest,
+    new_run_id,
     read_manifest,
     write_manifest,
 )
@@ -327,6 +329,7 @@ def open_brick_run(volume, decomposition: DecompositionConfig, field_config, tra
     manifest["data"] = data
     manifest["blend"] = decomposition.blend
     manifest["complete"] = False
+    manifest.setdefault("run_id", new_run_id())  # a folder begun before runs had ids: this run names it
     if job_kind.file_kind != FIELD_KIND:
         manifest["brick_kind"] = job_kind.file_kind
     write_manifest(out, manifest)
@@ -347,6 +350,7 @@ def open_brick_run(volume, decomposition: DecompositionConfig, field_config, tra
             source=source.crop(brick.start, brick.stop),  # the brick file describes its own voxels
             psnr_voxels=psnr_voxels,
             kind=kind,
+            run=manifest["run_id"],
         )
         for brick in todo
     ]
@@ -414,14 +418,17 @@ def _one_line(error: BaseException) -> str:
 
 def _finish(out: Path, plan: BrickPlan, manifest: dict, trained: list[BrickResult], reused: list[str],
             failed: dict[str, str], started: float, queue: JobQueue) -> BrickTrainingSummary:
-    """Write the final manifest: per-brick figures, value range, and whether every brick is there."""
+    """Write the final manifest: per-brick figures, checksum and run, value range, and whether every brick is
+    there."""
     by_name = {r.name: r for r in trained}
     missing = {b.name for b in missing_bricks(out, plan, brick_kind(manifest))}
     low, high = math.inf, -math.inf
     for entry, brick in zip(manifest["bricks"], plan.bricks):
         if brick.name in missing:
-            entry.pop("summary", None)
+            for key in ("summary", "checksum", "run"):
+                entry.pop(key, None)
             continue
+        entry.update(brick_record(out / brick_file_name(brick.name)))
         result = by_name.get(brick.name)
         if result is not None:
             entry["summary"] = {"psnr": result.psnr, "seconds": round(result.seconds, 3),

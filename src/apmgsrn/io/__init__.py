@@ -8,6 +8,7 @@ saves through it); it imports no training, decomposition, render, series or CLI 
 
 from apmgsrn.atomic import atomic_write, atomic_write_text, check_output_path
 from apmgsrn.io.description import BrickEntry, BrickLayout, ModelDescription, SeriesLayout, SeriesStepInfo, SourceInfo
+from apmgsrn.io.container import verify_file
 from apmgsrn.io.field_file import load_field, save_field
 from apmgsrn.io.registry import (
     LoadedModel,
@@ -17,10 +18,12 @@ from apmgsrn.io.registry import (
     register_folder_kind,
     register_loader,
 )
+from apmgsrn.io.verify import FileCheck, verify_model
 
 __all__ = [
     "BrickEntry",
     "BrickLayout",
+    "FileCheck",
     "LoadedModel",
     "ModelDescription",
     "SeriesLayout",
@@ -36,4 +39,6 @@ __all__ = [
     "register_folder_kind",
     "register_loader",
     "save_field",
+    "verify_file",
+    "verify_model",
 ]

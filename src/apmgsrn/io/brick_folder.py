@@ -12,6 +12,12 @@ The manifest is plain JSON checked field by field, and every brick file is a che
 loading never runs code from the folder. The manifest is written atomically at the start of training
 (``complete: false``) and again at the end; each brick file is written atomically by the job that trained it,
 so a crash at any moment leaves only whole files.
+
+The manifest names its training run (``run_id``, made when the folder is created and kept by the reruns that
+finish it) and records, for every finished brick, the crc32c of its file (``checksum``) and the run its file
+says trained it (``run``), beside its box. Loading refuses a brick file that was trained as another brick or
+box, by another run, or whose bytes are not the ones recorded (:func:`check_brick_file`). Manifests written
+before these entries existed (format version 2 and older) still load, with a note.
 """
 
 from __future__ import annotations
@@ -19,12 +25,21 @@ from __future__ import annotations
 import json
 import os
 import re
+import uuid
 from collections.abc import Iterable
 from pathlib import Path
 
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.atomic import atomic_write_text
-from apmgsrn.io.container import FORMAT, FORMAT_VERSION, MAX_HEADER_BYTES, read_header
+from apmgsrn.io.container import (
+    CHECKSUMS_VERSION,
+    FORMAT,
+    FORMAT_VERSION,
+    MAX_HEADER_BYTES,
+    file_checksum,
+    note_unchecked,
+    read_header,
+)
 from apmgsrn.io.description import (
     BrickEntry,
     BrickLayout,
@@ -47,6 +62,7 @@ _BRICK_NAME = re.compile(r"^brick_\d{3,7}_\d{3,7}_\d{3,7}$")
 #: Kinds a brick's model file may be (a manifest's ``brick_kind``): a single field, and what other packages
 #: register (the time-series package: its series kinds, :func:`register_brick_file_kind`).
 BRICK_FILE_KINDS = [FIELD_KIND]
+_CHECKSUM = re.compile(r"^[0-9a-f]{8}$")
 
 
 def register_brick_file_kind(kind: str) -> None:
@@ -86,6 +102,7 @@ def new_manifest(volume_shape: tuple[int, int, int], counts: tuple[int, int, int
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
         "kind": BRICKS_KIND,
+        "run_id": new_run_id(),
         "complete": False,
         "volume_shape": list(volume_shape),
         "grid": list(counts),
@@ -102,10 +119,17 @@ def new_manifest(volume_shape: tuple[int, int, int], counts: tuple[int, int, int
     }
 
 
+def new_run_id() -> str:
+    """A new training run's id (random: two runs never share one)."""
+    return uuid.uuid4().hex
+
+
 def write_manifest(directory: str | os.PathLike, manifest: dict) -> None:
-    """Write ``manifest.json`` atomically."""
+    """Write ``manifest.json`` atomically, as this format version (an older folder finished by this version
+    gets its run id and brick checksums from the writer)."""
+    manifest["format_version"] = FORMAT_VERSION
     text = json.dumps(manifest, indent=1, allow_nan=True)
-    atomic_write_text(manifest_path(directory), text, "brick manifest")
+    atomic_write_text(manifest_path(directory), text, "brick manifest", model_part=True)
 
 
 def read_manifest(directory: str | os.PathLike) -> dict:
@@ -126,10 +150,16 @@ def read_manifest(directory: str | os.PathLike) -> dict:
             f"{directory}: folder has no {MANIFEST_NAME}, so it is not a brick model; pass a model file or a "
             "folder written by a brick training run"
         )
-    return read_manifest_file(path, BRICKS_KIND, MAX_HEADER_BYTES, "brick model manifest", _check_manifest)
+    manifest = read_manifest_file(path, BRICKS_KIND, MAX_HEADER_BYTES, "brick model manifest", _check_manifest)
+    if manifest["format_version"] < CHECKSUMS_VERSION:
+        note_unchecked(path, f"brick manifest of format {manifest['format_version']}, written before brick "
+                       "checksums and run ids: a changed, swapped or foreign brick cannot be detected")
+    return manifest
 
 
 def _check_manifest(manifest: dict) -> None:
+    if manifest["format_version"] < 1:
+        raise DescriptionError(f"format_version {manifest['format_version']} does not exist")
     volume_shape = require_ints(manifest.get("volume_shape"), "volume_shape", 3, 2, MAX_VOLUME_AXIS)
     grid = require_ints(manifest.get("grid"), "grid", 3, 1, MAX_BRICKS)
     require_int(manifest.get("ghost_cells"), "ghost_cells", 0, MAX_VOLUME_AXIS)
@@ -154,6 +184,22 @@ def _check_manifest(manifest: dict) -> None:
         raise DescriptionError(f"brick list does not match the {grid[0]}x{grid[1]}x{grid[2]} grid")
     for index, entry in enumerate(bricks):
         _brick_entry(entry, index)
+    if manifest["format_version"] >= CHECKSUMS_VERSION:
+        _check_records(manifest)
+
+
+def _check_records(manifest: dict) -> None:
+    """A manifest of this format names its run, and a finished one records every brick's checksum and run."""
+    if not isinstance(manifest.get("run_id"), str) or not manifest["run_id"]:
+        raise DescriptionError("run_id is missing")
+    for index, entry in enumerate(manifest["bricks"]):
+        where = f"bricks[{index}]"
+        if "checksum" not in entry and not manifest["complete"]:
+            continue  # not finished yet
+        if not isinstance(entry.get("checksum"), str) or not _CHECKSUM.match(entry["checksum"]):
+            raise DescriptionError(f"{where} records no checksum")
+        if "run" not in entry or not (entry["run"] is None or isinstance(entry["run"], str)):
+            raise DescriptionError(f"{where} records no run")
 
 
 def _brick_entry(entry, index: int) -> BrickEntry:
@@ -195,6 +241,54 @@ def brick_file_ready(path: str | os.PathLike, kind: str = FIELD_KIND) -> bool:
         return not path.is_symlink() and read_header(path).kind == kind
     except ApmgsrnError:
         return False
+
+
+def brick_record(path: str | os.PathLike) -> dict:
+    """What a manifest records of a finished brick file: its checksum and the run its file says trained it."""
+    trained_as = _trained_as(model_file_description(path))
+    return {"checksum": file_checksum(path), "run": trained_as.get("run")}
+
+
+def check_brick_file(path: str | os.PathLike, entry: dict, volume_shape: tuple[int, ...], training: dict) -> None:
+    """Refuse a loaded brick file that is not the one its manifest entry describes: trained as another brick
+    or box (two bricks swapped), by another run, or with bytes other than those recorded.
+
+    Args:
+        path: the brick file.
+        entry: its manifest entry (checked by :func:`read_manifest`).
+        volume_shape: the shape its file describes.
+        training: the training summary its file holds.
+
+    Raises:
+        ApmgsrnError: one line naming the brick.
+    """
+    name = entry["name"]
+    trained_as = training.get("brick")
+    shape = tuple(b - a for a, b in zip(entry["start"], entry["stop"]))
+    if (
+        tuple(volume_shape) != shape
+        or not isinstance(trained_as, dict)
+        or trained_as.get("name") != name
+        or any(key in trained_as and trained_as[key] != entry[key] for key in ("index", "position", "start", "stop"))
+    ):
+        raise ApmgsrnError(f"{path}: not the model of {name} (trained for another brick or box); re-train the model")
+    if "run" in entry and trained_as.get("run") != entry["run"]:
+        raise ApmgsrnError(
+            f"{path}: the model of {name} from another training run ({trained_as.get('run') or 'no run id'}, "
+            f"not {entry['run'] or 'the run without an id'} that the manifest records); re-train the model"
+        )
+    if "checksum" in entry and file_checksum(path) != entry["checksum"]:
+        raise ApmgsrnError(
+            f"{path}: damaged: checksum of the brick file of {name} does not match the manifest's (the file was "
+            "changed or replaced after the run); re-train the model"
+        )
+
+
+def _trained_as(description: dict) -> dict:
+    """The brick a model file's description says it was trained as (empty if none)."""
+    training = description.get("training")
+    brick = training.get("brick") if isinstance(training, dict) else None
+    return brick if isinstance(brick, dict) else {}
 
 
 def brick_kind(manifest: dict) -> str:

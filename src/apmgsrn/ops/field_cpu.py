@@ -14,7 +14,8 @@ output layer is a dense dot product with the last hidden layer, taken while it i
 
 The sums run in another order than PyTorch's matrix products (and with fused multiply-adds), so results
 agree with the reference ``decoder(multigrid_features_reference(...))`` to float32 rounding, not bit for
-bit; tests compare them. Inference only: no gradients. The MLP's C source (:data:`MLP_SOURCE`) follows a tile
+bit; tests compare them. A point with a NaN coordinate decodes to NaN (the contract of :mod:`apmgsrn.ops`).
+Inference only: no gradients. The MLP's C source (:data:`MLP_SOURCE`) follows a tile
 encoder: :data:`apmgsrn.ops.multigrid_cpu.C_SOURCE`'s in :data:`LIBRARY`, :data:`apmgsrn.ops.level_grids_cpu.C_SOURCE`'s
 in :data:`LEVEL_LIBRARY`, each built and cached as a library of its own. A hybrid small model's pass over every
 voxel of a 64^3 volume (what ``eval`` and the training's error guide run; a model of a viscous-finger step)
@@ -152,6 +153,12 @@ static Mlp mlp_open(i64 f, int layers, const i64 *pad, const float *weights) {
 
 static void mlp_close(Mlp *m) { free(m->feat); free(m->x); free(m->y); free(m->idx); }
 
+/* out[k] = NaN for the tile's points (nt from i0) with a NaN coordinate, whatever the decoder made of them. */
+static void nan_outputs(const float *points, i64 i0, int nt, float *out) {
+    for (int k = 0; k < nt; ++k)
+        if (nan_point(points + 3 * (i0 + k))) out[k] = NAN;
+}
+
 /* out[k] = decoder(features of point k) for the nt points of the tile in m->feat. */
 static void decode_tile(Mlp *m, int nt, float *out) {
     float *x = m->x, *y = m->y;
@@ -221,6 +228,7 @@ void field_decode(const float *points, i64 n, const float *aff, i64 m, const flo
             const int nt = (int)(n - i0 < TILE ? n - i0 : TILE);
             encode_tile_t(&s, points, i0, nt, aff, m, grids, c, sm, sc, shape, mlp.feat);
             decode_tile(&mlp, nt, out + i0);
+            if (s.nans) nan_outputs(points, i0, nt, out + i0);
         }
         mlp_close(&mlp);
     }
@@ -244,6 +252,7 @@ void level_decode(const float *points, i64 n, i64 levels, const float *maps, con
             const int nt = (int)(n - i0 < TILE ? n - i0 : TILE);
             encode_tile(&s, points, i0, nt, levels, maps, meta, rows, offsets, table, mlp.feat, 1, TILE, NULL);
             decode_tile(&mlp, nt, out + i0);
+            if (s.nans) nan_outputs(points, i0, nt, out + i0);
         }
         mlp_close(&mlp);
     }

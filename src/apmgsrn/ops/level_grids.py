@@ -15,7 +15,9 @@ All levels share one flat parameter vector ``table``: level ``l`` occupies ``siz
 features, level-major, to ``[N, sum_l F_l]``.
 
 This module is the pure-PyTorch reference (differentiable with respect to the table, the maps and the
-points); fused backends must match it in forward and backward.
+points); fused backends must match it in forward and backward, at every input (the contract of
+:mod:`apmgsrn.ops`: a point with a NaN coordinate has NaN features and adds to no gradient; a non-finite index
+coordinate, from an infinite point, is outside every level).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import torch
 
 from apmgsrn import choices
 from apmgsrn.ops import level_grids_cpu
+from apmgsrn.ops.contract import finite_stand_in, nan_where_nan, outside_for_non_finite
 from apmgsrn.ops.level_layout import HASH_PRIMES, LevelLayout
 
 
@@ -66,8 +69,10 @@ def level_corners(
 
     Returns:
         (rows ``[8, N]`` int64, weights ``[8, N]``); corner ``k`` is offset ``(k & 1, k >> 1 & 1, k >> 2)``;
-        a corner outside the lattice has weight 0 and row 0.
+        a corner outside the lattice has weight 0 and row 0, and so has every corner of a non-finite or huge
+        coordinate (read as one just beyond the lattice: the same zero weights, a defined integer conversion).
     """
+    local = outside_for_non_finite(local, float(max(resolution) + 1))
     lower = torch.floor(local)
     frac = local - lower  # [N, 3]; differentiable in local
     base = lower.detach().to(torch.int64)  # [N, 3]
@@ -118,16 +123,17 @@ def level_grid_features_reference(
         ``[N, sum_l F_l]`` features, level-major.
     """
     out = []
+    mapped = finite_stand_in(points)  # NaN points are NaN in the end; infinite ones far outside every level
     for level in range(layout.levels):
         res, f = layout.resolutions[level], layout.features[level]
         size, hashed = layout.sizes[level], layout.hashed[level]
-        local = points @ maps[level, :, :3].t() + maps[level, :, 3]  # [N, 3]
+        local = mapped @ maps[level, :, :3].t() + maps[level, :, 3]  # [N, 3]
         rows, weights = level_corners(local, res, size, hashed)  # [8, N] each
         start = layout.offsets[level]
         values = table[start : start + size * f].view(size, f)  # [size, F]
         gathered = values[rows]  # [8, N, F]
         out.append((gathered * weights[:, :, None]).sum(0))  # [N, F]
-    return torch.cat(out, dim=1)  # [N, sum F]
+    return nan_where_nan(points, torch.cat(out, dim=1))  # [N, sum F]
 
 
 LEVEL_GRID_BACKENDS = ("auto", *choices.LEVEL_GRID_BACKENDS)

@@ -11,6 +11,10 @@ over the tile's points and vectorises (AVX2 gathers with ``-march=native``). The
 trilinear weights into the table; each extra thread scatters into a private copy of the gradient (the
 tables are small: 0.3 MB at the small preset), summed at the end, so there are no atomics.
 
+Every input is defined (the contract of :mod:`apmgsrn.ops`): corner indices are clamped in float, NaN going to
+0, before the integer conversion, and a non-finite index coordinate weighs 0; a point with a NaN coordinate
+gets NaN features and scatters nothing.
+
 Built and cached like :mod:`apmgsrn.ops.multigrid_cpu` (same compiler choice and flags, through
 :mod:`apmgsrn.ops.kernel_cache`);
 when it cannot be built the dispatcher falls back to the reference.
@@ -52,20 +56,35 @@ typedef struct {
     float px[TILE], py[TILE], pz[TILE];   /* the tile's points */
     Corners c;                            /* the level at hand's corners, unless the caller keeps every level's */
     float res[TILE];                      /* one gathered feature */
+    int nans;                             /* how many of the tile's points have a NaN coordinate */
 } Scratch;
 
 /* Level description: index-space map (A' row-major, then t'), vertices per axis, table rows, storage. */
 typedef struct { const float *map; int rx, ry, rz, hashed, features; u32 rows; } Level;
 
+/* Whether a point (x, y, z) has a NaN coordinate: its features are NaN and it adds to no gradient. */
+static inline int nan_point(const float *p) { return p[0] != p[0] || p[1] != p[1] || p[2] != p[2]; }
+
 static inline void load_tile(Scratch *s, const float *points, i64 i0, int nt) {
     const float *p = points + 3 * i0;
-    for (int i = 0; i < nt; ++i) { s->px[i] = p[3 * i]; s->py[i] = p[3 * i + 1]; s->pz[i] = p[3 * i + 2]; }
+    int nans = 0;
+    for (int i = 0; i < nt; ++i) {
+        s->px[i] = p[3 * i]; s->py[i] = p[3 * i + 1]; s->pz[i] = p[3 * i + 2];
+        nans += nan_point(p + 3 * i);
+    }
+    s->nans = nans;
 }
 
-static inline float clampf(float v, float hi) { return v < 0.0f ? 0.0f : (v > hi ? hi : v); }
+static inline int tile_nan(const Scratch *s, int k) { return s->px[k] != s->px[k] || s->py[k] != s->py[k] || s->pz[k] != s->pz[k]; }
+
+/* v clamped to [0, hi] in float, so that the integer conversion after it is defined for every input:
+   NaN (from a NaN point, or Inf * 0 and Inf - Inf in the map of an infinite one) goes to 0. */
+static inline float clampf(float v, float hi) { return v >= 0.0f ? (v < hi ? v : hi) : 0.0f; }
 
 /* The 8 corners of every tile point in one level into c: rows (times F) and trilinear weights. Corners outside
-   the lattice get weight 0 and a clamped, valid row. Branch-free (ternaries) so that gcc vectorises. */
+   the lattice get weight 0 and a clamped, valid row; so does every corner of a non-finite index coordinate
+   (its comparisons are false), so no input reads outside the table. Branch-free (ternaries) so that gcc
+   vectorises. */
 static inline void corners(const Scratch *s, Level lv, int nt, Corners *c) {
     const float *a = lv.map;
     const float a0 = a[0], a1 = a[1], a2 = a[2], a3 = a[3], a4 = a[4], a5 = a[5];
@@ -152,9 +171,15 @@ static void encode_tile(Scratch *s, const float *points, i64 i0, int nt, i64 lev
             for (int k = 0; k < nt; ++k) oc[(i64)k * sn] = s->res[k];
         }
     }
+    if (s->nans == 0 || levels == 0) return;
+    const i64 columns = meta[6 * (levels - 1) + 5] + meta[6 * (levels - 1) + 4];
+    for (int k = 0; k < nt; ++k)
+        if (tile_nan(s, k))
+            for (i64 col = 0; col < columns; ++col) out[(i64)k * sn + col * sc] = NAN;
 }
 
-/* dst += the trilinear scatter of the gradients of the features of the tile's nt points (loaded): point k,
+/* dst += the trilinear scatter of the gradients of the features of the tile's nt points (loaded; a point with a
+   NaN coordinate adds nothing, whatever its gradient): point k,
    column c at g[k * sn + c * sc]. A level of two features (the hybrid's) adds both at each corner in one pass
    over the corners: every table entry still gets its additions in the same order, so the sums are the same to
    the bit, with half the corner loads (a fused training step 5-6 % faster). kept: NULL, or every level's corners
@@ -170,6 +195,7 @@ static void scatter_tile(Scratch *s, int nt, i64 levels, const float *maps, cons
         if (lv.features == 2) {
             const float *g1 = g0 + sc;
             for (int k = 0; k < nt; ++k) {
+                if (s->nans && tile_nan(s, k)) continue;
                 const float v0 = g0[(i64)k * sn], v1 = g1[(i64)k * sn];
                 for (int j = 0; j < 8; ++j) {
                     float *p = b + c->off[j][k];
@@ -183,6 +209,7 @@ static void scatter_tile(Scratch *s, int nt, i64 levels, const float *maps, cons
         for (int f = 0; f < lv.features; ++f) {
             const float *gc = g0 + f * sc;
             for (int k = 0; k < nt; ++k) {
+                if (s->nans && tile_nan(s, k)) continue;
                 const float v = gc[(i64)k * sn];
                 for (int j = 0; j < 8; ++j) b[c->off[j][k] + f] += c->wt[j][k] * v;
             }

@@ -6,7 +6,9 @@ Instant-NGP's hash of :func:`apmgsrn.ops.level_grids.vertex_rows`), a masked loa
 features and the trilinear weight. A corner outside the level's lattice loads nothing and weighs 0, as in
 :func:`~apmgsrn.ops.level_grids.level_corners`. The backward pass recomputes rows and weights and scatters
 the incoming gradient into the table with atomic adds (float32); the maps and points get no gradient here
-(the dispatcher runs the reference when they need one, as for the CPU kernel).
+(the dispatcher runs the reference when they need one, as for the CPU kernel). Every input is defined (the
+contract of :mod:`apmgsrn.ops`): a non-finite or far index coordinate fails the bounds test before the integer
+cast, and a point with a NaN coordinate gets NaN features and scatters nothing.
 
 Each level's shape comes from a small int64 tensor (``[L, 8]``: resolution x, y, z, rows, hashed, first
 float, features, first output column) and its map from ``[L, 3, 4]``, so one compiled kernel serves every
@@ -56,8 +58,10 @@ if triton is not None:
         flx = tl.floor(fx)
         fly = tl.floor(fy)
         flz = tl.floor(fz)
+        # px + py + pz is NaN wherever a coordinate is: the value a NaN point's features take.
         return (rx, ry, rz, rows, hashed, start, features, column, inside,
-                flx.to(tl.int64), fly.to(tl.int64), flz.to(tl.int64), fx - flx, fy - fly, fz - flz)
+                flx.to(tl.int64), fly.to(tl.int64), flz.to(tl.int64), fx - flx, fy - fly, fz - flz,
+                (px != px) | (py != py) | (pz != pz), px + py + pz)
 
     @triton.jit
     def _corner_row(x0, y0, z0, tx, ty, tz, corner: tl.constexpr, rx, ry, rz, rows, hashed, inside,
@@ -85,8 +89,8 @@ if triton is not None:
         level = tl.program_id(1)
         n = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
         nmask = n < N
-        rx, ry, rz, rows, hashed, start, features, column, inside, x0, y0, z0, tx, ty, tz = _level_corner(
-            points_ptr, maps_ptr, info_ptr, n, nmask, level)
+        rx, ry, rz, rows, hashed, start, features, column, inside, x0, y0, z0, tx, ty, tz, nanp, nanv = (
+            _level_corner(points_ptr, maps_ptr, info_ptr, n, nmask, level))
         ch = tl.arange(0, FP)
         cmask = ch < features
         acc = tl.zeros([BLOCK, FP], dtype=tl.float32)
@@ -96,6 +100,7 @@ if triton is not None:
             ptrs = table_ptr + start + row[:, None] * features + ch[None, :]
             v = tl.load(ptrs, mask=valid[:, None] & cmask[None, :], other=0.0).to(tl.float32)
             acc += v * weight[:, None]
+        acc = tl.where(nanp[:, None], nanv[:, None] + acc * 0.0, acc)
         tl.store(out_ptr + n[:, None] * out_width + column + ch[None, :], acc, mask=nmask[:, None] & cmask[None, :])
 
     @triton.jit
@@ -104,8 +109,8 @@ if triton is not None:
         level = tl.program_id(1)
         n = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
         nmask = n < N
-        rx, ry, rz, rows, hashed, start, features, column, inside, x0, y0, z0, tx, ty, tz = _level_corner(
-            points_ptr, maps_ptr, info_ptr, n, nmask, level)
+        rx, ry, rz, rows, hashed, start, features, column, inside, x0, y0, z0, tx, ty, tz, nanp, nanv = (
+            _level_corner(points_ptr, maps_ptr, info_ptr, n, nmask, level))
         ch = tl.arange(0, FP)
         cmask = ch < features
         go = tl.load(grad_out_ptr + n[:, None] * out_width + column + ch[None, :],

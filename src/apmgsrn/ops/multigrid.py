@@ -4,7 +4,8 @@ Reference implementation in pure PyTorch: every point is mapped into all ``M`` l
 sampled with one batched ``grid_sample``. Sampling is *zero-padded trilinear* (corner-aligned): a corner
 outside the grid contributes zero, so a feature fades to zero over the half cell beyond the grid's border,
 and is exactly zero one cell beyond it. Accelerated backends must match this function in forward and
-backward.
+backward, at every input (the contract of :mod:`apmgsrn.ops`: a point with a NaN coordinate has NaN features
+and density and adds to no gradient; an infinite one is outside every grid).
 
 :func:`multigrid_features` dispatches to the fused backends: ``"cpu"`` (C/OpenMP, :mod:`.multigrid_cpu`,
 built on first use) and ``"triton"`` (CUDA, :mod:`.multigrid_triton`, imported only for CUDA tensors since
@@ -20,6 +21,13 @@ import torch.nn.functional as F
 
 from apmgsrn.choices import MULTIGRID_BACKENDS
 from apmgsrn.ops import multigrid_cpu
+from apmgsrn.ops.contract import finite_stand_in, nan_where_nan, outside_for_non_finite
+
+#: A local coordinate beyond ``±LOCAL_OUTSIDE`` is outside every grid (of 2 vertices or more per axis, a cell
+#: spans at most 2 local units, and zero padding fades over one cell): the reference reads every such
+#: coordinate (and NaN, from a NaN point or ``inf * 0``) as this one, which gives the same zero features and
+#: keeps ``grid_sample``'s integer conversions defined.
+LOCAL_OUTSIDE = 3.0
 
 
 def local_coordinates(
@@ -57,11 +65,12 @@ def multigrid_features_reference(
     """
     m, c = grids.shape[:2]
     n = points.shape[0]
-    local = local_coordinates(points, matrices, translations)  # [M, N, 3]
+    local = local_coordinates(finite_stand_in(points), matrices, translations)  # [M, N, 3]
+    local = outside_for_non_finite(local, LOCAL_OUTSIDE)
     sampled = F.grid_sample(
         grids, local.view(m, n, 1, 1, 3), mode="bilinear", padding_mode="zeros", align_corners=True
     )  # [M, C, N, 1, 1]
-    return sampled.view(m * c, n).t()  # [N, M * C]
+    return nan_where_nan(points, sampled.view(m * c, n).t())  # [N, M * C]
 
 
 BACKENDS = MULTIGRID_BACKENDS
@@ -236,10 +245,14 @@ def feature_density_reference(
     power: int = 10,
 ) -> torch.Tensor:
     """Pure-PyTorch feature density; see :func:`feature_density`."""
-    local = local_coordinates(points, matrices, translations)  # [M, N, 3]
+    # Beyond this on any axis the falloff is exactly 0 in float32 (exp(-128) underflows): the coordinate is
+    # read as the limit itself, the same density, and a zero gradient instead of 0 * inf (and NaN, from a
+    # NaN point or inf * 0, reads as far away too; a NaN point gets NaN below).
+    limit = 128.0 ** (1.0 / (2 * power))
+    local = outside_for_non_finite(local_coordinates(finite_stand_in(points), matrices, translations), limit)
     falloff = torch.exp(-local.pow(2 * power).sum(-1))  # [M, N]
     det = torch.linalg.det(matrices)  # [M]
-    return (det[:, None] * falloff).sum(0)  # [N]
+    return nan_where_nan(points, (det[:, None] * falloff).sum(0))  # [N]
 
 
 def feature_density(

@@ -22,7 +22,10 @@ source, the flags, the compiler and the CPU, so it compiles once per machine. ``
 :func:`load_library` returns ``None`` and the dispatcher falls back to the reference.
 
 Semantics are those of :func:`apmgsrn.ops.multigrid.multigrid_features_reference`: corner-aligned,
-zero-padded trilinear sampling (a corner outside the grid contributes zero), grid-major concatenation.
+zero-padded trilinear sampling (a corner outside the grid contributes zero), grid-major concatenation, at every
+input (the contract of :mod:`apmgsrn.ops`): only finite index coordinates inside the grid pass the bounds test
+that comes before any integer conversion, and a point with a NaN coordinate gets NaN features and density and
+adds to no gradient.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import ctypes
 
 import torch
 
+from apmgsrn.ops.contract import FAR, finite_stand_in
 from apmgsrn.ops.kernel_cache import CompiledLibrary
 
 #: AVX2 compaction table, shared by every kernel that lists the non-zero lanes of a mask (here, and the fused
@@ -52,7 +56,7 @@ __attribute__((constructor)) static void init_lane_lut(void) {
 # The C source. Coordinates are folded into index space once per grid: ``f = A' p + t'`` with
 # ``A' = A (size - 1) / 2`` and ``t' = (t + 1) (size - 1) / 2`` (corner-aligned unnormalisation), so a
 # point costs 9 multiply-adds per grid before the bounds test.
-C_SOURCE = r"""
+C_SOURCE = f"#define FAR {FAR!r}f\n" + r"""
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
@@ -78,17 +82,33 @@ typedef struct {
     int off[8][TILE];                     /* corner offsets (elements), compacted */
     float wt[8][TILE];                    /* corner weights, compacted; 0 for corners outside */
     float res[TILE];                      /* gathered feature of one channel, compacted */
+    int nans;                             /* how many of the tile's points have a NaN coordinate */
 } Scratch;
 
 typedef struct { int d, h, w, sz, sy, sx; } Shape;
 
+/* A coordinate as the references map it (apmgsrn.ops.contract.finite_stand_in): NaN as 0, beyond +-FAR
+   (inf included) as +-FAR. */
+static inline float stand_in(float v) { return v != v ? 0.0f : (v > FAR ? FAR : (v < -FAR ? -FAR : v)); }
+
+/* Whether a point (x, y, z) has a NaN coordinate: its features are NaN and it adds to no gradient (it touches no
+   grid: NaN fails the bounds test of select_and_weigh). */
+static inline int nan_point(const float *p) { return p[0] != p[0] || p[1] != p[1] || p[2] != p[2]; }
+
 static inline void load_tile(Scratch *s, const float *points, i64 i0, int nt) {
     const float *p = points + 3 * i0;
-    for (int i = 0; i < nt; ++i) { s->px[i] = p[3 * i]; s->py[i] = p[3 * i + 1]; s->pz[i] = p[3 * i + 2]; }
+    int nans = 0;
+    for (int i = 0; i < nt; ++i) {
+        s->px[i] = p[3 * i]; s->py[i] = p[3 * i + 1]; s->pz[i] = p[3 * i + 2];
+        nans += nan_point(p + 3 * i);
+    }
+    s->nans = nans;
 }
 
 /* Map the tile into one grid (index units), keep the points that touch it, and compute their eight
-   corners. Returns how many points touch the grid; s->idx maps compacted slots back to the tile
+   corners. Only finite index coordinates strictly inside (-1, size) pass the bounds test (NaN and Inf, from
+   non-finite or huge points, compare false), so the integer conversions below are defined and every
+   address is inside the grid. Returns how many points touch the grid; s->idx maps compacted slots back to the tile
    (identity when all do). Branch-free forms throughout (ternaries, float masks), since gcc vectorises
    neither && chains nor fminf/fmaxf without fast-math. */
 static inline int select_and_weigh(Scratch *s, const float *a, int nt, Shape g) {
@@ -208,6 +228,10 @@ static void encode_tile(Scratch *s, const float *points, i64 i0, int nt, const f
             for (int k = 0; k < cnt; ++k) oc[(i64)s->idx[k] * mc] = s->res[k];
         }
     }
+    if (s->nans == 0) return;
+    for (int k = 0; k < nt; ++k)
+        if (nan_point(points + 3 * (i0 + k)))
+            for (i64 e = 0; e < mc; ++e) o[(i64)k * mc + e] = NAN;
 }
 
 /* out[n, g*C + c] = zero-padded trilinear sample of grid g, channel c, at A'_g p_n + t'_g.
@@ -405,7 +429,9 @@ static inline __attribute__((always_inline)) void density_tile(
             acc[i] += dg * exp_nonpositive(-sum);
         }
     }
-    for (int i = 0; i < nt; ++i) rho[i0 + i] = acc[i];
+    /* NaN at a point with a NaN coordinate; a point whose map gives NaN from Inf * 0 or Inf - Inf got 0 from
+       exp_nonpositive, as any point far outside */
+    for (int i = 0; i < nt; ++i) rho[i0 + i] = px[i] != px[i] || py[i] != py[i] || pz[i] != pz[i] ? NAN : acc[i];
 }
 
 /* Adds this tile's d rho / d (det, A, t) of every grid into own [M, 13] (det, A row-major, t). */
@@ -414,8 +440,11 @@ static inline __attribute__((always_inline)) void density_backward_tile(
         const float *grad_rho, double *own) {
     float px[DTILE], py[DTILE], pz[DTILE], gr[DTILE];
     for (int i = 0; i < nt; ++i) {
-        px[i] = points[3 * (i0 + i)]; py[i] = points[3 * (i0 + i) + 1]; pz[i] = points[3 * (i0 + i) + 2];
-        gr[i] = grad_rho[i0 + i];
+        /* finite stand-ins (the references' finite_stand_in): a point's zero gradient times its coordinate
+           must stay 0; a NaN point (its density is NaN) adds nothing, whatever its gradient */
+        const float *p = points + 3 * (i0 + i);
+        px[i] = stand_in(p[0]); py[i] = stand_in(p[1]); pz[i] = stand_in(p[2]);
+        gr[i] = nan_point(p) ? 0.0f : grad_rho[i0 + i];
     }
     for (i64 g = 0; g < m; ++g) {
         const float *a = aff + 12 * g;
@@ -433,7 +462,7 @@ static inline __attribute__((always_inline)) void density_backward_tile(
             const float e = exp_nonpositive(-(qx * lx + qy * ly + qz * lz));
             /* d rho / d det = e; d rho / d l_k = -2P det e l_k^(2P-1); zero where e is 0, so a far-away
                point cannot give 0 * inf */
-            const float ge = gr[i] * e;
+            const float ge = e > 0.0f ? gr[i] * e : 0.0f;  /* a NaN point's NaN gradient adds nothing */
             const float sg = e > 0.0f ? scale * ge : 0.0f;
             const float sx = e > 0.0f ? sg * qx : 0.0f;
             const float sy = e > 0.0f ? sg * qy : 0.0f;
@@ -682,8 +711,8 @@ def backward_placement(
         index_grad.data_ptr(), torch.get_num_threads(),
     )
     half = torch.tensor([(w - 1) / 2, (h - 1) / 2, (d - 1) / 2], dtype=torch.float32)  # x, y, z
-    local_grad = index_grad * half  # [M, N, 3]
-    grad_matrices = torch.einsum("mnk,nj->mkj", local_grad, points)  # [M, 3, 3]
+    local_grad = index_grad * half  # [M, N, 3]; 0 where a grid misses a point (every grid misses a non-finite one)
+    grad_matrices = torch.einsum("mnk,nj->mkj", local_grad, finite_stand_in(points))  # [M, 3, 3]: no 0 * inf
     return grad_matrices.to(matrices.dtype), local_grad.sum(1).to(matrices.dtype)  # [M, 3, 3], [M, 3]
 
 

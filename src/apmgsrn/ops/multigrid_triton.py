@@ -7,7 +7,9 @@ eight trilinear weights and ``8 C`` masked loads; a pair whose point lies outsid
 nothing (its lanes are masked off), so once the grids have moved to the features a point costs only
 the grids that cover it. Nothing ``[M, N, 3]``-sized is ever stored. The backward pass recomputes the
 weights and scatters the incoming gradient into the grids with atomic adds (float32 accumulation);
-the grid placements get no gradient here (they keep the density-loss path).
+the grid placements get no gradient here (they keep the density-loss path). Every input is defined (the
+contract of :mod:`apmgsrn.ops`): a non-finite or far index coordinate fails the bounds test before the integer
+cast, and a point with a NaN coordinate gets NaN features and scatters nothing.
 
 Grids may be float32, float16 or bfloat16 (half the bytes per gather); arithmetic and the returned
 features are float32. Grids are read through their strides, so a channel-last view (corners' ``C``
@@ -54,9 +56,10 @@ if triton is not None:
         flx = tl.floor(fx)
         fly = tl.floor(fy)
         flz = tl.floor(fz)
+        # px + py + pz is NaN wherever a coordinate is: the value a NaN point's features take.
         return (
             g * s_m, flx.to(tl.int32), fly.to(tl.int32), flz.to(tl.int32),
-            fx - flx, fy - fly, fz - flz, inside,
+            fx - flx, fy - fly, fz - flz, inside, (px != px) | (py != py) | (pz != pz), px + py + pz,
         )
 
     @triton.jit
@@ -68,7 +71,7 @@ if triton is not None:
         # M is a compile-time constant so that e // M is a multiply and shift, not a division.
         e = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)  # [B] pair index n * M + g
         emask = e < total
-        base, x0, y0, z0, tx, ty, tz, inside = _pair_corners(
+        base, x0, y0, z0, tx, ty, tz, inside, nanp, nanv = _pair_corners(
             points_ptr, mat_ptr, trans_ptr, e, emask, M, D, H, W, s_m, s_z, s_y, s_x
         )
         ch = tl.arange(0, CP)
@@ -89,6 +92,7 @@ if triton is not None:
             ptrs = grids_ptr + off[:, None] + ch[None, :] * s_c  # [B, CP]
             v = tl.load(ptrs, mask=valid[:, None] & cmask[None, :], other=0.0).to(tl.float32)
             acc += v * (wx * wy * wz)[:, None]
+        acc = tl.where(nanp[:, None], nanv[:, None] + acc * 0.0, acc)
         # Pair e owns output elements [e * C, e * C + C): row n, columns g * C + c.
         tl.store(out_ptr + e[:, None] * C + ch[None, :], acc, mask=emask[:, None] & cmask[None, :])
 
@@ -100,7 +104,7 @@ if triton is not None:
     ):
         e = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)
         emask = e < total
-        base, x0, y0, z0, tx, ty, tz, inside = _pair_corners(
+        base, x0, y0, z0, tx, ty, tz, inside, nanp, nanv = _pair_corners(
             points_ptr, mat_ptr, trans_ptr, e, emask, M, D, H, W, s_m, s_z, s_y, s_x
         )
         ch = tl.arange(0, CP)

@@ -3,12 +3,15 @@
 The voxel convention is the ground truth's (:func:`apmgsrn.ops.trilinear.sample_volume`): voxel ``i`` of an
 axis of ``n`` sits at ``-1 + 2 i / (n - 1)``, points outside the box are clamped to it. A lookup is a binary
 search of each corner's flat index in the sorted stored indices, so memory grows with the stored voxels,
-not with the volume.
+not with the volume. Every input is defined (the contract of :mod:`apmgsrn.ops`): a point however far, ``±inf``
+included, samples the border; a point with a NaN coordinate samples NaN.
 """
 
 from __future__ import annotations
 
 import torch
+
+from apmgsrn.ops.contract import nan_where_nan
 
 
 def sample_sparse_volume(
@@ -27,12 +30,13 @@ def sample_sparse_volume(
             exactly its own value, not a blend with its neighbour's of weight 1e-7.
 
     Returns:
-        ``[N]`` interpolated values in ``values``' dtype (exactly ``values[k]`` at voxel ``indices[k]``).
+        ``[N]`` interpolated values in ``values``' dtype (exactly ``values[k]`` at voxel ``indices[k]``; NaN at
+        a point with a NaN coordinate).
     """
     n = points.shape[0]
     out = torch.zeros(n, dtype=values.dtype, device=points.device)
     if indices.numel() == 0 or n == 0:
-        return out
+        return nan_where_nan(points, out)
     sizes = (shape[2], shape[1], shape[0])  # x, y, z
     lower, upper, fraction = [], [], []
     for axis, size in enumerate(sizes):
@@ -43,7 +47,10 @@ def sample_sparse_volume(
             upper.append(zero)
             fraction.append(torch.zeros(n, dtype=torch.float32, device=points.device))
             continue
-        u = ((points[:, axis].float().clamp(-1, 1) + 1) * 0.5) * (size - 1)  # [N] in voxel units
+        coordinate = points[:, axis].float()
+        # clamped in float, NaN included (it goes to -1; the point's value is NaN below)
+        coordinate = torch.where(coordinate >= -1, coordinate.clamp(max=1), -1.0)
+        u = ((coordinate + 1) * 0.5) * (size - 1)  # [N] in voxel units
         nearest = torch.round(u)
         u = torch.where((u - nearest).abs() < snap, nearest, u)
         low = torch.floor(u).clamp(0, size - 2)
@@ -63,4 +70,4 @@ def sample_sparse_volume(
         # A zero weight contributes nothing even where its corner is a stored voxel (keeps voxels exact).
         contribution = torch.where(found & (weight > 0), values[position] * weight.to(values.dtype), 0)
         out += contribution
-    return out
+    return nan_where_nan(points, out)

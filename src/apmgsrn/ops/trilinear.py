@@ -5,12 +5,15 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from apmgsrn.ops.contract import nan_where_nan
+
 
 def sample_volume(volume: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """Trilinearly interpolate a volume at points, corner-aligned.
 
-    Voxel ``i`` of an axis with ``n`` voxels sits at ``-1 + 2 i / (n - 1)``; points outside the box are
-    clamped to its border (ground truth never uses zero padding).
+    Voxel ``i`` of an axis with ``n`` voxels sits at ``-1 + 2 i / (n - 1)``; points outside the box (however
+    far, ``±inf`` included) are clamped to its border (ground truth never uses zero padding); a point with a
+    NaN coordinate samples NaN (the contract of :mod:`apmgsrn.ops`).
 
     Args:
         volume: ``[D, H, W]`` values, C order (z, y, x), x fastest.
@@ -33,7 +36,7 @@ def sample_volume_reference(volume: torch.Tensor, points: torch.Tensor) -> torch
     out = F.grid_sample(
         volume[None, None], grid, mode="bilinear", padding_mode="border", align_corners=True
     )  # [1, 1, N, 1, 1]
-    return out.view(n)
+    return nan_where_nan(points, out.view(n))
 
 
 def _fused(volume: torch.Tensor, points: torch.Tensor) -> bool:

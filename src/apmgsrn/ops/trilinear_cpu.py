@@ -7,10 +7,12 @@ several points' cache misses in flight (the volume is far larger than the caches
 
 Exactness: the arithmetic is ATen's ``grid_sampler_3d_cpu_impl`` for bilinear interpolation, border
 padding and ``align_corners=True``, operation for operation: the same unnormalisation
-``((x + 1) / 2) * (size - 1)``, the same clamp (NaN goes to the last voxel, as ``std::min``/``std::max``
-do), the same corner weights multiplied in the same order, the same sum in the same order, with
-floating-point contraction off (no fused multiply-adds). So training on it gives the same numbers as
-before, which :mod:`tests.test_ops_trilinear` checks bit for bit. Built and cached like
+``((x + 1) / 2) * (size - 1)``, the same clamp (in float, before the integer conversion: any finite or
+infinite coordinate lands in the volume, NaN on the last voxel, as ``std::min``/``std::max`` do), the same
+corner weights multiplied in the same order, the same sum in the same order, with floating-point
+contraction off (no fused multiply-adds). So training on it gives the same numbers as before, which
+:mod:`tests.test_ops_trilinear` checks bit for bit. A point with a NaN coordinate samples NaN, as
+:func:`apmgsrn.ops.trilinear.sample_volume_reference` does (the contract of :mod:`apmgsrn.ops`). Built and cached like
 :mod:`apmgsrn.ops.multigrid_cpu` (one C file, no PyTorch headers, called through :mod:`ctypes`).
 """
 
@@ -82,7 +84,8 @@ void trilinear_border(const float *volume, i64 d, i64 h, i64 w, const float *poi
             if (ux && uz) acc += v[sx + sz] * (ax[k] * by[k] * az[k]);
             if (uy && uz) acc += v[sy + sz] * (bx[k] * ay[k] * az[k]);
             if (ux && uy && uz) acc += v[sx + sy + sz] * (ax[k] * ay[k] * az[k]);
-            out[i] = acc;
+            const float *p = points + 3 * i;
+            out[i] = p[0] != p[0] || p[1] != p[1] || p[2] != p[2] ? NAN : acc;  /* a NaN point samples NaN */
         }
     }
 }

@@ -71,10 +71,10 @@ def run_apmgsrn(arguments):
 
 
 def model_path(file_name):
-    """The model a chosen file stands for: a brick model is opened through its folder's manifest."""
-    if os.path.basename(file_name) == MANIFEST_NAME:
-        return os.path.dirname(os.path.abspath(file_name))
-    return file_name
+    """The model a chosen file stands for (a brick model is opened through its folder's manifest), as an
+    absolute path: it starts with ``/``, so the command line never reads a file named ``-h`` as an option."""
+    path = os.path.abspath(file_name)
+    return os.path.dirname(path) if os.path.basename(path) == MANIFEST_NAME else path
 
 
 #: Folders of decoded volumes not yet removed. A reader removes its folder when it decodes again or is

@@ -8,13 +8,17 @@ are opened one at a time, when read. Three ways to name a series:
 - one NetCDF/HDF5/Zarr variable with a leading time dimension, with ``time="all"`` or ``"A:B[:S]"``;
 - a ParaView ``.pvd`` collection: its data sets in order of their ``timestep``.
 
-Every step must hold the same variable with the same shape and dtype as the first; a step that does not
-is named in a one-line :class:`~apmgsrn.errors.ApmgsrnError` when it is read.
+Every step must hold the same variable with the same shape, dtype and grid geometry (origin and spacing, or
+coordinates) as the first; a step that does not is named in a one-line :class:`~apmgsrn.errors.ApmgsrnError`
+when it is opened (every step is, for its fingerprint, before training). Every step's time value must be a
+finite number.
 """
 
 from __future__ import annotations
 
 import glob
+import math
+import numbers
 import re
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -23,6 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from apmgsrn.data.fingerprint import volume_fingerprint
+from apmgsrn.data.grid import AxisCoordinates
+from apmgsrn.data.opener import check_regular, read_regular
 from apmgsrn.data.readers import open_volume
 from apmgsrn.data.volume import Volume, format_xyz
 from apmgsrn.errors import ApmgsrnError
@@ -120,7 +126,11 @@ class VolumeSeries:
         shape: ``(D, H, W)`` of every step.
         dtype: stored dtype of every step.
         variable: the variable every step holds (None for raw and npy files).
+        coordinates: where the voxels of every step lie (the first step's ``metadata.coordinates``).
         options: the :func:`~apmgsrn.data.open_volume` options every step is opened with.
+
+    Raises:
+        ApmgsrnError: no step, a time value that is not a finite number, or a first step that cannot be read.
     """
 
     def __init__(self, steps: Sequence[SeriesStep], labels: Sequence[float], options: dict | None = None) -> None:
@@ -128,12 +138,17 @@ class VolumeSeries:
             raise ApmgsrnError("a series needs at least one step")
         self.steps = tuple(steps)
         self.labels = tuple(labels)
+        for step, label in zip(self.steps, self.labels):
+            if isinstance(label, bool) or not isinstance(label, numbers.Real) or not math.isfinite(label):
+                raise ApmgsrnError(f"{step.path}: its time value {label!r} is not a finite number; every step of a "
+                                   "series needs one (a .pvd's timestep=)")
         self.options = dict(options or {})
         first = self._open(0)
         try:
             self.shape = first.shape
             self.dtype = first.dtype
             self.variable = first.variable
+            self.coordinates = first.metadata.coordinates
         finally:
             first.close()
 
@@ -162,7 +177,7 @@ class VolumeSeries:
         """Open step ``index``, checked against the first step.
 
         Raises:
-            ApmgsrnError: the step holds another variable, shape or dtype than the first.
+            ApmgsrnError: the step holds another variable, shape, dtype or grid geometry than the first.
         """
         volume = self._open(index)
         if index == 0:
@@ -179,6 +194,11 @@ class VolumeSeries:
         elif volume.dtype != self.dtype:
             problem = (f"stores {volume.dtype} but step 0 ({first}) stores {self.dtype}; convert the steps to one "
                        "type or train them separately")
+        else:
+            axis = geometry_difference(self.coordinates, volume.metadata.coordinates)
+            if axis is not None:
+                problem = (f"lies elsewhere along {axis} than step 0 ({first}): another origin, spacing or "
+                           "coordinates; every step of a series must lie on the same grid")
         if problem is not None:
             volume.close()
             raise ApmgsrnError(f"{where} {problem}")
@@ -223,6 +243,33 @@ class VolumeSeries:
 
     def __repr__(self) -> str:
         return f"<VolumeSeries {self.describe()}>"
+
+
+def geometry_difference(first, other) -> str | None:
+    """The first axis (``"x"``, ``"y"``, ``"z"``) on which two volumes' coordinates
+    (:attr:`~apmgsrn.data.grid.VolumeMetadata.coordinates`, ``(z, y, x)`` or None) place their voxels
+    differently, or None where they agree. Coordinates a format does not give are voxel indices (start 0,
+    step 1), so a file without geometry agrees with one whose origin is 0 and spacing 1."""
+    for name, a, b in zip("zyx", _axes(first), _axes(other)):
+        if not _same_axis(a, b):
+            return name
+    return None
+
+
+def _axes(coordinates) -> tuple:
+    return (None, None, None) if coordinates is None else tuple(coordinates)
+
+
+def _same_axis(a: AxisCoordinates | None, b: AxisCoordinates | None) -> bool:
+    a, b = a or AxisCoordinates("index"), b or AxisCoordinates("index")
+    if a.even != b.even:
+        return False
+    if not a.even:
+        scale = float(np.abs(np.asarray(a.values, dtype=np.float64)).max(initial=0.0))
+        return len(a.values) == len(b.values) and bool(np.allclose(a.values, b.values, rtol=1e-9, atol=1e-9 * scale))
+    scale = max(abs(a.step), abs(b.step))
+    return (math.isclose(a.step, b.step, rel_tol=1e-9)
+            and math.isclose(a.start, b.start, rel_tol=1e-9, abs_tol=1e-9 * scale))
 
 
 def is_series_input(inputs: str | Path | Sequence[str | Path], time: object = None) -> bool:
@@ -383,11 +430,9 @@ def _pvd_steps(path: Path) -> tuple[list[SeriesStep], list[float]]:
     """The data sets of a ParaView collection in timestep order (``<DataSet timestep= file=>``)."""
     import xml.etree.ElementTree as ElementTree
 
-    if not path.is_file():
+    if not path.exists():
         raise ApmgsrnError(f"{path}: no such file; check the path")
-    if path.stat().st_size > MAX_PVD_BYTES:
-        raise ApmgsrnError(f"{path}: {path.stat().st_size:,} bytes is too large for a .pvd collection; is it one?")
-    text = path.read_bytes()
+    text = read_regular(path, MAX_PVD_BYTES)  # a regular file only (never a pipe), bounded
     # A collection needs no document type; refusing one keeps entity expansion (billion laughs) out.
     if b"<!DOCTYPE" in text or b"<!ENTITY" in text:
         raise ApmgsrnError(f"{path}: a .pvd collection must not declare a DOCTYPE or entities; is it damaged?")
@@ -419,6 +464,8 @@ def _pvd_steps(path: Path) -> tuple[list[SeriesStep], list[float]]:
     for _, file in entries:
         if not file.exists():
             raise ApmgsrnError(f"{path}: lists {file}, which does not exist; check the collection's folder")
+        if not file.is_dir():  # a Zarr store is walked by its reader
+            check_regular(file, container=path, role="its entry")
     return [SeriesStep(file) for _, file in entries], [value for value, _ in entries]
 
 

@@ -80,7 +80,7 @@ def new_series_manifest(labels, names, groups: list[range], settings: dict, sour
 def write_series_manifest(directory: str | os.PathLike, manifest: dict) -> None:
     """Write ``series.json`` atomically."""
     atomic_write_text(series_manifest_path(directory), json.dumps(manifest, indent=1, allow_nan=True),
-                      "time-series brick manifest")
+                      "time-series brick manifest", model_part=True)
 
 
 def read_series_manifest(directory: str | os.PathLike) -> dict:

@@ -353,7 +353,7 @@ def _save_steps(path: Path, field: SeriesField, progress: _Progress, fingerprint
                    "state": asdict(progress.state)}
     data = file_bytes({k: v.detach().cpu().contiguous() for k, v in field.state_dict().items()},
                       STEPS_CHECKPOINT_KIND, description)
-    atomic_write(path, lambda temp: Path(temp).write_bytes(data), "training checkpoint")
+    atomic_write(path, lambda temp: Path(temp).write_bytes(data), "training checkpoint", model_part=True)
 
 
 def _load_steps(path: Path, field: SeriesField, fingerprint: dict, iterations: int) -> _Progress:

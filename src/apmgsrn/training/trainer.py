@@ -17,7 +17,7 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
-from apmgsrn.arguments import MAX_BATCH_SIZE, check_choice, check_int, check_number, check_optional_int
+from apmgsrn.arguments import MAX_BATCH_SIZE, MAX_ITERATIONS, check_choice, check_int, check_number, check_optional_int
 from apmgsrn.choices import DECODER_PRECISIONS, DENSITY_NORMALIZATIONS, LR_SCHEDULES
 from apmgsrn.device import inference_dtype
 from apmgsrn.errors import ApmgsrnError, InvalidArgument
@@ -143,7 +143,7 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         """Refuse every value the loop cannot run with (:class:`~apmgsrn.errors.InvalidArgument`)."""
-        check_int("iterations", self.iterations, 1)
+        check_int("iterations", self.iterations, 1, MAX_ITERATIONS)
         check_int("batch_size", self.batch_size, 1, MAX_BATCH_SIZE)
         check_number("lr", self.lr, 0.0)  # 0 is allowed: a frozen network (or grid maps) is a valid experiment
         check_number("placement_lr", self.placement_lr, 0.0)
@@ -156,7 +156,7 @@ class TrainConfig:
         if self.density_start is None:
             object.__setattr__(self, "density_start", max(1, round(0.05 * self.iterations)))
         check_int("steps_per_iteration", self.steps_per_iteration, 1)
-        check_int("density_start", self.density_start, 0)
+        check_int("density_start", self.density_start, 0, MAX_ITERATIONS)
         check_int("density_window", self.density_window, 1)
         check_number("density_tolerance", self.density_tolerance, 0.0, 1.0)
         check_number("freeze_fraction", self.freeze_fraction, 0.0, 1.0)
@@ -165,7 +165,7 @@ class TrainConfig:
         check_choice("lr_schedule", self.lr_schedule, LR_SCHEDULES)
         check_number("final_lr_fraction", self.final_lr_fraction, 0.0, 1.0)
         check_int("seed", self.seed, 0, 2**63 - 1)
-        check_int("checkpoint_every", self.checkpoint_every, 1)
+        check_int("checkpoint_every", self.checkpoint_every, 1, MAX_ITERATIONS)
         check_int("anchored_grids", self.anchored_grids, 0)
         check_choice("placement_loss", self.placement_loss, PLACEMENT_LOSSES)
         check_int("history_every", self.history_every, 1)

@@ -6,6 +6,11 @@ and is checked again on the way to the file: refused when it is absolute, holds 
 hidden, or now resolves (symbolic links followed) outside the root, to something that is not a regular
 file or a model/Zarr folder, or to another kind of file than was listed.
 
+A volume is listed, and opened, only if :mod:`apmgsrn.data.opener` accepts it with the served folder as
+root: the file and every file its container reaches (a Zarr store's chunks, an HDF5 or NetCDF-4 file's
+external storage; links to other files are refused) must be regular files inside the folder. The same check
+runs when the page asks for the entry and when the reader opens it (``open_volume(..., root=)``).
+
 Any file may lie in the folder: a symbolic-link loop, a named pipe, a file that cannot be read, a name
 that is not UTF-8, a hostile header. The listing never fails on one of them: it lists what it can and
 records the rest in :attr:`Catalog.skipped` with the reason, for the page and the terminal to show.
@@ -19,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 from apmgsrn.data import SUPPORTED_SUFFIXES
+from apmgsrn.data.readers import check_volume_path
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.rendering.paraview import PRESET_SUFFIXES
 from apmgsrn.sources import is_model_path
@@ -145,16 +151,32 @@ class Catalog:
         except OSError as exc:
             raise _Skip(f"cannot be read ({exc.strerror})") from None
         if stat.S_ISDIR(mode):
-            return self._kind_of_directory(path)
+            kind = self._kind_of_directory(path)
+            if kind == VOLUME:
+                self._check_volume(path)
+            return kind
         if not stat.S_ISREG(mode):  # a named pipe or a device would block or never end when read
             raise _Skip("not a regular file")
         suffix = path.suffix.lower()
         if suffix in PRESET_SUFFIXES:
             return PRESET
         if suffix in self._volume_suffixes:
+            self._check_volume(path)
             return VOLUME
         # A .apmgsrn file, or a model saved under another name: its header is read, never executed.
         return MODEL if is_model_path(path) else None
+
+    def _check_volume(self, path: Path) -> None:
+        """The opener's checks of a volume under the served folder (no data is read).
+
+        Raises:
+            _Skip: the volume, or a file it reaches, is not a regular file inside the root.
+        """
+        try:
+            check_volume_path(path, self.root)
+        except ApmgsrnError as exc:
+            reason = str(exc)
+            raise _Skip(reason.removeprefix(f"{path}: ")) from None
 
     # ------------------------------------------------------------------ listing
     def entries(self) -> list[CatalogEntry]:

@@ -300,7 +300,11 @@ class ViewerSession:
         Raises:
             ApmgsrnError: refused name or unreadable file.
         """
-        source = open_source(self._resolve(name), self.device, self.config.source, name=name)
+        path = self._resolve(name)
+        # The reader applies the opener's rules with the served folder as root: every file the volume
+        # reaches (chunks, external storage) must lie inside it.
+        options = replace(self.config.source, volume={**self.config.source.volume, "root": self.catalog.root})
+        source = open_source(path, self.device, options, name=name)
         self.set_source(source)
         return source
 

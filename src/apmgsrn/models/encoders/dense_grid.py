@@ -74,6 +74,9 @@ class DenseGridEncoder(Encoder):
         # Angular frequencies 2^k pi, k = 0..K-1: the lowest spans the domain once.
         frequencies = math.pi * 2.0 ** torch.arange(config.frequencies, dtype=torch.float32)
         self.register_buffer("frequencies", frequencies, persistent=False)
+        # A coordinate so large that its highest angle would overflow (±inf included) reads as the largest one
+        # that does not: sin and cos stay finite for every finite or infinite input (NaN stays NaN).
+        self.coordinate_limit = torch.finfo(torch.float32).max / (2.0 * math.pi * 2.0 ** max(config.frequencies - 1, 0))
         self.register_buffer("identity", torch.eye(3)[None], persistent=False)  # [1, 3, 3]
         self.register_buffer("origin", torch.zeros(1, 3), persistent=False)  # [1, 3]
         with torch.no_grad():
@@ -92,5 +95,6 @@ class DenseGridEncoder(Encoder):
         )  # [N, C]
         if self.config.frequencies == 0:
             return grid_features
-        angles = (points[:, :, None] * self.frequencies).reshape(n, -1)  # [N, 3 K], axis-major
+        far = points.clamp(-self.coordinate_limit, self.coordinate_limit)  # see __init__
+        angles = (far[:, :, None] * self.frequencies).reshape(n, -1)  # [N, 3 K], axis-major
         return torch.cat([grid_features, torch.sin(angles), torch.cos(angles)], dim=1)  # [N, C + 6 K]

@@ -26,7 +26,12 @@ import torch.nn.functional as F
 from torch import nn
 
 from apmgsrn.models.encoders.base import Encoder
+from apmgsrn.ops.contract import nan_where_nan
 from apmgsrn.ops.level_layout import HASH_PRIMES
+
+#: Vertex coordinates are limited to ``±2^62`` before their int64 conversion (defined for every input; a
+#: position beyond it, only from a point absurdly far outside, ``±inf`` included, reads as the limit).
+POSITION_LIMIT = 2.0**62
 
 HASH_BACKENDS = ("torch", "tcnn", "auto")
 
@@ -212,7 +217,7 @@ class HashGridEncoder(Encoder):
             self.__dict__["_tcnn_module"] = module
         module.params = self.table.view(-1)  # a view keeps the autograd path to ``table``
         unit = (points + 1) * 0.5  # tcnn works in [0, 1]^3
-        return module(unit.contiguous()).float()  # [N, L * F]
+        return nan_where_nan(points, module(unit.contiguous()).float())  # [N, L * F]
 
 
 def hash_grid_features(
@@ -236,14 +241,17 @@ def hash_grid_features(
         dense: ``[L]`` bool, levels indexed densely.
 
     Returns:
-        ``[N, L * F]`` features, column ``l * F + f`` is feature ``f`` of level ``l``.
+        ``[N, L * F]`` features, column ``l * F + f`` is feature ``f`` of level ``l``; a point outside
+        ``[-1, 1]^3`` reads the wrapped (dense) or hashed vertices its position gives, as tiny-cuda-nn does; a
+        point with a NaN coordinate has NaN features and adds to no gradient (the contract of
+        :mod:`apmgsrn.ops`).
     """
     n = points.shape[0]
     levels = scales.shape[0]
     features = table.shape[1]
     rows, weights = hash_grid_corners(points, scales, resolutions, sizes, offsets, dense)  # [L, 8, N] each
     per_level = _WeightedGather.apply(table, rows, weights)  # [L, N, F]
-    return per_level.permute(1, 0, 2).reshape(n, levels * features)  # [N, L * F]
+    return nan_where_nan(points, per_level.permute(1, 0, 2).reshape(n, levels * features))  # [N, L * F]
 
 
 def hash_grid_corners(
@@ -266,6 +274,9 @@ def hash_grid_corners(
     # (with the 2 or 8 corners innermost, broadcasting would run inner loops of length 2 and crawl).
     unit = (points.detach().float().t() + 1) * 0.5  # [3, N] in [0, 1]
     position = unit[None] * scales[:, None, None] + 0.5  # [L, 3, N]
+    # In float before the integer conversion: anything beyond the limit (inf included) reads as the limit, NaN
+    # (a NaN point, whose features are NaN in the end) as the lower one.
+    position = torch.where(position >= -POSITION_LIMIT, position.clamp(max=POSITION_LIMIT), -POSITION_LIMIT)
     lower = torch.floor(position)
     fraction = position - lower  # [L, 3, N]
     levels, _, n = position.shape
