@@ -176,7 +176,9 @@ def test_export_refuses_a_model_whose_bound_needs_its_correction(model, test_dat
 
 
 def test_export_of_a_brick_model_beyond_its_brick_limit_is_one_line(bricks, tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(export_module, "MAX_BRICKS", 1)
+    from dataclasses import replace
+
+    monkeypatch.setattr(export_module, "LIMITS", replace(export_module.LIMITS, export_bricks=1))
     assert main(["export", str(bricks), "--out", str(tmp_path / "b.onnx")]) == 2
     one_line_error(capsys, "2 bricks", "at most 1")
     assert not (tmp_path / "b.onnx").exists()

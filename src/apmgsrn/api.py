@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from apmgsrn.limits import LIMITS
 from apmgsrn.arguments import check_choice, check_int, check_number
 from apmgsrn.atomic import check_output_path, check_output_target
 from apmgsrn.choices import PRESET_UNITS
@@ -177,7 +178,8 @@ class Model(nn.Module):
         """
         plan = self.plan_decode(shape, region, time, region_units)
         _check_fits_in_memory(plan.shape)
-        values = decode_array(self.step_field(plan.time), plan.shape, batch_size=batch_size, box=plan.grid.box())  # [D, H, W]
+        values = decode_array(self.step_field(plan.time), plan.shape, batch_size=batch_size,
+                              box=plan.grid.box())  # [D, H, W]
         try:
             import xarray
         except ImportError:
@@ -546,13 +548,8 @@ def _device(device: torch.device | str) -> torch.device:
     return device if isinstance(device, torch.device) else resolve_device(str(device))
 
 
-#: Most samples along one side of a decoded lattice: its coordinates alone take 8 bytes a sample, and no
-#: volume this library reads comes near a million voxels a side.
-MAX_LATTICE_SIDE = 1 << 20
-
-
 def _shape(shape) -> tuple[int, int, int] | None:
-    """``(D, H, W)``: three sizes from 1 to :data:`MAX_LATTICE_SIDE`, or None.
+    """``(D, H, W)``: three sizes from 1 to :attr:`~apmgsrn.limits.Limits.lattice_side`, or None.
 
     Raises:
         ApmgsrnError: anything else.
@@ -560,11 +557,11 @@ def _shape(shape) -> tuple[int, int, int] | None:
     if shape is None:
         return None
     try:
-        sizes = tuple(check_int("shape", n, 1, MAX_LATTICE_SIDE) for n in shape)
+        sizes = tuple(check_int("shape", n, 1, LIMITS.lattice_side) for n in shape)
     except (TypeError, ValueError):
         sizes = ()
     if len(sizes) != 3:
-        raise ApmgsrnError(f"shape={shape!r}: give (D, H, W), three integer sizes from 1 to {MAX_LATTICE_SIDE} in "
+        raise ApmgsrnError(f"shape={shape!r}: give (D, H, W), three integer sizes from 1 to {LIMITS.lattice_side} in "
                            "array order (z, y, x)", arguments=("shape",))
     return sizes
 

@@ -25,13 +25,13 @@ import tempfile
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
+from apmgsrn.limits import LIMITS
 from apmgsrn.errors import ApmgsrnError
 
 #: Files whose presence makes a folder a model folder (a brick model, a time-series brick model), told from
 #: other files of that name by the format they declare near their start.
 MODEL_MANIFEST_NAMES = ("manifest.json", "series.json")
 _MANIFEST_FORMAT = re.compile(rb'"format"\s*:\s*"apmgsrn"')
-_MANIFEST_HEAD_BYTES = 1 << 16
 
 _SPECIAL_KINDS = (
     (stat.S_ISCHR, "a character device"),
@@ -69,7 +69,7 @@ def _is_apmgsrn_manifest(path: Path) -> bool:
     try:
         if not stat.S_ISREG(os.fstat(handle).st_mode):
             return False
-        return _MANIFEST_FORMAT.search(os.read(handle, _MANIFEST_HEAD_BYTES)) is not None
+        return _MANIFEST_FORMAT.search(os.read(handle, LIMITS.manifest_head_bytes)) is not None
     except OSError:
         return False
     finally:

@@ -6,9 +6,9 @@ The graph maps ``points`` ``[N, 3]`` (float32 ``(x, y, z)`` in ``[-1, 1]^3``, an
 Triton kernels are not ONNX operators). A brick model is exported evaluating every brick at every point and
 keeping each point's own brick (or blending, as the model does), which the graph can express without
 data-dependent shapes; it costs one network evaluation per brick and point, so a brick model of more than
-:data:`MAX_BRICKS` bricks is refused (export its brick files one at a time). A graph keeps what the model
-promises or is not written: a model with a voxel correction (an error bound, ``--max-error``) is refused, since
-the graph would compute the network alone.
+:attr:`~apmgsrn.limits.Limits.export_bricks` bricks is refused (export its brick files one at a time). A graph
+keeps what the model promises or is not written: a model with a voxel correction (an error bound,
+``--max-error``) is refused, since the graph would compute the network alone.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from apmgsrn.limits import LIMITS
 from apmgsrn.atomic import atomic_write, check_output_path, check_suffix
 from apmgsrn.decomposition.bricked_field import BrickedField
 from apmgsrn.errors import ApmgsrnError
@@ -31,11 +32,6 @@ from apmgsrn.models.registry import FieldConfig
 #: The ONNX opset of exported graphs: 20 is the first whose GridSample samples 3-D grids (ONNX Runtime reads
 #: it from release 1.17 on).
 OPSET = 20
-
-#: Most bricks of an exported brick model: the graph evaluates every brick at every point, and tracing takes
-#: seconds per brick (about 14 s for a small hybrid brick on one core), so beyond a 2 x 2 x 2 grid it costs
-#: more than eight networks per point and minutes to write.
-MAX_BRICKS = 8
 
 
 def export_onnx(field: nn.Module, path: str | os.PathLike, source: str | os.PathLike | None = None) -> Path:
@@ -53,7 +49,8 @@ def export_onnx(field: nn.Module, path: str | os.PathLike, source: str | os.Path
     Raises:
         ApmgsrnError: the ``onnx`` package is missing; ``path`` is not a ``.onnx`` file name or is refused by
             :func:`~apmgsrn.atomic.check_output_path`; the field is of a kind that cannot be exported, holds a
-            voxel correction the graph could not keep, or has more than :data:`MAX_BRICKS` bricks.
+            voxel correction the graph could not keep, or has more than
+            :attr:`~apmgsrn.limits.Limits.export_bricks` bricks.
     """
     check_suffix(path, (".onnx",), "ONNX model")
     check_output_path(path, "ONNX model")  # before the tracing, which takes seconds per network
@@ -84,10 +81,10 @@ def export_onnx(field: nn.Module, path: str | os.PathLike, source: str | os.Path
 def _portable(field: nn.Module) -> nn.Module:
     """The same field computed with the pure-PyTorch kernels only, in a form the ONNX tracer can follow."""
     if isinstance(field, BrickedField):
-        if len(field.bricks) > MAX_BRICKS:
+        if len(field.bricks) > LIMITS.export_bricks:
             raise ApmgsrnError(f"a brick model of {len(field.bricks)} bricks: its ONNX graph would evaluate every "
-                               f"brick at every point; export at most {MAX_BRICKS} bricks, e.g. each brick file of "
-                               "the folder on its own")
+                               f"brick at every point; export at most {LIMITS.export_bricks} bricks, e.g. each "
+                               "brick file of the folder on its own")
         return EveryBrick(field, [_portable(brick) for brick in field.bricks])
     if not isinstance(field, NeuralField):
         raise ApmgsrnError(f"cannot export a {type(field).__name__}; export a model file or brick-model folder")

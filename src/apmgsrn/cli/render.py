@@ -8,15 +8,12 @@ import math
 import time
 from pathlib import Path
 
+from apmgsrn.limits import LIMITS
 from apmgsrn.arguments import int_type
 from apmgsrn.choices import PRESET_UNITS
 from apmgsrn.cli.common import add_data_arguments, add_device_argument
 from apmgsrn.cli.paths import CommandPaths, Output
 from apmgsrn.errors import ApmgsrnError
-
-#: Most frames of a turntable: every frame is held in memory until the animation is written (10,000 frames of
-#: 512 x 512 RGBA are 10 GB).
-MAX_FRAMES = 10_000
 
 
 def register(subparsers) -> None:
@@ -75,8 +72,8 @@ def register(subparsers) -> None:
                        help="also render this volume with the same camera and transfer function; print PSNR "
                             "and SSIM, write the pair side by side to --out and the error to --error-out")
     extra.add_argument("--error-out", help="error image of --compare (default: OUT_error.png)")
-    extra.add_argument("--frames", type=int_type(1, MAX_FRAMES),
-                       help=f"write a turntable animation of N frames to --out (.gif/.mp4; at most {MAX_FRAMES})")
+    extra.add_argument("--frames", type=int_type(1, LIMITS.frames),
+                       help=f"write a turntable animation of N frames to --out (.gif/.mp4; at most {LIMITS.frames})")
     extra.add_argument("--fps", type=float, default=15.0, help="frames per second of --frames (default 15)")
     add_data_arguments(parser)
     add_device_argument(parser)

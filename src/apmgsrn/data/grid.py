@@ -352,7 +352,6 @@ def sample_grid(
     return SampleGrid(volume_shape, tuple(low), tuple(high), shape)
 
 
-
 def _text(bounds: tuple) -> str:
     """``(10, None)`` -> ``"10:"``, as typed."""
     return ":".join("" if v is None else f"{v:g}" for v in bounds)

@@ -35,17 +35,9 @@ from typing import BinaryIO
 
 import numpy as np
 
+from apmgsrn.limits import LIMITS
 from apmgsrn.errors import ApmgsrnError
 
-#: Largest expansion of stored bytes a codec gives real data (zlib's bound is 1032:1, LZ4's about 255:1):
-#: an array larger than the memory budget must be stored in at least 1/1100 of its declared bytes.
-LARGEST_EXPANSION = 1100.0
-
-#: Bytes a container may declare beyond what the expansion bound allows (headers, a few fill chunks).
-DECLARED_SLACK = 1 << 20
-
-#: Largest metadata file of a Zarr store (``zarr.json``, ``.zarray``, ...): zarr reads each whole.
-ZARR_METADATA_BYTES = 64 << 20
 
 #: Names of Zarr metadata files (format 3 and 2).
 ZARR_METADATA_NAMES = frozenset({"zarr.json", ".zarray", ".zgroup", ".zattrs", ".zmetadata"})
@@ -206,7 +198,7 @@ class StoreFiles:
 
 def walk_store(store: str | os.PathLike, root: str | os.PathLike | None = None) -> StoreFiles:
     """Check every entry of a Zarr store before zarr reads any: regular files (links followed, staying inside
-    the store) or plain folders, metadata files of at most :data:`ZARR_METADATA_BYTES`.
+    the store) or plain folders, metadata files of at most :attr:`~apmgsrn.limits.Limits.zarr_metadata_bytes`.
 
     Args:
         store: the store folder.
@@ -242,9 +234,9 @@ def walk_store(store: str | os.PathLike, root: str | os.PathLike | None = None) 
             size = entry.stat().st_size
             total += size
             if name in ZARR_METADATA_NAMES:
-                if size > ZARR_METADATA_BYTES:
+                if size > LIMITS.zarr_metadata_bytes:
                     raise ApmgsrnError(f"{store}: its metadata file {shown} is {size:,} bytes (at most "
-                                       f"{ZARR_METADATA_BYTES:,}); the store is damaged")
+                                       f"{LIMITS.zarr_metadata_bytes:,}); the store is damaged")
             elif size > largest_bytes:
                 largest_bytes, largest = size, shown
     return StoreFiles(total, largest_bytes, largest)
@@ -262,7 +254,8 @@ def check_declared_array(path: Path, name: str | None, shape: tuple[int, ...], d
 
     An array whose float32 copy fits in :func:`memory_budget` passes (it may be sparse: fill values of
     missing chunks). A larger one is read lazily and must be stored: its declared bytes may be at most
-    :data:`LARGEST_EXPANSION` times the bytes the file stores for it (plus :data:`DECLARED_SLACK`).
+    :attr:`~apmgsrn.limits.Limits.expansion` times the bytes the file stores for it (plus
+    :attr:`~apmgsrn.limits.Limits.declared_slack`).
 
     Args:
         path: the file, for messages.
@@ -278,7 +271,7 @@ def check_declared_array(path: Path, name: str | None, shape: tuple[int, ...], d
     if voxels * 4 <= memory_budget():
         return
     claimed = declared_bytes(shape, dtype)
-    if claimed <= LARGEST_EXPANSION * stored_bytes + DECLARED_SLACK:
+    if claimed <= LIMITS.expansion * stored_bytes + LIMITS.declared_slack:
         return
     label = f"array {name!r}" if name else "the array"
     extent = "x".join(str(n) for n in reversed(shape))

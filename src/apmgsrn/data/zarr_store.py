@@ -16,8 +16,9 @@ from typing import Any
 
 import numpy as np
 
+from apmgsrn.limits import LIMITS
 from apmgsrn.data.grid import AxisCoordinates, VolumeMetadata, plain_attributes
-from apmgsrn.data.opener import DECLARED_SLACK, check_declared_array, declared_bytes, open_regular, walk_store
+from apmgsrn.data.opener import check_declared_array, declared_bytes, open_regular, walk_store
 from apmgsrn.data.variables import ArrayInfo, choose_array, select_time
 from apmgsrn.data.volume import Volume
 from apmgsrn.errors import ApmgsrnError
@@ -148,7 +149,7 @@ def _check_store_sizes(path: Path, node: Any, info: ArrayInfo, shape: tuple[int,
     members = [node] if isinstance(node, zarr.Array) else [m for _, m in node.members(max_depth=None)
                                                           if isinstance(m, zarr.Array)]
     largest_array = max((declared_bytes(m.shape, _numpy_dtype(m)) for m in members), default=0)
-    if files.largest is not None and files.largest_bytes > largest_array + DECLARED_SLACK:
+    if files.largest is not None and files.largest_bytes > largest_array + LIMITS.declared_slack:
         raise ApmgsrnError(
             f"{path}: its file {files.largest} is {files.largest_bytes:,} bytes, more than its largest array "
             f"declares ({largest_array:,}); the store is damaged"

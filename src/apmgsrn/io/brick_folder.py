@@ -29,13 +29,13 @@ import uuid
 from collections.abc import Iterable
 from pathlib import Path
 
+from apmgsrn.limits import LIMITS
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.atomic import atomic_write_text
 from apmgsrn.io.container import (
     CHECKSUMS_VERSION,
     FORMAT,
     FORMAT_VERSION,
-    MAX_HEADER_BYTES,
     file_checksum,
     note_unchecked,
     read_header,
@@ -50,14 +50,12 @@ from apmgsrn.io.description import (
     require_int,
     require_ints,
 )
-from apmgsrn.io.field_file import FIELD_KIND, MAX_VOLUME_AXIS
+from apmgsrn.io.field_file import FIELD_KIND
 from apmgsrn.io.packed import model_file_description
 
 BRICKS_KIND = "bricks"
 MANIFEST_NAME = "manifest.json"
 BRICK_SUFFIX = ".apmgsrn"
-#: Brick grids beyond this many bricks are refused (a hostile manifest could ask for billions of modules).
-MAX_BRICKS = 1_000_000
 _BRICK_NAME = re.compile(r"^brick_\d{3,7}_\d{3,7}_\d{3,7}$")
 #: Kinds a brick's model file may be (a manifest's ``brick_kind``): a single field, and what other packages
 #: register (the time-series package: its series kinds, :func:`register_brick_file_kind`).
@@ -150,7 +148,7 @@ def read_manifest(directory: str | os.PathLike) -> dict:
             f"{directory}: folder has no {MANIFEST_NAME}, so it is not a brick model; pass a model file or a "
             "folder written by a brick training run"
         )
-    manifest = read_manifest_file(path, BRICKS_KIND, MAX_HEADER_BYTES, "brick model manifest", _check_manifest)
+    manifest = read_manifest_file(path, BRICKS_KIND, LIMITS.header_bytes, "brick model manifest", _check_manifest)
     if manifest["format_version"] < CHECKSUMS_VERSION:
         note_unchecked(path, f"brick manifest of format {manifest['format_version']}, written before brick "
                        "checksums and run ids: a changed, swapped or foreign brick cannot be detected")
@@ -160,9 +158,9 @@ def read_manifest(directory: str | os.PathLike) -> dict:
 def _check_manifest(manifest: dict) -> None:
     if manifest["format_version"] < 1:
         raise DescriptionError(f"format_version {manifest['format_version']} does not exist")
-    volume_shape = require_ints(manifest.get("volume_shape"), "volume_shape", 3, 2, MAX_VOLUME_AXIS)
-    grid = require_ints(manifest.get("grid"), "grid", 3, 1, MAX_BRICKS)
-    require_int(manifest.get("ghost_cells"), "ghost_cells", 0, MAX_VOLUME_AXIS)
+    volume_shape = require_ints(manifest.get("volume_shape"), "volume_shape", 3, 2, LIMITS.volume_axis)
+    grid = require_ints(manifest.get("grid"), "grid", 3, 1, LIMITS.bricks)
+    require_int(manifest.get("ghost_cells"), "ghost_cells", 0, LIMITS.volume_axis)
     for flag in ("blend", "complete"):
         if not isinstance(manifest.get(flag), bool):
             raise DescriptionError(f"{flag} is not true or false")
@@ -180,7 +178,7 @@ def _check_manifest(manifest: dict) -> None:
         raise DescriptionError("value_range is not two numbers")
     bricks = manifest.get("bricks")
     count = grid[0] * grid[1] * grid[2]
-    if count > MAX_BRICKS or not isinstance(bricks, list) or len(bricks) != count:
+    if count > LIMITS.bricks or not isinstance(bricks, list) or len(bricks) != count:
         raise DescriptionError(f"brick list does not match the {grid[0]}x{grid[1]}x{grid[2]} grid")
     for index, entry in enumerate(bricks):
         _brick_entry(entry, index)
@@ -215,9 +213,9 @@ def _brick_entry(entry, index: int) -> BrickEntry:
     return BrickEntry(
         name=name,
         index=index,
-        position=require_ints(entry.get("position"), f"{where}.position", 3, 0, MAX_BRICKS),
-        start=require_ints(entry.get("start"), f"{where}.start", 3, 0, MAX_VOLUME_AXIS),
-        stop=require_ints(entry.get("stop"), f"{where}.stop", 3, 1, MAX_VOLUME_AXIS),
+        position=require_ints(entry.get("position"), f"{where}.position", 3, 0, LIMITS.bricks),
+        start=require_ints(entry.get("start"), f"{where}.start", 3, 0, LIMITS.volume_axis),
+        stop=require_ints(entry.get("stop"), f"{where}.stop", 3, 1, LIMITS.volume_axis),
         file=entry["file"],
         summary=require_dict(summary, f"{where}.summary"),
     )

@@ -28,6 +28,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load as load_safetensors_bytes
 from safetensors.torch import save as save_safetensors_bytes
 
+from apmgsrn.limits import LIMITS
 from apmgsrn.errors import ApmgsrnError, ApmgsrnNote
 from apmgsrn.atomic import atomic_write
 
@@ -39,8 +40,6 @@ FORMAT = "apmgsrn"
 FORMAT_VERSION = 3
 #: The first version whose files must hold ``checksums``.
 CHECKSUMS_VERSION = 3
-#: Largest JSON header of a model file (and of a brick folder's manifest).
-MAX_HEADER_BYTES = 64 * 1024 * 1024
 #: Kinds of single-file models: a float32 field (:mod:`apmgsrn.io.field_file`) and a packed one
 #: (:mod:`apmgsrn.io.packed`). A model of either kind may replace a model file of the other.
 FIELD_KIND, PACKED_KIND = "field", "packed-field"
@@ -136,7 +135,7 @@ def _header_length(path, prefix: bytes, size: int) -> int:
     if len(prefix) < 8:
         raise ApmgsrnError(_not_ours(path))
     (length,) = struct.unpack("<Q", prefix)
-    if length > min(size - 8, MAX_HEADER_BYTES):
+    if length > min(size - 8, LIMITS.header_bytes):
         raise ApmgsrnError(_not_ours(path))
     return length
 

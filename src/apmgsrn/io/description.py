@@ -14,16 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
+from apmgsrn.limits import LIMITS
 from apmgsrn.data.grid import AxisCoordinates, VolumeMetadata
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.io.container import FORMAT, FORMAT_VERSION, parse_json
 from apmgsrn.models.registry import FieldConfig
-
-#: Bounds of the source's recorded metadata: more is not a variable's description but a way to bloat a file.
-MAX_ATTRIBUTES = 256
-MAX_TEXT = 65536
-MAX_LIST = 4096
-MAX_COORDINATES = 1 << 24
 
 
 class DescriptionError(ValueError):
@@ -117,21 +112,22 @@ def _axis_to_dict(axis: AxisCoordinates) -> dict:
 
 
 def _attributes(value, name: str) -> dict:
-    """Attributes: an object of at most :data:`MAX_ATTRIBUTES` strings, finite numbers and number lists."""
+    """Attributes: an object of at most :attr:`~apmgsrn.limits.Limits.attributes` strings, finite numbers and
+    number lists."""
     if value is None:
         return {}
     attributes = require_dict(value, name)
-    if len(attributes) > MAX_ATTRIBUTES:
-        raise DescriptionError(f"{name} has more than {MAX_ATTRIBUTES} entries")
+    if len(attributes) > LIMITS.attributes:
+        raise DescriptionError(f"{name} has more than {LIMITS.attributes} entries")
     for key, item in attributes.items():
         if len(key) > 256:
             raise DescriptionError(f"{name} has a key longer than 256 characters")
         if isinstance(item, str):
-            if len(item) > MAX_TEXT:
-                raise DescriptionError(f"{name}.{key} is longer than {MAX_TEXT} characters")
+            if len(item) > LIMITS.text:
+                raise DescriptionError(f"{name}.{key} is longer than {LIMITS.text} characters")
         elif isinstance(item, list):
-            if len(item) > MAX_LIST:
-                raise DescriptionError(f"{name}.{key} has more than {MAX_LIST} values")
+            if len(item) > LIMITS.list_entries:
+                raise DescriptionError(f"{name}.{key} has more than {LIMITS.list_entries} values")
             for v in item:
                 require_number(v, f"{name}.{key}")
         else:
@@ -164,7 +160,7 @@ def _coordinates(value) -> tuple | None:
             raise DescriptionError("source.coordinates.name is not a name")
         values = axis.get("values")
         if values is not None:
-            if not isinstance(values, list) or not 2 <= len(values) <= MAX_COORDINATES:
+            if not isinstance(values, list) or not 2 <= len(values) <= LIMITS.coordinates:
                 raise DescriptionError(f"source.coordinates.values of {name} is not a list of coordinates")
             values = tuple(require_number(v, f"source.coordinates.values of {name}") for v in values)
         axes.append(AxisCoordinates(

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import torch
 
+from apmgsrn.limits import LIMITS
 from apmgsrn.io.container import FIELD_KIND, Header, header_of_kind, load_tensors, save_tensors
 from apmgsrn.io.description import (
     DescriptionError,
@@ -36,9 +37,6 @@ from apmgsrn.models.value_transform import TRANSFORMS, ValueTransform
 
 #: The safetensors name of each dtype a model file stores (:data:`apmgsrn.models.encoders.base.STORAGE_DTYPES`).
 SAFETENSORS_DTYPES = {torch.float32: "F32", torch.float16: "F16"}
-
-#: Largest volume a model may describe, per axis (larger shapes are refused as corrupt).
-MAX_VOLUME_AXIS = 1 << 24
 
 
 @dataclass(frozen=True)
@@ -108,7 +106,7 @@ def parse_field_description(description: dict) -> FieldDescription:
     if transform.get("kind") not in TRANSFORMS or set(transform) - {"kind", "offset", "mean", "std"}:
         raise DescriptionError("transform is not a known value transform")
     numbers = {k: require_number(v, f"transform.{k}") for k, v in transform.items() if k != "kind"}
-    volume_shape = require_ints(description.get("volume_shape"), "volume_shape", 3, 1, MAX_VOLUME_AXIS)
+    volume_shape = require_ints(description.get("volume_shape"), "volume_shape", 3, 1, LIMITS.volume_axis)
     source = SourceInfo.from_dict(description.get("source", {}))
     source.check_shape(volume_shape)
     return FieldDescription(

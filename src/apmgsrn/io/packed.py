@@ -8,7 +8,7 @@ into sections whose compressed sizes the header lists (``{"sections": [n0, n1, .
    parameter is stored), ``packing`` (what packing measured) and ``correction`` (the error bound, or null),
    coded as the header's ``coding`` says (deflate primed with a typical description,
    :func:`~apmgsrn.io.codec.compress_description`; files of format version 1 have no such entry and use
-   LZMA) and at most :data:`MAX_DESCRIPTION_BYTES` once decompressed;
+   LZMA) and at most :attr:`~apmgsrn.limits.Limits.description_bytes` once decompressed;
 1. one section per stored parameter, in the config's order: ``quantized`` (float16 group steps, then the
    coded integers of :mod:`apmgsrn.io.quantization`) or ``float32`` (the raw values, LZMA-compressed);
 2. with an error bound, two more: the corrected voxels' flat indices (gaps between them) and their
@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from apmgsrn.limits import LIMITS
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.io import codec
 from apmgsrn.io.container import (
@@ -66,13 +67,6 @@ from apmgsrn.models.corrected_field import CorrectedField
 from apmgsrn.models.field import NeuralField
 
 PAYLOAD = "payload"
-MAX_DESCRIPTION_BYTES = 1 << 20
-#: Parameters a packed file may declare (1 GiB of float32: 64 times the large preset).
-MAX_PACKED_PARAMETERS = 1 << 28
-#: Corrected voxels a file may declare (gaps are stored in at most 4 bytes, so indices stay inside int64).
-MAX_CORRECTIONS = 1 << 31
-#: Voxels of a volume that carries a correction: flat indices ``(z * H + y) * W + x`` stay inside int64.
-MAX_CORRECTED_VOXELS = 1 << 62
 #: LZMA expands at most about 7,100-fold (measured on zeros); a section declaring more cannot be genuine.
 MAX_EXPANSION, EXPANSION_SLACK = 8192, 4096
 ENCODINGS = ("quantized", "float32")
@@ -272,7 +266,7 @@ def model_file_description(path: str | os.PathLike) -> dict:
 
 def read_payload_file(path: Path, kind: str, what: str) -> PayloadFile:
     """Read a packed container file of ``kind``: header, section sizes against the payload, and the
-    description (decompressed to at most :data:`MAX_DESCRIPTION_BYTES`).
+    description (decompressed to at most :attr:`~apmgsrn.limits.Limits.description_bytes`).
 
     Args:
         path: the file.
@@ -314,10 +308,10 @@ def _description_text(header: Header, data: bytes, what: str, not_ours: str) -> 
     """The description's JSON text: primed deflate (the header names it), or LZMA in files of version 1."""
     coding = header.description.get("coding")
     if coding is None and header.version == 1:
-        return codec.decompress_bounded(data, MAX_DESCRIPTION_BYTES, what, "text")
+        return codec.decompress_bounded(data, LIMITS.description_bytes, what, "text")
     if coding != codec.DESCRIPTION_CODING:
         raise ApmgsrnError(not_ours)
-    return codec.decompress_description(data, MAX_DESCRIPTION_BYTES, what)
+    return codec.decompress_description(data, LIMITS.description_bytes, what)
 
 
 def _tensor_entry(name: str, entry: list) -> dict:
@@ -352,7 +346,7 @@ def parse_tensor_entries(value, shapes: dict[str, tuple[int, ...]], stored: list
     Raises:
         DescriptionError, ValueError, TypeError: anything missing, mistyped, out of range or inconsistent.
     """
-    if sum(math.prod(s) for s in shapes.values()) > MAX_PACKED_PARAMETERS:
+    if sum(math.prod(s) for s in shapes.values()) > LIMITS.packed_parameters:
         raise DescriptionError("the model config declares more parameters than a packed file may hold")
     if not isinstance(value, list) or len(value) != len(shapes) or not all(isinstance(e, list) for e in value):
         raise DescriptionError("stored tensors do not match the model config")
@@ -438,9 +432,9 @@ def _parse_layout(description: dict, sections: list[int]) -> _Layout:
         if not correction["max_error"] > 0 or not correction["step"] > 0:
             raise DescriptionError("correction bound and step must be positive")
         voxels = math.prod(parsed.volume_shape)
-        if voxels >= MAX_CORRECTED_VOXELS:
+        if voxels >= LIMITS.corrected_voxels:
             raise DescriptionError("a correction needs a volume whose flat voxel indices fit in int64")
-        count = require_int(correction["count"], "correction.count", 0, min(voxels, MAX_CORRECTIONS))
+        count = require_int(correction["count"], "correction.count", 0, min(voxels, LIMITS.corrections))
         for key, stored in zip(("gap_width", "level_width"), sections[-2:]):
             if correction[key] not in (1, 2, 4):
                 raise DescriptionError(f"correction.{key} is invalid")

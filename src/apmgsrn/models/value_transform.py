@@ -13,7 +13,6 @@ from apmgsrn.choices import VALUE_TRANSFORMS as TRANSFORMS
 from apmgsrn.errors import ApmgsrnError
 
 
-
 @dataclass(frozen=True)
 class ValueTransform:
     """``log10``: ``log10(v + offset)`` (e.g. cosmology density); ``zscore``: ``(v - mean) / std``.

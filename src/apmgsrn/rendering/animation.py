@@ -12,6 +12,7 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
+from apmgsrn.limits import LIMITS
 from apmgsrn.arguments import check_int, check_number
 from apmgsrn.atomic import atomic_write, check_output_path
 from apmgsrn.errors import ApmgsrnError
@@ -20,8 +21,6 @@ from apmgsrn.rendering.images import as_uint8
 from apmgsrn.rendering.raymarch import VolumeRenderer
 
 ANIMATION_SUFFIXES = (".gif", ".mp4")
-#: Most frames of a turntable (a GIF holds them all in memory before writing).
-MAX_FRAMES = 3600
 
 
 def turntable_cameras(
@@ -43,7 +42,7 @@ def turntable_cameras(
     Returns:
         The cameras in order.
     """
-    check_int("frames", frames, 1, MAX_FRAMES)
+    check_int("frames", frames, 1, LIMITS.frames)
     return [
         Camera.orbit(azimuth + 360.0 * i / frames, elevation, distance, fov, width, height, extent)
         for i in range(frames)

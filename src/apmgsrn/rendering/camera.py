@@ -16,11 +16,9 @@ from dataclasses import dataclass
 
 import torch
 
+from apmgsrn.limits import LIMITS
 from apmgsrn.arguments import check_int, check_number
 from apmgsrn.errors import InvalidArgument
-
-#: Widest and tallest image, pixels: an 8192 x 8192 frame already needs about 1 GB of buffers.
-MAX_IMAGE_SIDE = 8192
 
 
 @dataclass(frozen=True)
@@ -35,8 +33,8 @@ class Camera:
     height: int = 512
 
     def __post_init__(self) -> None:
-        check_int("width", self.width, 1, MAX_IMAGE_SIDE)
-        check_int("height", self.height, 1, MAX_IMAGE_SIDE)
+        check_int("width", self.width, 1, LIMITS.image_side)
+        check_int("height", self.height, 1, LIMITS.image_side)
         check_number("fov", self.fov, 0.0, 180.0, low_open=True, high_open=True)
         for name in ("position", "target", "up"):
             vector = getattr(self, name)
@@ -72,8 +70,8 @@ class Camera:
         check_number("azimuth", azimuth)
         check_number("elevation", elevation)
         check_number("fov", fov, 0.0, 180.0, low_open=True, high_open=True)
-        check_int("width", width, 1, MAX_IMAGE_SIDE)
-        check_int("height", height, 1, MAX_IMAGE_SIDE)
+        check_int("width", width, 1, LIMITS.image_side)
+        check_int("height", height, 1, LIMITS.image_side)
         if distance is None:
             distance = fit_distance(fov, width, height, extent)
         check_number("distance", distance, 0.0, low_open=True)

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from apmgsrn.limits import LIMITS
 from apmgsrn.data.fingerprint import volume_fingerprint
 from apmgsrn.data.grid import AxisCoordinates
 from apmgsrn.data.opener import check_regular, read_regular
@@ -35,8 +36,6 @@ from apmgsrn.errors import ApmgsrnError
 
 #: Characters that make an input a glob pattern rather than a file name.
 GLOB_CHARACTERS = "*?["
-#: Largest ``.pvd`` file read (a collection lists file names; megabytes of it are not one).
-MAX_PVD_BYTES = 16 << 20
 
 
 @dataclass(frozen=True)
@@ -432,7 +431,7 @@ def _pvd_steps(path: Path) -> tuple[list[SeriesStep], list[float]]:
 
     if not path.exists():
         raise ApmgsrnError(f"{path}: no such file; check the path")
-    text = read_regular(path, MAX_PVD_BYTES)  # a regular file only (never a pipe), bounded
+    text = read_regular(path, LIMITS.pvd_bytes)  # a regular file only (never a pipe), bounded
     # A collection needs no document type; refusing one keeps entity expansion (billion laughs) out.
     if b"<!DOCTYPE" in text or b"<!ENTITY" in text:
         raise ApmgsrnError(f"{path}: a .pvd collection must not declare a DOCTYPE or entities; is it damaged?")

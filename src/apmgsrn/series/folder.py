@@ -22,9 +22,10 @@ import os
 import re
 from pathlib import Path
 
+from apmgsrn.limits import LIMITS
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.atomic import atomic_write_text
-from apmgsrn.io.container import FORMAT, FORMAT_VERSION, MAX_HEADER_BYTES
+from apmgsrn.io.container import FORMAT, FORMAT_VERSION
 from apmgsrn.io.description import (
     DescriptionError,
     SourceInfo,
@@ -90,7 +91,7 @@ def read_series_manifest(directory: str | os.PathLike) -> dict:
         ApmgsrnError: missing, not ours, corrupt, inconsistent or from a newer format version.
     """
     path = series_manifest_path(directory)
-    return read_manifest_file(path, SERIES_BRICKS_KIND, MAX_HEADER_BYTES, "time-series brick manifest", _check)
+    return read_manifest_file(path, SERIES_BRICKS_KIND, LIMITS.header_bytes, "time-series brick manifest", _check)
 
 
 def _check(manifest: dict) -> None:

@@ -11,12 +11,13 @@ holding one ``U8`` tensor, ``payload``, cut into sections whose compressed sizes
 1. one section per parameter of :meth:`~apmgsrn.series.field.SeriesFieldConfig.parameter_shapes`, in
    that order, stored as a packed field stores it (``quantized`` or ``float32``). Only the tensors with a
    leading time (or basis) axis, the grids ``[K, M, C, D, H, W]`` and residuals ``[T, M, C, r, r, r]`` (a
-   hybrid series: its grids ``[T, M, R, R, R, C]`` and level tables ``[T, P]``), may use the ``time`` predictor (:func:`~apmgsrn.io.codec.series_predictors_for`).
+   hybrid series: its grids ``[T, M, R, R, R, C]`` and level tables ``[T, P]``), may use the ``time``
+   predictor (:func:`~apmgsrn.io.codec.series_predictors_for`).
 
 Loading validates everything before it allocates: the header and section sizes, the description (the
 field's entries, then the series config and step entries as a series file reads them), the declared tensors
 against the shapes the configs imply and their total against
-:data:`~apmgsrn.io.packed.MAX_PACKED_PARAMETERS`; each section's decompressed size is computed from those
+:attr:`~apmgsrn.limits.Limits.packed_parameters`; each section's decompressed size is computed from those
 shapes, bounded by what LZMA can expand to, and decompression stops there. Dequantising gives a float32
 :class:`~apmgsrn.series.field.SeriesField`, the same as a float32 series file gives.
 """
@@ -28,6 +29,7 @@ from pathlib import Path
 
 import torch
 
+from apmgsrn.limits import LIMITS
 from apmgsrn.io import codec
 from apmgsrn.io.container import PACKED_SERIES_KIND, write_file_bytes
 from apmgsrn.io.description import (

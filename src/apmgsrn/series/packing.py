@@ -478,8 +478,9 @@ class SeriesPacking:
 
     def _coded_budget(self, target_bytes: int, field: SeriesField, overhead: int) -> int:
         """Bytes the coded parameters of ``field`` may take in a file of ``target_bytes`` whose description and
-        framing take ``overhead`` (:func:`~apmgsrn.training.budget.coded_budget`), less, where the decoder is fine-tuned after coding (:meth:`tune_decoder`),
-        ``PACKING.decoder_bytes_margin`` of its float32 bytes: its new weights code a few bytes larger or smaller."""
+        framing take ``overhead`` (:func:`~apmgsrn.training.budget.coded_budget`), less, where the decoder is
+        fine-tuned after coding (:meth:`tune_decoder`), ``PACKING.decoder_bytes_margin`` of its float32 bytes: its
+        new weights code a few bytes larger or smaller."""
         return max(1, coded_budget(target_bytes, overhead) - self._decoder_margin(field))
 
     def _decoder_margin(self, field: SeriesField) -> int:

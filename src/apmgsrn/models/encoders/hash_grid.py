@@ -39,7 +39,6 @@ HASH_BACKENDS = ("torch", "tcnn", "auto")
 MAX_LEVELS, MAX_FEATURES, MAX_RESOLUTION = 64, 64, 1 << 20
 
 
-
 @dataclass(frozen=True)
 class HashGridConfig:
     """What to build (docs/method.md §5, NGP column).
