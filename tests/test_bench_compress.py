@@ -1,4 +1,4 @@
-"""SZ3 and ZFP round trips on real data, and the ``bench compress`` harness output."""
+"""SZ3, ZFP, SPERR and TTHRESH round trips on real data, ratio matching, and the ``bench compress`` harness output."""
 
 import csv
 import math
@@ -82,6 +82,7 @@ def test_compress_benchmark_writes_rows_table_and_rate_distortion_chart(c60_bloc
     path, data = c60_block
     out = tmp_path / "results"
     code = main(["bench", "compress", str(path), "--models", "apmgsrn", "ngp", "--iterations", "5",
+                 "--compressors", "sz3", "zfp", "zfp-precision",
                  "--batch-size", "512", "--bounds", "0.01", "0.001", "--precisions", "2", "6", "--query-points", "5000",
                  "--out", str(out),
                  "--device", "cpu"])
@@ -114,12 +115,14 @@ def test_a_missing_compressor_package_is_skipped_with_the_install_hint(c60_block
 
     monkeypatch.setattr(compressors.SZ3Compressor, "_module", missing)
     monkeypatch.setattr(compressors.ZFPCompressor, "_module", missing)
+    monkeypatch.setattr(compressors.WasmCodecCompressor, "_module", missing)
     lines = []
     plan = CompressPlan(DataSpec(path), models=("fvsrn",), iterations=3, batch_size=256, query_points=100)
     report = run_compress(plan, tmp_path / "r", torch.device("cpu"), log=lines.append)
     assert [r.method for r in report.rows] == ["fvsrn"]
-    assert len(report.skipped) == 3 and all("apmgsrn[baselines]" in s for s in report.skipped)
+    assert len(report.skipped) == 6 and all("apmgsrn[baselines]" in s for s in report.skipped)
     assert any(line.startswith("skipped sz3: the 'pysz' package is not installed") for line in lines)
+    assert any(line.startswith("skipped tthresh: the 'numcodecs-wasm-tthresh' package") for line in lines)
 
 
 def test_packed_and_bounded_models_are_their_own_methods(test_data, tmp_path):
@@ -210,3 +213,190 @@ def test_no_models_runs_the_compressors_alone(c60_block, tmp_path):
     with open(out / "compress_c60_block.csv", newline="") as handle:
         assert [(r["method"], r["setting"]) for r in csv.DictReader(handle)] == [("zfp-precision", "3")]
     assert not (out / "quality.csv").exists()  # nothing was trained
+
+
+WASM_PACKAGES = {"sperr": "numcodecs_wasm_sperr", "sperr-pwe": "numcodecs_wasm_sperr",
+                 "tthresh": "numcodecs_wasm_tthresh"}
+MATCHABLE = {"sz3": "pysz", "zfp-precision": "zfpy", **WASM_PACKAGES}
+
+
+@pytest.fixture(scope="module")
+def turbulence(test_data):
+    """The 48^3 vorticity magnitude of the project's own turbulence run (tests/data/README.md): no compressor
+    made it."""
+    return np.load(test_data / "turbulence_vorticity_48.npy")
+
+
+def _max_error(restored: np.ndarray, data: np.ndarray) -> float:
+    return float(np.abs(restored.astype(np.float64) - data).max())
+
+
+@pytest.mark.parametrize("volume", ["c60", "turbulence"])
+def test_sperr_point_wise_mode_honours_the_relative_error_bound(volume, c60_block, turbulence):
+    pytest.importorskip("numcodecs_wasm_sperr")
+    data = c60_block[1] if volume == "c60" else turbulence
+    compressor = compressors.get_compressor("sperr-pwe")
+    value_range = float(data.max() - data.min())
+    sizes = []
+    for bound in (1e-2, 1e-4):
+        packed = compressor.compress(data, bound)
+        restored = compressor.decompress(packed)
+        assert restored.shape == data.shape and restored.dtype == np.float32
+        error = _max_error(restored, data)
+        assert 0 < error <= bound * value_range * (1 + 1e-6)
+        sizes.append(len(packed.data))
+    assert data.nbytes > sizes[1] > sizes[0]
+
+
+def test_sperr_fixed_rate_spends_the_bits_it_is_given(turbulence):
+    pytest.importorskip("numcodecs_wasm_sperr")
+    compressor = compressors.get_compressor("sperr")
+    assert compressor.setting == "rate"
+    sizes, errors = [], []
+    for rate in (0.05, 0.5, 4.0):
+        packed = compressor.compress(turbulence, rate)
+        restored = compressor.decompress(packed)
+        assert restored.shape == turbulence.shape and restored.dtype == np.float32
+        assert len(packed.data) * 8 >= rate * turbulence.size  # the budget is spent, a header on top
+        sizes.append(len(packed.data))
+        errors.append(_max_error(restored, turbulence))
+    assert sizes[0] < sizes[1] < sizes[2] < turbulence.nbytes
+    assert errors[0] > errors[1] > errors[2]
+    for bad in (0.0, -1.0, 65.0, 1e-9):  # 1e-9: under a bit for the whole volume
+        with pytest.raises(ApmgsrnError, match="sperr rate"):
+            compressor.compress(turbulence, bad)
+
+
+def test_tthresh_reaches_its_psnr_target(turbulence):
+    pytest.importorskip("numcodecs_wasm_tthresh")
+    from apmgsrn.inference.evaluate import compare_arrays
+
+    compressor = compressors.get_compressor("tthresh")
+    assert compressor.setting == "psnr"
+    sizes = []
+    for target in (30.0, 50.0):
+        packed = compressor.compress(turbulence, target)
+        restored = compressor.decompress(packed)
+        assert restored.shape == turbulence.shape and restored.dtype == np.float32
+        assert compare_arrays(restored, turbulence).psnr >= target
+        sizes.append(len(packed.data))
+    assert sizes[0] < sizes[1] < turbulence.nbytes
+    with pytest.raises(ApmgsrnError, match="tthresh PSNR"):
+        compressor.compress(turbulence, 0.0)
+
+
+def test_tthresh_prints_nothing(turbulence, capfd):
+    pytest.importorskip("numcodecs_wasm_tthresh")
+    compressor = compressors.get_compressor("tthresh")
+    compressor.decompress(compressor.compress(turbulence[:16, :16, :16], 40.0))
+    out, _ = capfd.readouterr()
+    assert out == ""
+
+
+@pytest.mark.parametrize("name", sorted(MATCHABLE))
+def test_a_matched_ratio_lands_within_the_tolerance_and_round_trips_within_its_reported_error(name, turbulence):
+    pytest.importorskip(MATCHABLE[name])
+    from apmgsrn.bench.compress import measure_compressor
+
+    compressor = compressors.get_compressor(name)
+    target = 20.0 if name == "zfp-precision" else 60.0
+    accept = 0.2 if name == "zfp-precision" else compressors.RATIO_ACCEPT  # whole bit planes: coarse steps
+    match = compressors.match_ratio(compressor, turbulence, target, turbulence.nbytes, accept=accept)
+    assert abs(match.ratio / target - 1) <= accept
+    if name == "sperr":  # its rate sets its bytes: the search lands within the tolerance it aims at
+        assert abs(match.ratio / target - 1) <= compressors.RATIO_TOLERANCE
+    assert match.ratio == pytest.approx(turbulence.nbytes / len(match.compressed.data))
+    assert 2 <= match.trials <= compressors.MAX_TRIALS
+    # The row measured at the matched setting: the same bytes, and the errors it reports are the real ones.
+    points = torch.rand(100, 3) * 2 - 1
+    row = measure_compressor(compressor, turbulence, match.setting, points, "turbulence", turbulence.nbytes)
+    assert row.compressed_bytes == len(match.compressed.data)
+    restored = compressor.decompress(match.compressed)
+    assert row.max_abs_error == pytest.approx(_max_error(restored, turbulence), rel=1e-6)
+    if compressor.setting == "bound":
+        assert row.max_abs_error <= match.setting * float(turbulence.max() - turbulence.min()) * (1 + 1e-6)
+
+
+def test_a_ratio_out_of_reach_is_refused_with_what_the_compressor_can_do(turbulence):
+    pytest.importorskip("numcodecs_wasm_sperr")
+    pytest.importorskip("zfpy")
+    with pytest.raises(compressors.RatioNotReached, match=r"sperr: 1e\+09:1 is out of reach; its settings give"):
+        compressors.match_ratio(compressors.get_compressor("sperr"), turbulence, 1e9, turbulence.nbytes)
+    with pytest.raises(compressors.RatioNotReached, match="zfp-precision: no setting gives 9.9:1 within 0.0001 %"):
+        # Between two whole bit-plane counts: neither lands within a millionth of the ratio.
+        compressors.match_ratio(compressors.get_compressor("zfp-precision"), turbulence, 9.9, turbulence.nbytes,
+                                tolerance=1e-6, accept=1e-6)
+
+
+def test_bench_compress_at_ratios_runs_every_compressor_it_can_at_each(tmp_path, test_data):
+    for package in ("pysz", "zfpy", "numcodecs_wasm_sperr", "numcodecs_wasm_tthresh"):
+        pytest.importorskip(package)
+    path = test_data / "turbulence_vorticity_48.npy"
+    out = tmp_path / "r"
+    lines = []
+    plan = CompressPlan(DataSpec(path), models=(), ratios=(50.0, 400.0), query_points=100)
+    report = run_compress(plan, out, torch.device("cpu"), log=lines.append)
+    for row in report.rows:
+        assert min(abs(row.compression_ratio / r - 1) for r in plan.ratios) <= compressors.RATIO_ACCEPT
+    methods = {row.method for row in report.rows}
+    assert {"sz3", "sperr", "sperr-pwe", "tthresh"} <= methods
+    # Every compressor at every ratio is a row or a skip with the reason.
+    assert len(report.rows) + len(report.skipped) == len(plan.compressors) * len(plan.ratios)
+    assert all("out of reach" in reason or "no setting gives" in reason for reason in report.skipped)
+    table = report.markdown.read_text()
+    assert "| turbulence_vorticity_48.npy | SPERR |" in table and "| TTHRESH |" in table
+    with Image.open(report.chart) as chart:
+        assert chart.format == "PNG"
+
+
+def test_bench_compress_cli_takes_ratios_rates_and_psnrs(tmp_path, test_data, capsys):
+    pytest.importorskip("numcodecs_wasm_sperr")
+    pytest.importorskip("numcodecs_wasm_tthresh")
+    path = test_data / "turbulence_vorticity_48.npy"
+    out = tmp_path / "r"
+    assert main(["bench", "compress", str(path), "--models", "--compressors", "sperr", "tthresh", "--rates", "0.5",
+                 "--psnrs", "40", "--query-points", "100", "--out", str(out), "--device", "cpu"]) == 0
+    with open(out / "compress_turbulence_vorticity_48.csv", newline="") as handle:
+        assert [(r["method"], r["setting"]) for r in csv.DictReader(handle)] == [("sperr", "0.5"), ("tthresh", "40")]
+    assert main(["bench", "compress", str(path), "--models", "--compressors", "sperr", "--ratios", "100",
+                 "--query-points", "100", "--out", str(out), "--device", "cpu"]) == 0
+    with open(out / "compress_turbulence_vorticity_48.csv", newline="") as handle:
+        (row,) = csv.DictReader(handle)
+    assert row["method"] == "sperr" and abs(float(row["compression_ratio"]) / 100 - 1) <= 0.01
+    assert main(["bench", "compress", str(path), "--models", "--compressors", "sperr", "--ratios", "100",
+                 "--ratio-tolerance", "0.9", "--out", str(out), "--device", "cpu"]) == 2
+    assert "error: --ratio-tolerance 0.9: must be" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("field, value", [("ratios", (1.0,)), ("rates", (0.0,)), ("psnrs", (-3.0,)),
+                                          ("ratio_tolerance", 0.0)])
+def test_bad_ratio_rate_and_psnr_settings_are_refused(field, value, test_data):
+    with pytest.raises(ApmgsrnError, match=field):
+        CompressPlan(DataSpec(test_data / "turbulence_vorticity_48.npy"), **{field: value})
+
+
+def test_spectral_families_are_compared_as_one_compressor_each():
+    from apmgsrn.bench.tables import crossover_lines
+
+    rows = [_row("sperr", "0.1", 300.0, 50.0), _row("sperr-pwe", "0.01", 100.0, 60.0),
+            _row("tthresh", "40", 300.0, 45.0), _row("apmgsrn packed", "small", 300.0, 48.0)]
+    text = "\n".join(crossover_lines(rows))
+    assert "| 300 | 48.00 | SPERR | 50.00 | -2.00 |" in text
+    assert "| 300 | 48.00 | TTHRESH | 45.00 | +3.00 |" in text
+    assert "SPERR-PWE" not in text
+
+
+def test_a_codec_that_fails_is_skipped_with_the_reason_and_the_rest_goes_on(tmp_path, test_data, monkeypatch):
+    pytest.importorskip("numcodecs_wasm_tthresh")
+    pytest.importorskip("numcodecs_wasm_sperr")
+
+    class Broken:
+        def decode(self, stream):
+            raise Exception("wasm trap: unreachable\nbacktrace")  # what the WebAssembly runtime raises
+
+    monkeypatch.setattr(compressors.TTHRESHCompressor, "_decoder", lambda self: Broken())
+    plan = CompressPlan(DataSpec(test_data / "turbulence_vorticity_48.npy"), models=(),
+                        compressors=("tthresh", "sperr"), psnrs=(40.0,), rates=(1.0,), query_points=100)
+    report = run_compress(plan, tmp_path / "r", torch.device("cpu"), log=lambda line: None)
+    assert [r.method for r in report.rows] == ["sperr"]
+    assert report.skipped == ["tthresh: its decoder failed: wasm trap: unreachable (at psnr 40)"]

@@ -56,6 +56,7 @@ from apmgsrn.rendering.images import as_uint8
 from apmgsrn.rendering.raymarch import default_batch_size
 from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.fit import fit as fit_prepared
+from apmgsrn.training.fit import timed_config
 from apmgsrn.training.fit import prepare_values
 from apmgsrn.training.packing import pack_volume_model
 from apmgsrn.series.file import save_series
@@ -309,6 +310,7 @@ def fit(data, preset: str = "small", model: str | None = None, iterations: int |
         model: model kind: ``hybrid`` (docs/models.md), ``apmgsrn`` (the paper's), ``fvsrn`` or ``ngp``; None:
             the plan's default (:func:`apmgsrn.choices.default_model`).
         iterations: training iterations (default: the recipe's budget for the device).
+            ``minutes=M`` instead trains for about M minutes, the iterations sized to this machine first.
         batch_size: points per iteration (default: the recipe's for the device).
         device: ``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:I"`` or a torch device.
         progress: show training progress (a widget in Jupyter).
@@ -343,10 +345,15 @@ def fit(data, preset: str = "small", model: str | None = None, iterations: int |
     truth = volume.to_numpy()  # [D, H, W] float32, data units
     prepared = prepare_values(truth, resolved.transform, resolved.log_offset, str(volume.path), target)
 
+    train_config, extra = resolved.training, {"plan": resolved.record()}
+    if resolved.minutes is not None:
+        train_config, extra["time_budget"] = timed_config(prepared, resolved.field, train_config,
+                                                          tuple(volume.shape), resolved.minutes,
+                                                          log=print if progress else None)
+
     def train(out: Path) -> None:
-        result = fit_prepared(prepared, truth, resolved.field, resolved.training, out, SourceInfo.of_volume(volume),
-                              {}, callbacks=[TrainingProgress(enabled=progress)],
-                              summary_extra={"plan": resolved.record()})
+        result = fit_prepared(prepared, truth, resolved.field, train_config, out, SourceInfo.of_volume(volume),
+                              {}, callbacks=[TrainingProgress(enabled=progress)], summary_extra=extra)
         if resolved.packing is not None:
             training = result.packed_summary(resolved.training.batch_size, resolved.device)
             pack_volume_model(result.field, volume, resolved.packing, training, target, out,

@@ -78,10 +78,10 @@ SERIES_TRAINING = ("stepwise", "joint")
 PRESET_UNITS = ("normalized", "data")
 
 #: Lossy compressors of ``bench compress`` (:data:`apmgsrn.bench.compressors.COMPRESSORS`).
-COMPRESSORS = ("sz3", "zfp", "zfp-precision")
+COMPRESSORS = ("sz3", "zfp", "zfp-precision", "sperr", "sperr-pwe", "tthresh")
 
 #: Units of a decode region (:class:`apmgsrn.data.grid.Region`): voxel indices or the source's coordinates.
 REGION_UNITS = ("index", "coordinates")
 
 #: Formats of ``apmgsrn export``.
-EXPORT_FORMATS = ("onnx",)
+EXPORT_FORMATS = ("onnx", "html")

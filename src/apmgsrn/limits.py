@@ -55,6 +55,8 @@ class Limits:
     image_side: int = 8192
     #: frames of a turntable (every frame is held in memory until the animation is written)
     frames: int = 3600
+    #: minutes a training budget may state (a week)
+    minutes: float = 7 * 24 * 60.0
 
 
 LIMITS = Limits()

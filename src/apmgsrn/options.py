@@ -41,6 +41,7 @@ from apmgsrn.arguments import (
     number_type,
 )
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.limits import LIMITS
 
 INPUT = "input volume"
 MODEL = "model"
@@ -137,6 +138,11 @@ class TrainOptions:
     # training
     iterations: int | None = option(group=TRAINING, type=int, **ITERATIONS,
                                     help="default: the recipe's budget for the device (3000 on CPU, 50000 on GPU)")
+    minutes: float | None = option(group=TRAINING, type=float, metavar="M", low=0.0, low_open=True,
+                                   high=LIMITS.minutes,
+                                   help="train for about M minutes instead of --iterations: the iterations are "
+                                        "sized to this machine from a few steps timed before training (one "
+                                        "volume)")
     batch_size: int | None = option(group=TRAINING, type=int, low=1, high=MAX_BATCH_SIZE,
                                     help="points per iteration (default: 32768 CPU, 100000 GPU)")
     lr: float = option(0.01, group=TRAINING, type=float, **LEARNING_RATE, help="learning rate (default 0.01)")

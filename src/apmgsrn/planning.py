@@ -69,6 +69,8 @@ class Plan:
             :class:`~apmgsrn.series.packing.SeriesPacking` for a series; None: a float file).
         bricks: the domain decomposition (None: one model).
         workers, scheduler, retries, group_steps: how bricks are run (with ``bricks``).
+        minutes: a time budget: ``training.iterations`` is sized to the machine when the run starts
+            (:mod:`apmgsrn.training.timing`); None: the iterations are ``training.iterations``.
         source: the opened volume or series (not part of the plan's value).
     """
 
@@ -90,6 +92,7 @@ class Plan:
     scheduler: str | None = None
     retries: int = 2
     group_steps: int | None = None
+    minutes: float | None = None
     source: object = field(default=None, compare=False, repr=False)
 
     def to_dict(self) -> dict:
@@ -329,7 +332,20 @@ def _volume_plan(volume: Volume, paths: tuple[str, ...], options: TrainOptions, 
             train_config = replace(train_config, anchored_grids=anchored_grids_for(field_config))
     return Plan("volume", paths, tuple(volume.shape), None, volume.stored_bytes, str(device), model, field_config,
                 train_config, options.transform, options.log_offset, None, packing, bricks,
-                *_brick_run(options, bricks), source=volume)
+                *_brick_run(options, bricks), minutes=_minutes(options, bricks), source=volume)
+
+
+def _minutes(options: TrainOptions, bricks) -> float | None:
+    """The time budget of one volume's run; refused beside ``iterations`` or with bricks."""
+    if options.minutes is None:
+        return None
+    if options.iterations is not None:
+        raise ApmgsrnError(f"minutes={options.minutes:g} and iterations={options.iterations}: give one of them; "
+                           "minutes= sizes the iterations", arguments=("minutes", "iterations"))
+    if bricks is not None:
+        raise ApmgsrnError(f"minutes={options.minutes:g}: a time budget sizes one model's training; give "
+                           "iterations= for bricks", arguments=("minutes", "bricks"))
+    return options.minutes
 
 
 def _brick_run(options: TrainOptions, bricks) -> tuple:
@@ -342,6 +358,9 @@ def _brick_run(options: TrainOptions, bricks) -> tuple:
 
 def _series_plan(paths: list[str], options: TrainOptions, device: torch.device) -> Plan:
     """The plan of a time series (or its bricks: each group of steps trains with its own steps' budget)."""
+    if options.minutes is not None:
+        raise ApmgsrnError(f"minutes={options.minutes:g}: a time budget sizes one volume's training; give "
+                           "iterations= for a time series", arguments=("minutes", "iterations"))
     training_kind = options.series_training or "stepwise"
     stepwise = training_kind == "stepwise"
     for name in JOINT_OPTIONS if stepwise else STEPWISE_OPTIONS:

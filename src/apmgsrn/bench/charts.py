@@ -12,7 +12,8 @@ from apmgsrn.choices import MODEL_KINDS
 
 # One colour per method, the same in every chart.
 COLOURS = {"apmgsrn": "#d62728", "fvsrn": "#1f77b4", "ngp": "#2ca02c", "hybrid": "#17becf", "sz3": "#9467bd",
-           "zfp": "#ff7f0e", "zfp-precision": "#ffbb78", "apmgsrn packed": "#8c564b",
+           "zfp": "#ff7f0e", "zfp-precision": "#ffbb78", "sperr": "#7f7f7f", "sperr-pwe": "#c7c7c7",
+           "tthresh": "#000000", "apmgsrn packed": "#8c564b",
            "apmgsrn packed bounded": "#e377c2", "hybrid packed": "#0b6e79", "hybrid packed bounded": "#bcbd22"}
 MARKERS = {"small": "o", "medium": "s", "large": "D"}
 

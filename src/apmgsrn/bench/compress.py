@@ -1,8 +1,9 @@
-"""``bench compress``: the networks against SZ3 and ZFP on one volume.
+"""``bench compress``: the networks against SZ3, ZFP, SPERR and TTHRESH on one volume.
 
-For each compressor setting (an error bound, or bit planes for ZFP's fixed-precision mode), and for each
-network: compressed size and ratio, PSNR and largest
-error over every voxel, compression time (training time for a network), whole-volume decompression time
+For each compressor setting (an error bound, bit planes for ZFP's fixed-precision mode, bits per value for
+SPERR's fixed-rate mode, a PSNR target for TTHRESH), or, with ``ratios``, at each asked ratio (the setting
+found by :func:`~apmgsrn.bench.compressors.match_ratio`), and for each network: compressed size and ratio,
+PSNR and largest error over every voxel, compression time (training time for a network), whole-volume decompression time
 and throughput, and the cost of answering random point queries. A compressor has to decompress the whole
 volume before it can interpolate at a single point; a network evaluates the points directly.
 
@@ -26,7 +27,7 @@ from apmgsrn.api import load
 from apmgsrn.arguments import MAX_BATCH_SIZE, check_choice, check_int, check_number
 from apmgsrn.atomic import atomic_write_text
 from apmgsrn.bench.charts import rate_distortion_chart
-from apmgsrn.bench.compressors import get_compressor
+from apmgsrn.bench.compressors import RATIO_TOLERANCE, CodecFailed, RatioNotReached, get_compressor, match_ratio
 from apmgsrn.bench.datasets import DataSpec, open_spec
 from apmgsrn.bench.quality import QualityPlan, prepare_folder, run_quality
 from apmgsrn.bench.results import CompressRow, write_rows
@@ -51,6 +52,13 @@ class CompressPlan:
         compressors: names of :data:`apmgsrn.bench.compressors.COMPRESSORS`.
         bounds: error bounds relative to the value range, one run per error-bounded compressor and bound.
         precisions: bit planes, one run per fixed-precision compressor (``zfp-precision``) and precision.
+        rates: bits per value, one run per fixed-rate compressor (``sperr``) and rate.
+        psnrs: target PSNRs (dB), one run per PSNR-targeting compressor (``tthresh``) and target.
+        ratios: compression ratios (the volume's stored bytes / compressed bytes); when given, every compressor
+            runs at each of them instead of the settings above, its setting searched by
+            :func:`~apmgsrn.bench.compressors.match_ratio`; a ratio it cannot reach is skipped with the reason.
+        ratio_tolerance: how near (relative) the search for a ratio aims; when no setting lands that near, the
+            nearest one tried is kept if within :data:`~apmgsrn.bench.compressors.RATIO_ACCEPT` (5 %).
         iterations, batch_size, seed: training budget of the networks.
         query_points: random points of the query test.
     """
@@ -62,6 +70,10 @@ class CompressPlan:
     compressors: tuple[str, ...] = COMPRESSORS
     bounds: tuple[float, ...] = (1e-1, 3e-2, 1e-2, 3e-3, 1e-3, 3e-4, 1e-4)
     precisions: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 8)  # ZFP's fixed-precision bit planes: about 200:1 to 20-40:1
+    rates: tuple[float, ...] = (2.0, 1.0, 0.3, 0.1, 0.03, 0.01, 0.003)  # SPERR: 16:1 to 10,000:1 of float32
+    psnrs: tuple[float, ...] = (80.0, 70.0, 60.0, 50.0, 40.0, 30.0)  # TTHRESH targets, dB
+    ratios: tuple[float, ...] = ()
+    ratio_tolerance: float = RATIO_TOLERANCE
     iterations: int = 2000
     batch_size: int = 32768
     seed: int = 0
@@ -78,6 +90,13 @@ class CompressPlan:
             check_number("bounds", bound, 0.0, 1.0, low_open=True, high_open=True)
         for precision in self.precisions:
             check_int("precisions", precision, 1, 32)
+        for rate in self.rates:
+            check_number("rates", rate, 0.0, 64.0, low_open=True)
+        for psnr in self.psnrs:
+            check_number("psnrs", psnr, 0.0, 200.0, low_open=True)
+        for ratio in self.ratios:
+            check_number("ratios", ratio, 1.0, None, low_open=True)
+        check_number("ratio_tolerance", self.ratio_tolerance, 0.0, 0.5, low_open=True)
         check_int("iterations", self.iterations, 1)
         check_int("batch_size", self.batch_size, 1, MAX_BATCH_SIZE)
         check_int("seed", self.seed, 0, 2**63 - 1)
@@ -134,8 +153,13 @@ def run_compress(
             skipped.append(compressor.unavailable_reason())
             log(f"skipped {compressor.unavailable_reason()}")
             continue
-        for setting in plan.bounds if compressor.setting == "bound" else plan.precisions:
-            row = measure_compressor(compressor, data, setting, points, label, volume.stored_bytes)
+        for setting in _settings(plan, compressor, data, volume.stored_bytes, skipped, log):
+            try:
+                row = measure_compressor(compressor, data, setting, points, label, volume.stored_bytes)
+            except CodecFailed as reason:
+                skipped.append(f"{reason} (at {compressor.setting} {setting:g})")
+                log(f"skipped {skipped[-1]}")
+                continue
             rows.append(row)
             log(f"{label} {name} {compressor.setting} {setting:g}: ratio {row.compression_ratio:.1f}, "
                 f"{row.psnr:.2f} dB")
@@ -164,6 +188,25 @@ def run_compress(
     if rows:
         rate_distortion_chart(rows, paths["chart"], title=f"{label} {volume_shape_text(volume)}")
     return CompressReport(rows, skipped, paths["csv"], paths["markdown"], paths["chart"])
+
+
+def _settings(plan: CompressPlan, compressor, data: np.ndarray, data_bytes: int, skipped: list[str],
+              log: Callable[[str], None]) -> list[float]:
+    """The settings ``compressor`` runs at: the plan's list for its kind of setting, or, with ``plan.ratios``,
+    the setting matched to each ratio (a ratio out of its reach goes to ``skipped``)."""
+    if not plan.ratios:
+        return list({"bound": plan.bounds, "precision": plan.precisions, "rate": plan.rates,
+                     "psnr": plan.psnrs}[compressor.setting])
+    settings = []
+    for ratio in plan.ratios:
+        try:
+            match = match_ratio(compressor, data, ratio, data_bytes, plan.ratio_tolerance)
+        except (RatioNotReached, CodecFailed) as reason:
+            skipped.append(f"{reason}")
+            log(f"skipped {reason}")
+            continue
+        settings.append(match.setting)
+    return settings
 
 
 def volume_shape_text(volume) -> str:

@@ -150,7 +150,8 @@ def compress_table(rows: list[CompressRow]) -> str:
 
 #: The compressors the networks are compared with, each with the methods (modes) it is measured in: at a
 #: ratio, the compressor's best mode there (:func:`compressor_curve`).
-COMPRESSOR_FAMILIES = {"SZ3": ("sz3",), "ZFP": ("zfp", "zfp-precision")}
+COMPRESSOR_FAMILIES = {"SZ3": ("sz3",), "ZFP": ("zfp", "zfp-precision"), "SPERR": ("sperr", "sperr-pwe"),
+                       "TTHRESH": ("tthresh",)}
 
 
 def compressor_psnr_at(curve: list[tuple[float, float]], ratio: float) -> tuple[float, str] | None:

@@ -1,5 +1,5 @@
-"""``apmgsrn bench quality|compress|series``: compare APMGSRN with fVSRN, NGP, SZ3 and ZFP on your volumes, and one
-model for a whole time series with one model per step on your series."""
+"""``apmgsrn bench quality|compress|series``: compare APMGSRN with fVSRN, NGP, SZ3, ZFP, SPERR and TTHRESH on your
+volumes, and one model for a whole time series with one model per step on your series."""
 
 from __future__ import annotations
 
@@ -20,7 +20,8 @@ def register(subparsers) -> None:
         "bench",
         help="compare models and compressors on your volumes",
         description="Reproducible comparisons: PSNR, real size and time of every model and size preset "
-        "(bench quality), networks against SZ3 and ZFP (bench compress), and one model for a time series against "
+        "(bench quality), networks against SZ3, ZFP, SPERR and TTHRESH (bench compress), and one model for a "
+        "time series against "
         "one model per step (bench series).",
     )
     commands = parser.add_subparsers(dest="bench_command", required=True, metavar="BENCHMARK")
@@ -44,9 +45,12 @@ def register(subparsers) -> None:
 
     compress = commands.add_parser(
         "compress",
-        help="networks against SZ3 and ZFP: rate-distortion, compression time, decompression and queries",
-        description="Compress one volume with SZ3 and ZFP at several error bounds (relative to the value "
-        "range), and with ZFP's fixed-precision mode at several bit-plane counts, and train the networks (or "
+        help="networks against SZ3, ZFP, SPERR and TTHRESH: rate-distortion, compression time, decompression "
+        "and queries",
+        description="Compress one volume with SZ3, ZFP and SPERR's point-wise mode at several error bounds "
+        "(relative to the value range), with ZFP's fixed-precision mode at several bit-plane counts, SPERR's "
+        "fixed-rate mode at several bits per value and TTHRESH at several PSNR targets (or every compressor at "
+        "the --ratios asked), and train the networks (or "
         "take --model-files); write OUT/compress_NAME.csv, .md and a rate-distortion chart .png. Query cost: "
         "a compressor decompresses the whole volume before it can answer random points; a network evaluates "
         "them directly.",
@@ -62,6 +66,16 @@ def register(subparsers) -> None:
                           help="error bounds relative to the value range (default: 1e-1 ... 1e-4)")
     compress.add_argument("--precisions", nargs="+", type=int,
                           help="bit planes of ZFP's fixed-precision mode, zfp-precision (default: 1 ... 8)")
+    compress.add_argument("--rates", nargs="+", type=float,
+                          help="bits per value of SPERR's fixed-rate mode, sperr (default: 2 ... 0.003)")
+    compress.add_argument("--psnrs", nargs="+", type=float,
+                          help="target PSNRs (dB) of TTHRESH, tthresh (default: 80 ... 30)")
+    compress.add_argument("--ratios", nargs="+", type=float,
+                          help="run every compressor at these compression ratios instead, its setting found by "
+                               "bisection; a ratio a compressor cannot reach is skipped")
+    compress.add_argument("--ratio-tolerance", type=float,
+                          help="how near the search for a ratio aims, relative (default 0.01); else the nearest "
+                               "setting tried is kept if within 5 %%")
     compress.add_argument("--query-points", type=int, default=2**20, help="random points of the query test")
     _add_budget(compress, None, None)
     compress.add_argument("--out", default="bench-results", help=OUT_HELP)
@@ -177,6 +191,10 @@ def run_compress_command(args: argparse.Namespace) -> int:
         query_points=args.query_points,
         **({"bounds": tuple(args.bounds)} if args.bounds else {}),
         **({"precisions": tuple(args.precisions)} if args.precisions else {}),
+        **({"rates": tuple(args.rates)} if args.rates else {}),
+        **({"psnrs": tuple(args.psnrs)} if args.psnrs else {}),
+        **({"ratios": tuple(args.ratios)} if args.ratios else {}),
+        **({"ratio_tolerance": args.ratio_tolerance} if args.ratio_tolerance is not None else {}),
     )
     report = run_compress(plan, Path(args.out), resolve_device(args.device), log=_log)
     print(report.markdown.read_text())

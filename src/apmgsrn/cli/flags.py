@@ -54,6 +54,7 @@ FLAGS = {
     "finest_resolution": "--finest-resolution",
     "frequencies": "--frequencies",
     "iterations": "--iterations",
+    "minutes": "--minutes",
     "batch_size": "--batch-size",
     "lr": "--lr",
     "placement_lr": "--placement-lr",

@@ -136,6 +136,7 @@ def run(args: argparse.Namespace) -> int:
         result = fit_volume(
             volume, field_config, train_config, out, device,
             transform=plan.transform, log_offset=plan.log_offset, resume=args.resume, plan=plan.record(),
+            progress=not args.json, minutes=plan.minutes,
         )
     except TrainingInterrupted as exc:
         print(f"{exc}; run the same command with --resume to continue")

@@ -37,6 +37,7 @@ from apmgsrn.models.registry import FieldConfig
 from apmgsrn.models.value_transform import ValueTransform, fit_value_transform
 from apmgsrn.training.callbacks import TrainingProgress
 from apmgsrn.training.checkpoint import checkpoint_path_for
+from apmgsrn.training.timing import resumed_budget, size_for_minutes
 from apmgsrn.training.trainer import TrainConfig, Trainer, TrainingCallback, TrainingState
 
 #: Field classes of model configs other than :class:`FieldConfig` (config type -> class built with the same
@@ -359,6 +360,7 @@ def fit_volume(
     resume: bool = False,
     progress: bool = True,
     plan: dict | None = None,
+    minutes: float | None = None,
 ) -> FitResult:
     """Train a model on a whole volume and save it to ``out`` (the ``train`` command).
 
@@ -373,17 +375,40 @@ def fit_volume(
         resume: continue from ``out.ckpt`` if it exists.
         progress: show training progress (see :mod:`apmgsrn.progress`).
         plan: the run's plan (:meth:`apmgsrn.planning.Plan.record`), kept in the training summary.
+        minutes: a time budget: the iterations are sized to this machine first (:func:`timed_config`).
     """
     check_output(out, resume)  # before reading what may be a large volume
     data = volume.to_numpy()  # [D, H, W] float32, data units
     prepared = prepare_values(data, transform, log_offset, str(volume.path), device)
+    extra = {"plan": plan} if plan else {}
+    if minutes is not None:
+        train_config, budget = timed_config(prepared, field_config, train_config, tuple(volume.shape), minutes,
+                                            checkpoint_path_for(out) if resume else None,
+                                            print if progress else None)
+        extra.update(time_budget=budget)
     source = SourceInfo.of_volume(volume)
     # A resume must continue on the same data: the file's real path (any link to it will do) and a hash of a
     # sample of its values, not its name.
     fingerprint = {"data": volume_fingerprint(volume), "field": field_config.to_dict(),
                    "transform": asdict(prepared.transform)}
     return fit(prepared, data, field_config, train_config, out, source, fingerprint, resume=resume,
-               callbacks=[TrainingProgress(enabled=progress)], summary_extra={"plan": plan} if plan else None)
+               callbacks=[TrainingProgress(enabled=progress)], summary_extra=extra or None)
+
+
+def timed_config(prepared: PreparedValues, field_config, train_config: TrainConfig,
+                 volume_shape: tuple[int, int, int], minutes: float, checkpoint: Path | None = None,
+                 log: Callable[[str], None] | None = None) -> tuple[TrainConfig, dict]:
+    """``train_config`` sized to ``minutes`` on this machine (:func:`~apmgsrn.training.timing.size_for_minutes`,
+    on a throwaway field of the run's model), or, resuming from ``checkpoint``, to what the interrupted run chose;
+    and what the file's summary records of it."""
+    if checkpoint is not None and checkpoint.exists():
+        sized = resumed_budget(checkpoint, train_config)
+        return sized, {"minutes": minutes, "iterations": sized.iterations, "resumed": True}
+    probe = build_field(prepared, field_config, volume_shape, train_config.seed)
+    sized, budget = size_for_minutes(probe, prepared.values, train_config, minutes)
+    if log is not None:
+        log(budget.line())
+    return sized, budget.to_dict()
 
 
 def _last_finite(values: list[float]) -> float | None:
