@@ -14,6 +14,6 @@ if [ ${#missing[@]} -gt 0 ] && command -v apt-get >/dev/null 2>&1; then
   { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${missing[@]}"; } >/dev/null 2>&1 \
     || echo "note: could not install ${missing[*]}; the tests that need them will be skipped" >&2
 fi
-# The layering DESIGN.md promises (contracts in pyproject.toml).
+# The layering docs/design.md promises (contracts in pyproject.toml).
 .venv/bin/lint-imports
 exec .venv/bin/python -m pytest -q -m "not slow" "$@"

@@ -343,3 +343,44 @@ def test_the_plugin_never_passes_a_model_name_as_an_option(model, tmp_path, monk
     out = tmp_path / "decoded.vti"
     assert main(["decode", path, "--out", str(out), "--json"]) == 0  # the arguments the plugin builds
     assert open_volume(out).shape == apmgsrn.load(model).description.volume_shape
+
+
+# ----------------------------------------------------------------------------- found by a fresh probe round
+def test_predict_refuses_ragged_and_oversized_points_and_takes_a_series_step(model, tmp_path, test_data):
+    loaded = apmgsrn.load(model)
+    with pytest.raises(ApmgsrnError, match="points"):
+        loaded.predict([[0.0, 0.0, 0.0], [1.0, 2.0]])
+    huge = np.lib.stride_tricks.as_strided(np.zeros(3, np.float32), shape=(10**10, 3), strides=(0, 4))
+    with pytest.raises(ApmgsrnError, match="memory budget"):
+        loaded.predict(huge)
+    series = tmp_path / "s.apmgsrn"
+    assert main(["train", str(test_data / "viscous_fingers_run01" / "03[01]_*.vti"), "--out", str(series),
+                 *FAST]) == 0
+    two = apmgsrn.load(series)
+    points = np.zeros((2, 3), np.float32)
+    assert np.isfinite(two.predict(points, time=1)).all()
+    with pytest.raises(ApmgsrnError):
+        two.predict(points, time=5)
+
+
+def test_a_brick_model_answers_nan_points_with_nan(tmp_path, test_data):
+    folder = tmp_path / "b"
+    assert main(["train", str(test_data / "reference_neghip_24.npy"), "--bricks", "2,1,1", "--out", str(folder),
+                 "--workers", "1", *FAST]) == 0
+    points = np.array([[np.nan, 0, 0], [0, 0, 0], [np.inf, -np.inf, 0], [1e30, 0, 0]], np.float32)
+    values = apmgsrn.load(folder).predict(points)
+    assert np.isnan(values[0]) and np.isfinite(values[1:]).all()
+    manifest = folder / "manifest.json"
+    text = manifest.read_text()
+    import json
+
+    record = json.loads(text)
+    record["run_id"] = "0" * 32  # the bricks were trained by another run than the folder names
+    manifest.write_text(json.dumps(record))
+    with pytest.raises(ApmgsrnError, match="run"):
+        apmgsrn.load(folder)
+
+
+def test_the_api_refuses_a_value_outside_an_options_choices():
+    with pytest.raises(ApmgsrnError, match="transform='sqrt'"):
+        apmgsrn.plan(np.zeros((8, 8, 8), np.float32), transform="sqrt")

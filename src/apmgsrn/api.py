@@ -114,25 +114,35 @@ class Model(nn.Module):
                 module.inference_dtype = None if precision == "auto" and module.fused_inference() else dtype
         return self
 
-    def predict(self, points, batch_size: int = RUNTIME.query_batch) -> np.ndarray:
+    def predict(self, points, batch_size: int = RUNTIME.query_batch, time: int | None = None) -> np.ndarray:
         """Values at points, without gradients, in bounded-memory batches.
 
         Args:
-            points: ``[..., 3]`` ``(x, y, z)`` in ``[-1, 1]^3`` (numpy, a list or a tensor).
+            points: ``[..., 3]`` ``(x, y, z)`` in ``[-1, 1]^3`` (numpy, a list or a tensor). Outside points
+                get the field's value there (zero features beyond every grid); a point with a NaN coordinate
+                gives NaN.
             batch_size: points per forward pass.
+            time: the time step of a time-series model (default: the first).
 
         Returns:
             float32 numpy array ``[...]`` of values in data units.
 
         Raises:
-            ApmgsrnError: ``points`` is not ``[..., 3]`` numbers.
+            ApmgsrnError: ``points`` is not ``[..., 3]`` numbers, their float32 copy would not fit in memory, or
+                a time step the model lacks.
         """
-        array = points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else np.asarray(points)
+        try:
+            array = points.detach().cpu().numpy() if isinstance(points, torch.Tensor) else np.asarray(points)
+        except (ValueError, TypeError) as exc:
+            raise ApmgsrnError(f"points: {exc}; give [..., 3] numbers (x, y, z) in [-1, 1]",
+                               arguments=("points",)) from None
         if array.ndim < 1 or array.shape[-1] != 3 or array.dtype.kind not in "uif":
             raise ApmgsrnError(f"points of shape {array.shape} ({array.dtype}): give [..., 3] numbers (x, y, z) "
                                "in [-1, 1]", arguments=("points",))
+        _check_fits_in_memory((array.size // 3, 4, 1), "points")  # the float32 copy and the values
+        field = self.step_field(time)
         flat = torch.from_numpy(np.ascontiguousarray(array.reshape(-1, 3), dtype=np.float32))  # [N, 3]
-        return query(self.field, flat, batch_size).numpy().reshape(array.shape[:-1])
+        return query(field, flat, batch_size).numpy().reshape(array.shape[:-1])
 
     def step_field(self, time: int | None = None) -> nn.Module:
         """The network of one time step: a time-series model materialises that step's features once (as fast
@@ -499,8 +509,9 @@ def _path(path, name: str) -> str | os.PathLike:
     return path
 
 
-def _check_fits_in_memory(shape: tuple[int, int, int]) -> None:
-    """Refuse a decode of ``shape`` whose float32 array would not fit in memory, before it is allocated.
+def _check_fits_in_memory(shape: tuple[int, int, int], argument: str = "shape") -> None:
+    """Refuse a decode of ``shape`` (or ``points``: their count, 4, 1) whose float32 array would not fit in
+    memory, before it is allocated.
 
     Raises:
         ApmgsrnError: naming the size and the way out (a smaller shape, or ``save_decoded``).
@@ -508,6 +519,10 @@ def _check_fits_in_memory(shape: tuple[int, int, int]) -> None:
     from apmgsrn.data.opener import memory_budget
 
     need = 4 * int(np.prod([int(n) for n in shape], dtype=object))
+    if argument == "points" and need > memory_budget():
+        raise ApmgsrnError(f"points: {shape[0]:,} points take {need:,} bytes as float32 with their values, more "
+                           "than the memory budget (half of what is free); query them in parts",
+                           arguments=("points",))
     if need > memory_budget():
         d, h, w = shape
         raise ApmgsrnError(f"shape=({d}, {h}, {w}): the decoded array takes {need:,} bytes, more than the memory "

@@ -269,7 +269,7 @@ class TrainOptions:
         """The options of a Python call.
 
         Raises:
-            ApmgsrnError: a keyword that is no option.
+            ApmgsrnError: a keyword that is no option, a number out of its range or a value not among its choices.
         """
         names = option_names()
         unknown = sorted(set(kwargs) - set(names))
@@ -278,8 +278,13 @@ class TrainOptions:
                                f"are {', '.join(names)}", arguments=tuple(unknown))
         specs = {spec.name: spec for spec in dataclasses.fields(cls)}
         for name, value in kwargs.items():
-            if value is not None:
-                check_option_number(specs[name], value)
+            if value is None:
+                continue
+            check_option_number(specs[name], value)
+            choices = specs[name].metadata.get("choices")
+            if choices is not None and value not in choices:
+                raise ApmgsrnError(f"{name}={value!r}: must be one of {', '.join(map(str, choices))}",
+                                   arguments=(name,))
         return cls(**kwargs)
 
 

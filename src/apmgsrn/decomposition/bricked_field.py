@@ -134,10 +134,16 @@ class BrickedField(nn.Module):
         """Values in data units ``[N, 1]`` at ``points`` ``[N, 3]``."""
         if points.shape[0] == 0:
             return torch.empty(0, 1, dtype=points.dtype, device=points.device)
+        # A NaN coordinate routes nowhere: the point is evaluated at the origin and answered NaN, as every
+        # field answers it (apmgsrn.ops); infinite ones clamp to the outer bricks like any far point.
+        nan = torch.isnan(points).any(dim=1)
+        points = torch.where(nan[:, None], torch.zeros_like(points), points)
         if self.blend:
-            return self._blended(points)[:, None]
-        brick_ids = self.brick_index(points)  # [N]
-        return self._evaluate_grouped(self._local(points, brick_ids), brick_ids)[:, None]
+            values = self._blended(points)
+        else:
+            brick_ids = self.brick_index(points)  # [N]
+            values = self._evaluate_grouped(self._local(points, brick_ids), brick_ids)
+        return torch.where(nan, torch.full_like(values, float("nan")), values)[:, None]
 
     def axis_weights(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Blend candidates and weights per axis: the routed brick and its two neighbours.

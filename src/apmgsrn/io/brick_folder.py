@@ -198,6 +198,9 @@ def _check_records(manifest: dict) -> None:
             raise DescriptionError(f"{where} records no checksum")
         if "run" not in entry or not (entry["run"] is None or isinstance(entry["run"], str)):
             raise DescriptionError(f"{where} records no run")
+        if entry["run"] is not None and entry["run"] != manifest["run_id"]:
+            raise DescriptionError(f"{where} was trained by run {entry['run']}, not by the folder's run "
+                                   f"{manifest['run_id']}")
 
 
 def _brick_entry(entry, index: int) -> BrickEntry:

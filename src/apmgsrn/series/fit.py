@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from apmgsrn.errors import ApmgsrnError
 from apmgsrn.io import SeriesStepInfo, SourceInfo
 from apmgsrn.io.container import PACKED_SERIES_KIND, SERIES_KIND
 from apmgsrn.series.data import VolumeSeries, series_fingerprint
@@ -177,6 +178,12 @@ def fit_series(
         raise ValueError(f"the model has {field_config.series.steps} steps, the series {len(series)}")
     check_output(out, resume, SERIES_KIND if packing is None else PACKED_SERIES_KIND)  # before reading the series
     data = series.to_numpy()  # [T, D, H, W] float32, data units
+    for t in range(len(series)):  # name the step whose values are not finite
+        finite = int(np.count_nonzero(np.isfinite(data[t])))
+        if finite < data[t].size:
+            raise ApmgsrnError(f"{series.step_name(t)}: step {t} has {data[t].size - finite} of {data[t].size} "
+                               "voxels NaN or Inf; pass fill_nonfinite=VALUE to replace them (e.g. "
+                               "fill_nonfinite=0)", arguments=("fill_nonfinite",))
     prepared = prepare_values(data, transform, log_offset, series.describe(), device)
     source = SourceInfo(series.step_name(0), series.variable, series.describe())
     steps = [SeriesStepInfo(label, series.step_name(t), (float(data[t].min()), float(data[t].max())))
