@@ -20,7 +20,8 @@ PARTS = {
         "command that made it. Joined by `benchmarks/assemble_docs.py` from the files below (edit those, or "
         "rerun their scripts).\n",
         ["benchmarks_core.md", "benchmarks_decode.md", "benchmarks_allocator.md", "benchmarks_contention.md",
-         "benchmarks_encoder.md", "benchmarks_render.md", "benchmarks_bricks.md", "benchmarks_step_updates.md"],
+         "benchmarks_encoder.md", "benchmarks_render.md", "benchmarks_bricks.md", "benchmarks_step_updates.md",
+         "benchmarks_train_step.md"],
     ),
     "results.md": (
         "# Results\n\nQuality figures: PSNR of every shared volume under the authors' CPU protocol, the "

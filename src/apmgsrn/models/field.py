@@ -69,11 +69,11 @@ class NeuralField(nn.Module):
         return self.decoder(self.encoder(points, detach_placement=detach_placement), hidden_dtype)
 
     def fused_mse_step(self, points: torch.Tensor, target: torch.Tensor) -> torch.Tensor | None:
-        """One reconstruction step by the encoder's fused training kernel, where it has one and the decoder is
-        frozen (float32): the decoder output ``[N]`` at ``points``, with the gradient of its mean squared error
-        to ``target`` ``[N]`` stored as the encoder's learning features' ``.grad`` (replacing it)
-        (:meth:`~apmgsrn.models.encoders.base.Encoder.fused_mse_step`, which declines a decoder that learns).
-        None elsewhere: nothing changed."""
+        """One reconstruction step by the encoder's fused training kernel, where it has one (float32): the
+        decoder output ``[N]`` at ``points``, with the gradient of its mean squared error to ``target`` ``[N]``
+        stored as the ``.grad`` of the encoder's learning features and of the decoder's learning weights
+        (replacing it) (:meth:`~apmgsrn.models.encoders.base.Encoder.fused_mse_step`). None elsewhere: nothing
+        changed."""
         return self.encoder.fused_mse_step(points, target, self.decoder.weights())
 
     @torch.no_grad()

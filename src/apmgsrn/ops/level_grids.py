@@ -30,7 +30,6 @@ from apmgsrn.ops.contract import finite_stand_in, nan_where_nan, outside_for_non
 from apmgsrn.ops.level_layout import HASH_PRIMES, LevelLayout
 
 
-
 def vertex_rows(
     vertex: torch.Tensor, resolution: tuple[int, int, int], size: int, hashed: bool
 ) -> torch.Tensor:
@@ -274,3 +273,46 @@ def level_grid_mse_step(
     if not field_train_cpu.trainable(layout.out_features, [w.shape[0] for w in weights[:-1]]):
         return None
     return field_train_cpu.level_grid_mse_step_cpu(points, maps, table, layout, weights, target)
+
+
+def level_grid_train_step_reference(
+    points: torch.Tensor, maps: torch.Tensor, table: torch.Tensor, layout: LevelLayout, weights: list[torch.Tensor],
+    target: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]:
+    """The prediction ``[N]`` of ``decoder(level_grid_features(points))`` and the gradients of its mean squared
+    error to ``target`` ``[N]`` with respect to ``table`` ``[T]`` and every decoder weight (shaped as it), by
+    autograd through the reference (what :func:`level_grid_train_step`'s fused kernel must match; the points
+    and maps are constants)."""
+    with torch.enable_grad():
+        leaf = table.detach().requires_grad_(True)
+        leaves = [w.detach().requires_grad_(True) for w in weights]
+        x = level_grid_features_reference(points.detach(), maps.detach(), leaf, layout)
+        for weight in leaves[:-1]:
+            x = torch.relu(x @ weight.t())
+        prediction = (x @ leaves[-1].t()).view(-1)
+        loss = (prediction - target.detach().view(-1)).square().mean()
+        grad, *weight_grads = torch.autograd.grad(loss, [leaf, *leaves])
+    return prediction.detach(), grad, list(weight_grads)
+
+
+def level_grid_train_step(
+    points: torch.Tensor, maps: torch.Tensor, table: torch.Tensor, layout: LevelLayout, weights: list[torch.Tensor],
+    target: torch.Tensor, backend: str = "auto",
+) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]] | None:
+    """One reconstruction step's numbers for a table and a learning decoder, fused in one pass where a kernel
+    can: the prediction ``[N]`` and the gradients of its mean squared error to ``target`` with respect to
+    ``table`` ``[T]`` and to every decoder weight (as :func:`level_grid_train_step_reference`).
+
+    The fused CPU kernel (:func:`apmgsrn.ops.field_train_cpu.level_grid_train_step_cpu`) runs under the
+    conditions of :func:`level_grid_mse_step`; elsewhere this returns ``None`` and the caller runs the step
+    through autograd.
+    """
+    if not _float32_on_cpu(backend, points, maps, table, target, *weights):
+        return None
+    from apmgsrn.ops import field_train_cpu
+
+    if not field_train_cpu.trainable(layout.out_features, [w.shape[0] for w in weights[:-1]]):
+        return None
+    prediction, grad, weight_grads = field_train_cpu.level_grid_train_step_cpu(
+        points, maps, table, layout, weights, target, decoder_learns=True)
+    return prediction, grad, weight_grads

@@ -309,6 +309,9 @@ class Trainer:
             else None
         )
         self.hidden_dtype = inference_dtype(config.decoder_precision, self.device)  # same rule as inference
+        #: Whether a reconstruction step runs the encoder's fused training kernel where it has one (False:
+        #: autograd through its ops and the decoder's matrix products, the same numbers to float rounding).
+        self.fused_step = True
         # Batches sorted by position where the encoder's tables outgrow the CPU's caches (a GPU gains nothing
         # for the launches a sort costs).
         self.order_batches = self.device.type == "cpu" and encoder.prefers_ordered_batches()
@@ -424,9 +427,10 @@ class Trainer:
                                         guide, cfg.error_sampling)
             if self.order_batches:
                 points, target = spatially_ordered(points, target)
-            # A frozen decoder (a series' step fine-tunes): one fused pass gives the prediction and the features'
-            # gradients, where the encoder has such a kernel.
-            fused = None if tracking or self.hidden_dtype is not None else self.field.fused_mse_step(points, target)
+            # One fused pass gives the prediction and the gradients (the features', and the decoder's when it
+            # learns), where the encoder has such a kernel.
+            fusable = self.fused_step and not tracking and self.hidden_dtype is None
+            fused = self.field.fused_mse_step(points, target) if fusable else None
             prediction = fused if fused is not None else self.field.normalized(
                 points, detach_placement=not tracking, hidden_dtype=self.hidden_dtype)
         else:

@@ -58,11 +58,11 @@ class Encoder(nn.Module):
 
     def fused_mse_step(self, points: torch.Tensor, target: torch.Tensor,
                        weights: list[torch.Tensor]) -> torch.Tensor | None:
-        """One reconstruction step under a frozen decoder by a fused training kernel: the prediction
-        ``decoder(self(points))`` ``[N]``, with the gradient of its mean squared error to ``target`` ``[N]``
-        stored as ``.grad`` of the feature parameters that require one, replacing what was there (the placement
-        gets none: the reconstruction path detaches it). None where there is no such kernel, or where a decoder
-        weight learns (the kernel gives no gradient for it): nothing is changed then; the trainer runs autograd.
+        """One reconstruction step by a fused training kernel: the prediction ``decoder(self(points))`` ``[N]``,
+        with the gradient of its mean squared error to ``target`` ``[N]`` stored as ``.grad`` of the feature
+        parameters and decoder weights that require one, replacing what was there (the placement gets none: the
+        reconstruction path detaches it). None where there is no such kernel (or none for a decoder that
+        learns): nothing is changed then; the trainer runs autograd.
 
         Args:
             points: ``[N, 3]``.

@@ -41,6 +41,7 @@ from apmgsrn.ops.level_grids import (
     level_grid_decoded,
     level_grid_features,
     level_grid_mse_step,
+    level_grid_train_step,
 )
 from apmgsrn.ops.level_layout import LevelLayout
 from apmgsrn.recipes import RUNTIME
@@ -287,21 +288,31 @@ class HybridGridEncoder(Encoder):
 
     def fused_mse_step(self, points: torch.Tensor, target: torch.Tensor,
                        weights: list[torch.Tensor]) -> torch.Tensor | None:
-        """The fused CPU training step (:func:`~apmgsrn.ops.level_grids.level_grid_mse_step`) where it runs and
-        the table or the grids learn; None elsewhere."""
+        """The fused CPU training step where it runs and the table or the grids learn; None elsewhere.
+
+        Under a frozen decoder it is :func:`~apmgsrn.ops.level_grids.level_grid_mse_step`; with a learning one
+        :func:`~apmgsrn.ops.level_grids.level_grid_train_step`, which also stores the gradient of every decoder
+        weight that requires one as its ``.grad`` (replacing it), as autograd through the reference would.
+        """
         learning = self.level_table.requires_grad or self.grids.requires_grad
-        if not learning or any(w.requires_grad for w in weights):
+        if not learning:
             return None
+        decoder_learns = any(w.requires_grad for w in weights)
         with torch.no_grad():
             table = torch.cat([self.level_table, self.grids.reshape(-1)])
-            step = level_grid_mse_step(points, self.maps(), table, self.layout, weights, target, self.config.backend)
+            args = (points, self.maps(), table, self.layout, weights, target, self.config.backend)
+            step = level_grid_train_step(*args) if decoder_learns else level_grid_mse_step(*args)
         if step is None:
             return None
-        prediction, grad = step
+        prediction, grad = step[0], step[1]
         split = self.level_table.numel()
         for parameter, part in ((self.level_table, grad[:split]), (self.grids, grad[split:])):
             if parameter.requires_grad:
                 parameter.grad = part.view_as(parameter)
+        if decoder_learns:
+            for weight, weight_grad in zip(weights, step[2]):
+                if weight.requires_grad:
+                    weight.grad = weight_grad
         return prediction
 
     def features_of(self, points: torch.Tensor, level_table: torch.Tensor, grids: torch.Tensor,
