@@ -208,6 +208,9 @@ class VolumeWriter:
             self._handle = self._create(attributes or {})
         except BaseException as exc:
             self._remove_temporary()
+            if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+                raise ApmgsrnError(f"{self.path}: cannot create the output file ({exc}); decode a smaller shape or "
+                                   "region, or write to a folder with room", arguments=("shape",)) from exc
             if isinstance(exc, (OSError, RuntimeError, ValueError, TypeError, AttributeError)):
                 raise ApmgsrnError(
                     f"{self.path}: cannot create the output file ({exc}); check that the folder is writable "
