@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import time
 
 import torch
 
@@ -27,6 +26,7 @@ from apmgsrn.data import open_volume
 from apmgsrn.models.field import NeuralField
 from apmgsrn.models.registry import preset_config, training_defaults
 from apmgsrn.training.fit import prepare_values
+from apmgsrn.training.timing import median_step_seconds
 from apmgsrn.training.trainer import Trainer, TrainConfig
 
 # (label, model, encoder overrides)
@@ -40,16 +40,7 @@ CASES = [
 def phase_times(trainer: Trainer, steps: int) -> float:
     """Median seconds of ``steps`` trainer steps from the trainer's current state (a GPU is synchronised
     around each step, so a step's time is its own)."""
-    sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
-    times = []
-    for _ in range(steps):
-        sync()
-        start = time.perf_counter()
-        trainer.step()
-        sync()
-        trainer.state.iteration += 1
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    return median_step_seconds(trainer, 0.0, steps, steps)
 
 
 def main() -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from apmgsrn.models.field import NeuralField
@@ -30,3 +31,9 @@ def odd_level_field(levels: int, features: int, log2_table_size: int, grids: int
     sizes = [field.encoder.out_features, *widths, 1]
     weights = [torch.randn(o, i, generator=g) / i**0.5 for i, o in zip(sizes[:-1], sizes[1:])]
     return field, weights
+
+
+def neghip(test_data) -> torch.Tensor:
+    """The real neghip 64^3 volume of tests/data as float32 values in [0, 1]."""
+    raw = np.fromfile(test_data / "neghip_64x64x64_uint8.raw", dtype=np.uint8).reshape(64, 64, 64)
+    return torch.from_numpy(raw.astype(np.float32) / 255.0)

@@ -8,7 +8,6 @@ import copy
 import os
 import shutil
 
-import numpy as np
 import pytest
 import torch
 
@@ -17,15 +16,10 @@ from apmgsrn.models.registry import preset_config
 from apmgsrn.ops.level_grids import level_grid_train_step, level_grid_train_step_reference
 from apmgsrn.training.points import draw_batch
 from apmgsrn.training.trainer import Trainer, TrainConfig
-from level_fields import ODD_SIZES, odd_level_field
+from level_fields import ODD_SIZES, neghip, odd_level_field
 
 HAS_COMPILER = bool(os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc"))
 pytestmark = pytest.mark.skipif(not HAS_COMPILER, reason="no C compiler: training runs autograd")
-
-
-def neghip(test_data) -> torch.Tensor:
-    raw = np.fromfile(test_data / "neghip_64x64x64_uint8.raw", dtype=np.uint8).reshape(64, 64, 64)
-    return torch.from_numpy(raw.astype(np.float32) / 255.0)
 
 
 @pytest.fixture(scope="module")

@@ -139,7 +139,9 @@ class Model(nn.Module):
         if array.ndim < 1 or array.shape[-1] != 3 or array.dtype.kind not in "uif":
             raise ApmgsrnError(f"points of shape {array.shape} ({array.dtype}): give [..., 3] numbers (x, y, z) "
                                "in [-1, 1]", arguments=("points",))
-        _check_fits_in_memory((array.size // 3, 4, 1), "points")  # the float32 copy and the values
+        count = array.size // 3  # a float32 copy of the points and their values
+        _check_fits_in_memory(16 * count, f"points: {count:,} points as float32 with their values",
+                              "query them in parts", "points")
         field = self.step_field(time)
         flat = torch.from_numpy(np.ascontiguousarray(array.reshape(-1, 3), dtype=np.float32))  # [N, 3]
         return query(field, flat, batch_size).numpy().reshape(array.shape[:-1])
@@ -188,7 +190,9 @@ class Model(nn.Module):
             ApmgsrnError: a region outside the volume, a bad shape or time step.
         """
         plan = self.plan_decode(shape, region, time, region_units)
-        _check_fits_in_memory(plan.shape)
+        d, h, w = (int(n) for n in plan.shape)
+        _check_fits_in_memory(4 * d * h * w, f"shape=({d}, {h}, {w}): the decoded array",
+                              "pass a smaller shape or region, or write it slab by slab with save_decoded", "shape")
         values = decode_array(self.step_field(plan.time), plan.shape, batch_size=batch_size,
                               box=plan.grid.box())  # [D, H, W]
         try:
@@ -509,25 +513,17 @@ def _path(path, name: str) -> str | os.PathLike:
     return path
 
 
-def _check_fits_in_memory(shape: tuple[int, int, int], argument: str = "shape") -> None:
-    """Refuse a decode of ``shape`` (or ``points``: their count, 4, 1) whose float32 array would not fit in
-    memory, before it is allocated.
+def _check_fits_in_memory(need: int, what: str, way_out: str, argument: str) -> None:
+    """Refuse to allocate ``need`` bytes beyond the memory budget (half of what is free), before allocating.
 
     Raises:
-        ApmgsrnError: naming the size and the way out (a smaller shape, or ``save_decoded``).
+        ApmgsrnError: ``"{what} takes {need} bytes, more than the memory budget; {way_out}"``, naming ``argument``.
     """
     from apmgsrn.data.opener import memory_budget
 
-    need = 4 * int(np.prod([int(n) for n in shape], dtype=object))
-    if argument == "points" and need > memory_budget():
-        raise ApmgsrnError(f"points: {shape[0]:,} points take {need:,} bytes as float32 with their values, more "
-                           "than the memory budget (half of what is free); query them in parts",
-                           arguments=("points",))
     if need > memory_budget():
-        d, h, w = shape
-        raise ApmgsrnError(f"shape=({d}, {h}, {w}): the decoded array takes {need:,} bytes, more than the memory "
-                           "budget (half of what is free); pass a smaller shape or region, or write it slab by "
-                           "slab with save_decoded", arguments=("shape",))
+        raise ApmgsrnError(f"{what} takes {need:,} bytes, more than the memory budget (half of what is free); "
+                           f"{way_out}", arguments=(argument,))
 
 
 def _value_range(value_range) -> tuple[float, float]:

@@ -12,6 +12,7 @@ evaluation (and packing) are not part of the budget; the report says what was me
 from __future__ import annotations
 
 import math
+import statistics
 import time
 from dataclasses import dataclass, replace
 
@@ -52,7 +53,7 @@ class TimeBudget:
                 f"{1000 * self.frozen_seconds:.1f} frozen) -> {self.iterations:,} iterations")
 
 
-def _median_step_seconds(trainer: Trainer, least_seconds: float, least_steps: int, most_steps: int) -> float:
+def median_step_seconds(trainer: Trainer, least_seconds: float, least_steps: int, most_steps: int) -> float:
     """Median seconds of the trainer's steps from its current state: at least ``least_steps`` and
     ``least_seconds`` of them, at most ``most_steps`` (a GPU is synchronised around each)."""
     sync = torch.cuda.synchronize if trainer.device.type == "cuda" else (lambda: None)
@@ -65,8 +66,7 @@ def _median_step_seconds(trainer: Trainer, least_seconds: float, least_steps: in
         sync()
         trainer.state.iteration += 1
         times.append(time.perf_counter() - start)
-    times.sort()
-    return times[len(times) // 2]
+    return statistics.median(times)
 
 
 def size_for_minutes(field, values: torch.Tensor, train_config: TrainConfig, minutes: float,
@@ -87,12 +87,12 @@ def size_for_minutes(field, values: torch.Tensor, train_config: TrainConfig, min
     check_number("minutes", minutes, 0.0, LIMITS.minutes, low_open=True)
     trainer = Trainer(field, values, train_config)
     trainer.state.iteration = train_config.density_start  # the grids move from here
-    _median_step_seconds(trainer, 0.0, 1, 1)  # warm-up: kernels built, buffers allocated
-    moving = _median_step_seconds(trainer, probe_seconds, 3, 50)
+    median_step_seconds(trainer, 0.0, 1, 1)  # warm-up: kernels built, buffers allocated
+    moving = median_step_seconds(trainer, probe_seconds, 3, 50)
     trainer.state.frozen_at = trainer.state.iteration
     for parameter in field.encoder.placement_parameters():
         parameter.requires_grad_(False)
-    frozen = _median_step_seconds(trainer, probe_seconds, 3, 50)
+    frozen = median_step_seconds(trainer, probe_seconds, 3, 50)
     moving_share = train_config.freeze_fraction if field.encoder.placement_parameters() else 0.0
     per_iteration = moving_share * moving + (1 - moving_share) * frozen
     iterations = min(max(1, math.floor(minutes * 60 / per_iteration)), MAX_ITERATIONS)
