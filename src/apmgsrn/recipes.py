@@ -242,6 +242,10 @@ class RuntimeRecipe:
 
     #: points per forward pass of a query or decode
     query_batch: int = 2**18
+    #: a time budget's probe: least seconds each phase is timed for (a second steadies the median under load)
+    budget_probe_seconds: float = 1.0
+    #: a time budget's probe: least and most steps timed in each phase
+    budget_probe_steps: tuple[int, int] = (3, 50)
     #: voxels per decoded slab: 48 MiB of coordinates and 16 MiB of float32 values
     slab_voxels: int = 2**22
     #: voxels per z-slab when a volume's statistics are streamed (64 MiB of float32)

@@ -21,6 +21,7 @@ import torch
 from apmgsrn.arguments import MAX_ITERATIONS, check_number
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.limits import LIMITS
+from apmgsrn.recipes import RUNTIME
 from apmgsrn.io.container import read_header
 from apmgsrn.training.trainer import TrainConfig, Trainer
 
@@ -70,7 +71,7 @@ def median_step_seconds(trainer: Trainer, least_seconds: float, least_steps: int
 
 
 def size_for_minutes(field, values: torch.Tensor, train_config: TrainConfig, minutes: float,
-                     probe_seconds: float = 1.0) -> tuple[TrainConfig, TimeBudget]:
+                     probe_seconds: float = RUNTIME.budget_probe_seconds) -> tuple[TrainConfig, TimeBudget]:
     """``train_config`` with the iterations that fill ``minutes`` of training on this machine (module docstring).
 
     Args:
@@ -88,11 +89,11 @@ def size_for_minutes(field, values: torch.Tensor, train_config: TrainConfig, min
     trainer = Trainer(field, values, train_config)
     trainer.state.iteration = train_config.density_start  # the grids move from here
     median_step_seconds(trainer, 0.0, 1, 1)  # warm-up: kernels built, buffers allocated
-    moving = median_step_seconds(trainer, probe_seconds, 3, 50)
+    moving = median_step_seconds(trainer, probe_seconds, *RUNTIME.budget_probe_steps)
     trainer.state.frozen_at = trainer.state.iteration
     for parameter in field.encoder.placement_parameters():
         parameter.requires_grad_(False)
-    frozen = median_step_seconds(trainer, probe_seconds, 3, 50)
+    frozen = median_step_seconds(trainer, probe_seconds, *RUNTIME.budget_probe_steps)
     moving_share = train_config.freeze_fraction if field.encoder.placement_parameters() else 0.0
     per_iteration = moving_share * moving + (1 - moving_share) * frozen
     iterations = min(max(1, math.floor(minutes * 60 / per_iteration)), MAX_ITERATIONS)
