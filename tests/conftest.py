@@ -36,6 +36,15 @@ def neghip_crop(test_data, tmp_path_factory):
     return path, data
 
 
+@pytest.fixture
+def vector_unit(monkeypatch):
+    """The fused training step's decoder products on the vector unit in float32: where the CPU has AMX the step
+    takes its tile unit, whose bfloat16 pieces tests/test_ops_tile_products_cpu.py compares on their own terms."""
+    from apmgsrn.ops import field_train_cpu
+
+    monkeypatch.setattr(field_train_cpu, "tile_unit_takes", lambda *args: False)
+
+
 @pytest.fixture(scope="module")
 def one_thread():
     """Run a module on one thread: small batches gain nothing from a second one and lose a lot on a busy machine."""

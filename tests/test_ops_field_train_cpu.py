@@ -55,7 +55,8 @@ def assert_step_matches(fused, reference) -> None:
 
 
 @pytest.mark.parametrize("threads", [1, 2])
-def test_fused_step_on_a_real_volume_matches_autograd_through_the_reference(test_data, trained_hybrid, threads):
+def test_fused_step_on_a_real_volume_matches_autograd_through_the_reference(test_data, trained_hybrid, threads,
+                                                                          vector_unit):
     layout = trained_hybrid.encoder.layout
     assert any(layout.hashed) and not all(layout.hashed)
     # a training batch as the trainer draws it: voxels with their values, uniform points with trilinear targets
@@ -95,7 +96,7 @@ def test_the_kernel_runs_only_for_float32_cpu_tensors_and_the_cpu_backend(traine
     assert not field_train_cpu.trainable(table.numel(), [])  # no hidden layer: not a decoder of this kind
 
 
-def test_the_field_sets_the_features_gradients_as_autograd_would(test_data, trained_hybrid):
+def test_the_field_sets_the_features_gradients_as_autograd_would(test_data, trained_hybrid, vector_unit):
     field = copy.deepcopy(trained_hybrid)
     field.encoder.grids.requires_grad_(False)  # only the table learns: the grids get no gradient
     points, target = draw_batch(neghip(test_data), 4000, 0.5, torch.Generator().manual_seed(3))

@@ -63,7 +63,7 @@ def assert_step_matches(fused, reference, target: torch.Tensor) -> None:
 
 @pytest.mark.parametrize("threads", [1, 2])
 def test_fused_learning_step_on_a_real_volume_matches_autograd_through_the_reference(test_data, trained_hybrid,
-                                                                                     threads):
+                                                                                     threads, vector_unit):
     layout = trained_hybrid.encoder.layout
     assert any(layout.hashed) and not all(layout.hashed)
     points, target = draw_batch(neghip(test_data), 6000, 0.5, torch.Generator().manual_seed(threads))
@@ -124,7 +124,7 @@ def test_the_learning_step_runs_only_for_float32_cpu_tensors_and_the_cpu_backend
     assert all(g.shape == w.shape and not g.any() for g, w in zip(weight_grads, weights))
 
 
-def test_the_field_sets_every_learning_gradient_as_autograd_would(test_data, trained_hybrid):
+def test_the_field_sets_every_learning_gradient_as_autograd_would(test_data, trained_hybrid, vector_unit):
     field = copy.deepcopy(trained_hybrid)
     field.decoder.weights()[1].requires_grad_(False)  # a frozen weight gets no gradient
     points, target = draw_batch(neghip(test_data), 4000, 0.5, torch.Generator().manual_seed(3))

@@ -308,6 +308,30 @@ def test_the_draws_merge_walk_finds_what_torch_searchsorted_finds(channel):
     assert ascending_search_cpu(cumulative, torch.empty(0, dtype=torch.float64)).shape == (0,)
 
 
+@pytest.mark.parametrize("shape,pool", [((48, 64, 96), None), ((48, 64, 96), 3000), ((1, 40, 33), 200),
+                                        ((50, 1, 7), 40), ((5, 6, 1), None)])
+def test_a_guided_draw_in_one_pass_gives_what_the_tensor_path_gives_bit_for_bit(channel, shape, pool):
+    """The CPU's one-pass guided draw (search, block, voxel, position, value) against the tensor operations it
+    replaces, from the same random draws: the same indices, points and values to the bit, on a real volume
+    measured voxel by voxel and in blocks (voxels clamped at a block that the volume's edge cuts), and on
+    lattices with an axis of one voxel."""
+    from apmgsrn.ops.sorted_search_cpu import LIBRARY
+    from apmgsrn.training.points import ErrorGuide
+
+    assert LIBRARY.available(), LIBRARY.error
+    d, h, w = shape
+    volume = channel[:d, :h, :w].contiguous() if shape[0] <= channel.shape[0] else None
+    volume = volume if volume is not None and volume.shape == shape else torch.rand(shape)
+    guide = ErrorGuide(volume, pool=pool) if pool else ErrorGuide(volume)
+    guide.measure(lambda points: torch.zeros(len(points)), torch.Generator())  # errors = |values|
+    for seed, count in ((1, 777), (2, 1), (3, 20000)):
+        index, points, values = guide.draw_voxels(count, torch.Generator().manual_seed(seed))
+        expected = guide.draw(count, torch.Generator().manual_seed(seed))
+        assert torch.equal(index, expected)
+        assert torch.equal(points, guide.voxel_points(expected))
+        assert torch.equal(values, volume.reshape(-1)[expected])
+
+
 def test_error_guided_points_sit_on_voxels_with_their_values_and_keep_the_uniform_share(channel):
     from apmgsrn.training.points import ErrorGuide
 

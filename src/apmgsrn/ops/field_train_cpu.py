@@ -15,6 +15,15 @@ level, instead of computed again). On the default model's batch of 32,768 points
 kernel's forward and backward, the decoder's nine matrix products, two ReLUs and their backward, and the
 autograd graph between them (docs/benchmarks.md, "The default model's training step").
 
+Where the CPU has AMX (:mod:`apmgsrn.ops.tile_products_cpu`) and every width is a multiple of its depth (the
+default model's are), the layers' forward products, the backward's products with the weights and the weights'
+gradients run on the tile unit in bfloat16 halves that keep 16 bits of every factor: 11 % less time for the
+whole kernel on the default model (32,768 points, 1 and 2 threads; docs/benchmarks_train_step.md). Its
+prediction matches float32 to about 1e-5 of its scale; a hidden activation within about 1e-5 of zero can take
+the other side of its ReLU, and that point's gradient then takes or skips the unit, so gradients can differ
+from the vector unit's by a few 1e-3 of their largest entry where a trained model has such activations (the
+fits do not: tests/test_ops_tile_products_cpu.py). ``tile_unit=False`` keeps the vector unit.
+
 Each extra thread scatters into a private copy of the table's gradient and sums its own weights' gradients,
 added at the end in thread order, so the sums' rounding depends on the thread count (not on the run). The
 references are :func:`apmgsrn.ops.level_grids.level_grid_train_step_reference` and
@@ -33,6 +42,7 @@ from apmgsrn.ops.level_grids_cpu import C_SOURCE as LEVEL_SOURCE
 from apmgsrn.ops.level_grids_cpu import kernel_inputs, kernel_layout
 from apmgsrn.ops.level_layout import LevelLayout
 from apmgsrn.ops.multigrid_cpu import LANE_LUT_SOURCE
+from apmgsrn.ops.tile_products_cpu import AMX_SOURCE, TILE_DEPTH, pair_layout
 
 #: Most hidden layers the kernel's per-thread offsets hold (the decoder's own limit).
 MAX_LAYERS = 64
@@ -53,12 +63,19 @@ typedef struct {
     i64 f, fpad; int layers; const i64 *pad; const float *weights, *rows;
     i64 aoff[MAX_LAYERS], roff[MAX_LAYERS], out_off;
     float *x, *acts, *tg, *dy, *gx, *feat, *gfeat, *gw;
+#ifdef HAVE_AMX
+    /* With the tile unit (amx != NULL): the weights' bfloat16 halves in pair layout, layer l's forward factor
+       W_l^T at amx + foff[l] and its backward factor W_l at amx + boff[l] (hi, then lo, each [in][out]
+       numbers), the split rows of a product's left factor (hi, lo: [TILE][widest]), a right factor's halves in
+       pair layout (pair_hi, pair_lo: as many) and a layer's gradient transposed (gt: [widest][TILE]). */
+    const bf16 *amx; i64 foff[MAX_LAYERS], boff[MAX_LAYERS]; bf16 *hi, *lo, *pair_hi, *pair_lo; float *gt;
+#endif
 } Step;
 
 /* Opens a thread's buffers (learning: with the decoder's gradient); returns 0, or -1 when memory could not
    be had (step_close still frees what was). */
 static int step_open(Step *s, i64 f, int layers, const i64 *pad, const float *weights, const float *rows,
-                     int learning) {
+                     const void *amx, int learning) {
     memset(s, 0, sizeof *s);
     s->f = f; s->fpad = (f + VL - 1) / VL * VL; s->layers = layers; s->pad = pad; s->weights = weights;
     s->rows = rows;
@@ -76,6 +93,26 @@ static int step_open(Step *s, i64 f, int layers, const i64 *pad, const float *we
     s->feat = malloc(sizeof(float) * (size_t)(TILE * f));
     s->gfeat = malloc(sizeof(float) * (size_t)(TILE * f));
     int ok = s->x && s->acts && s->tg && s->dy && s->gx && s->feat && s->gfeat;
+#ifdef HAVE_AMX
+    if (amx && amx_ready()) {
+        i64 widest = s->fpad, forward = 0;
+        for (int l = 0; l < layers; ++l) {
+            const i64 in = l ? pad[l - 1] : s->fpad;
+            widest = pad[l] > widest ? pad[l] : widest;
+            s->foff[l] = forward; forward += 2 * in * pad[l];
+        }
+        for (int l = 0; l < layers; ++l) s->boff[l] = forward + s->foff[l];
+        s->amx = amx;
+        s->hi = malloc(sizeof(bf16) * (size_t)(TILE * widest));
+        s->lo = malloc(sizeof(bf16) * (size_t)(TILE * widest));
+        s->pair_hi = malloc(sizeof(bf16) * (size_t)(TILE * widest));
+        s->pair_lo = malloc(sizeof(bf16) * (size_t)(TILE * widest));
+        s->gt = malloc(sizeof(float) * (size_t)(TILE * widest));
+        ok = ok && s->hi && s->lo && s->pair_hi && s->pair_lo && s->gt;
+    }
+#else
+    (void)amx;
+#endif
     if (learning) {
         s->gw = calloc((size_t)(offset + pad[layers - 1]), sizeof(float));
         ok = ok && s->gw;
@@ -89,6 +126,9 @@ static i64 step_weight_floats(const Step *s) { return s->out_off + s->pad[s->lay
 static void step_close(Step *s) {
     free(s->x); free(s->acts); free(s->tg); free(s->dy); free(s->gx); free(s->feat); free(s->gfeat);
     free(s->gw);
+#ifdef HAVE_AMX
+    free(s->hi); free(s->lo); free(s->pair_hi); free(s->pair_lo); free(s->gt);
+#endif
 }
 
 /* Rows of a product's register block: with 32 vector registers (AVX-512) 4 rows of 4 vectors, else 2. */
@@ -169,11 +209,25 @@ static void train_tile(Step *s, int nt, const float *target, float scale, float 
     const i64 fpad = s->fpad, plast = s->pad[last];
     for (int k = 0; k < nt; ++k)
         for (i64 j = 0; j < s->f; ++j) s->x[k * fpad + j] = s->feat[j * TILE + k];
+#ifdef HAVE_AMX
+    /* the tile unit's rows: a multiple of its depth, those past nt zero so that they add nothing to a sum over
+       the points (the weights' gradients) */
+    const i64 rows = (nt + 31) / 32 * 32;
+    if (s->amx) memset(s->x + nt * fpad, 0, sizeof(float) * (size_t)((rows - nt) * fpad));
+#endif
     /* forward: H_l = relu(A_(l-1) W_l^T), every layer kept */
     const float *in = s->x, *wt = s->weights;
     i64 stride = fpad, width = s->f;
     for (int l = 0; l < s->layers; ++l) {
         float *h = s->acts + TILE * s->aoff[l];
+#ifdef HAVE_AMX
+        if (s->amx) {
+            const bf16 *wh = s->amx + s->foff[l];
+            amx_split(in, rows * stride, s->hi, s->lo);
+            amx_product(s->hi, s->lo, stride, wh, wh + stride * s->pad[l], rows, s->pad[l], stride, h, s->pad[l], 0);
+            for (i64 e = 0; e < rows * s->pad[l]; e += VL) *(vec *)(h + e) = relu(*(const vec *)(h + e));
+        } else
+#endif
         product(in, 1, stride, wt, s->pad[l], width, nt, s->pad[l], h, s->pad[l], RELU, NULL);
         wt += width * s->pad[l];
         in = h;
@@ -190,21 +244,56 @@ static void train_tile(Step *s, int nt, const float *target, float scale, float 
         const float dy = scale * (y - target[k]);
         s->dy[k] = dy;
         /* backward through the output layer and the last ReLU */
-        for (i64 o = 0; o < plast; ++o) gl[k * plast + o] = hl[k * plast + o] > 0.0f ? dy * wt[o] : 0.0f;
+        for (i64 o = 0; o < plast; o += VL) {
+            const vec h = *(const vec *)(hl + k * plast + o);
+            *(vec *)(gl + k * plast + o) = (vec)((veci)(dy * *(const vec *)(wt + o)) & (veci)(h > (vec){0}));
+        }
     }
     /* backward: G_(l-1) = (G_l W_l) masked by ReLU, then the inputs' gradient G_0 W_0 */
-    for (int l = last; l >= 1; --l) {
-        const i64 pl = s->pad[l], pin = s->pad[l - 1];
-        product(s->tg + TILE * s->aoff[l], 1, pl, s->rows + s->roff[l], pin, pl, nt, pin,
-                s->tg + TILE * s->aoff[l - 1], pin, MASK, s->acts + TILE * s->aoff[l - 1]);
+#ifdef HAVE_AMX
+    if (s->amx) {
+        for (int k = nt; k < rows; ++k)
+            for (i64 o = 0; o < plast; ++o) gl[k * plast + o] = 0.0f;
+        for (int l = last; l >= 0; --l) {
+            const i64 pl = s->pad[l], pin = l ? s->pad[l - 1] : fpad;
+            const bf16 *wh = s->amx + s->boff[l];
+            float *g = l ? s->tg + TILE * s->aoff[l - 1] : s->gx;
+            amx_split(s->tg + TILE * s->aoff[l], rows * pl, s->hi, s->lo);
+            amx_product(s->hi, s->lo, pl, wh, wh + pl * pin, rows, pin, pl, g, pin, 0);
+            if (!l) break;
+            const float *a = s->acts + TILE * s->aoff[l - 1];
+            for (i64 e = 0; e < rows * pin; e += VL)
+                *(vec *)(g + e) = (vec)((veci)*(const vec *)(g + e) & (veci)(*(const vec *)(a + e) > (vec){0}));
+        }
+    } else
+#endif
+    {
+        for (int l = last; l >= 1; --l) {
+            const i64 pl = s->pad[l], pin = s->pad[l - 1];
+            product(s->tg + TILE * s->aoff[l], 1, pl, s->rows + s->roff[l], pin, pl, nt, pin,
+                    s->tg + TILE * s->aoff[l - 1], pin, MASK, s->acts + TILE * s->aoff[l - 1]);
+        }
+        product(s->tg, 1, s->pad[0], s->rows, fpad, s->pad[0], nt, fpad, s->gx, fpad, PUT, NULL);
     }
-    product(s->tg, 1, s->pad[0], s->rows, fpad, s->pad[0], nt, fpad, s->gx, fpad, PUT, NULL);
     for (int k = 0; k < nt; ++k)
         for (i64 j = 0; j < s->f; ++j) s->gfeat[j * TILE + k] = s->gx[k * fpad + j];
     if (!s->gw) return;
     for (int l = 0; l < s->layers; ++l) {  /* dW_l += G_l^T A_(l-1) over the tile */
         const float *a = l ? s->acts + TILE * s->aoff[l - 1] : s->x;
         const i64 pl = s->pad[l], cols = l ? s->pad[l - 1] : fpad;
+#ifdef HAVE_AMX
+        if (s->amx) {  /* the points are the sum's index: G_l transposed, A_(l-1) in pair layout */
+            const float *g = s->tg + TILE * s->aoff[l];
+            amx_split(a, rows * cols, s->hi, s->lo);
+            amx_pair_rows(s->hi, rows, cols, s->pair_hi);
+            amx_pair_rows(s->lo, rows, cols, s->pair_lo);
+            for (i64 p0 = 0; p0 < rows; p0 += 16)
+                for (i64 u0 = 0; u0 < pl; u0 += 16) transpose16(g + p0 * pl + u0, pl, s->gt + u0 * rows + p0, rows);
+            amx_split(s->gt, pl * rows, s->hi, s->lo);
+            amx_product(s->hi, s->lo, rows, s->pair_hi, s->pair_lo, pl, cols, rows, s->gw + s->roff[l], cols, 1);
+            continue;
+        }
+#endif
         product(s->tg + TILE * s->aoff[l], pl, 1, a, cols, nt, pl, cols, s->gw + s->roff[l], cols, ADD, NULL);
     }
     float *go = s->gw + s->out_off;  /* d loss / d w_out += sum_k dy[k] H_last[k] */
@@ -224,8 +313,8 @@ static void train_tile(Step *s, int nt, const float *target, float scale, float 
    a thread could not have its buffers (nothing is then valid). */
 int level_train(const float *points, i64 n, i64 levels, const float *maps, const int *meta, const i64 *rows_of,
                 const i64 *offsets, const float *table, i64 f, int layers, const i64 *pad, const float *weights,
-                const float *rows, const float *target, float *pred, float *grad_table, float *buffers, i64 size,
-                float *grad_weights, int nthreads) {
+                const float *rows, const void *amx, const float *target, float *pred, float *grad_table,
+                float *buffers, i64 size, float *grad_weights, int nthreads) {
     const float scale = n > 0 ? 2.0f / (float)n : 0.0f;
     float **parts = grad_weights ? calloc((size_t)nthreads, sizeof(float *)) : NULL;
     int failed = grad_weights && !parts;
@@ -234,7 +323,10 @@ int level_train(const float *points, i64 n, i64 levels, const float *maps, const
     {
         Scratch sc;
         Step st;
-        const int opened = step_open(&st, f, layers, pad, weights, rows, grad_weights != NULL);
+        const int opened = step_open(&st, f, layers, pad, weights, rows, amx, grad_weights != NULL);
+#ifdef HAVE_AMX
+        if (st.amx) amx_configure();
+#endif
         const i64 wsize = step_weight_floats(&st);
         if (grad_weights) parts[omp_get_thread_num()] = st.gw;
         if (opened != 0) {
@@ -274,6 +366,9 @@ int level_train(const float *points, i64 n, i64 levels, const float *maps, const
             }
         }
         #pragma omp barrier
+#ifdef HAVE_AMX
+        if (st.amx) _tile_release();
+#endif
         step_close(&st);  /* frees gw, which the sum above read */
     }
     free(parts);
@@ -284,13 +379,16 @@ int level_train(const float *points, i64 n, i64 levels, const float *maps, const
 
 def _declare(lib: ctypes.CDLL) -> None:
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
-    lib.level_train.argtypes = [p, i64, i64, p, p, p, p, p, i64, i32, p, p, p, p, p, p, p, i64, p, i32]
+    lib.level_train.argtypes = [p, i64, i64, p, p, p, p, p, i64, i32, p, p, p, p, p, p, p, p, i64, p, i32]
     lib.level_train.restype = i32
     lib.field_vector_width.argtypes = []
     lib.field_vector_width.restype = i32
+    lib.amx_ready.argtypes = []
+    lib.amx_ready.restype = i32
 
 
-LIBRARY = CompiledLibrary("field_train_cpu", LEVEL_SOURCE + LANE_LUT_SOURCE + MLP_SOURCE + TRAIN_SOURCE, _declare)
+LIBRARY = CompiledLibrary("field_train_cpu", LEVEL_SOURCE + LANE_LUT_SOURCE + MLP_SOURCE + AMX_SOURCE + TRAIN_SOURCE,
+                          _declare)
 
 
 def pack_decoder_rows(weights: list[torch.Tensor], vector_width: int) -> torch.Tensor:
@@ -333,9 +431,31 @@ def unpack_weight_grads(flat: torch.Tensor, weights: list[torch.Tensor], vector_
     return grads
 
 
+def tile_unit_factors(weights: list[torch.Tensor], features: int, padded: list[int]) -> torch.Tensor:
+    """The hidden layers' weights as the tile unit's products read them (:mod:`apmgsrn.ops.tile_products_cpu`):
+    every layer's forward factor ``W_l^T`` (``[in, out]``, the encoder's features padded to ``features``), then
+    every layer's backward factor ``W_l`` (``[out, in]``), each padded with zeros and given as its two bfloat16
+    halves in pair layout (hi, then lo), flat int16."""
+    forward, backward = [], []
+    inputs = features
+    for w, out in zip(weights[:-1], padded):
+        block = torch.zeros(out, inputs, dtype=torch.float32)
+        block[: w.shape[0], : w.shape[1]] = w.detach()
+        forward.extend(half.reshape(-1) for half in pair_layout(block.t().contiguous()))
+        backward.extend(half.reshape(-1) for half in pair_layout(block))
+        inputs = out
+    return torch.cat(forward + backward).contiguous()
+
+
+def tile_unit_takes(features: int, padded: list[int], lib) -> bool:
+    """Whether the fused step's products run on the tile unit: it is there (built for, and granted by Linux)
+    and every product's inner width (the padded features, every hidden layer) is a multiple of its depth."""
+    return bool(lib.amx_ready()) and all(width % TILE_DEPTH == 0 for width in (features, *padded))
+
+
 def level_grid_train_step_cpu(
     points: torch.Tensor, maps: torch.Tensor, table: torch.Tensor, layout: LevelLayout,
-    weights: list[torch.Tensor], target: torch.Tensor, decoder_learns: bool = True,
+    weights: list[torch.Tensor], target: torch.Tensor, decoder_learns: bool = True, tile_unit: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor] | None]:
     """The prediction of ``decoder(level_grid_features(points))`` and the gradients of its mean squared error
     to ``target`` with respect to ``table`` and, when ``decoder_learns``, every decoder weight, in one fused
@@ -349,6 +469,8 @@ def level_grid_train_step_cpu(
         weights: the decoder's bias-free linear layers ``[out, in]``, ReLU between them, the last ``[1, in]``.
         target: ``[N]`` the values to fit.
         decoder_learns: whether to compute the weights' gradients.
+        tile_unit: run the decoder's forward and backward products on AMX where the CPU has it
+            (:func:`tile_unit_takes`); False: on the vector unit in float32.
 
     Returns:
         ``([N] prediction, [T] table gradient, the weights' gradients shaped as them or None)``.
@@ -370,10 +492,15 @@ def level_grid_train_step_cpu(
     threads = torch.get_num_threads()
     buffers = torch.zeros(threads - 1, size, dtype=torch.float32) if threads > 1 else None
     flat_w = torch.empty(rows.numel() + int(padded[-1]), dtype=torch.float32) if decoder_learns else None
+    features = -(-layout.out_features // width) * width
+    factors = None
+    if tile_unit and tile_unit_takes(features, padded.tolist(), lib):
+        factors = tile_unit_factors(weights, features, padded.tolist())
     status = lib.level_train(
         pts.data_ptr(), n, layout.levels, flat_maps.data_ptr(), kernel.meta.data_ptr(), kernel.rows.data_ptr(),
         kernel.offsets.data_ptr(), tab.data_ptr(), layout.out_features, len(padded), padded.data_ptr(),
-        packed.data_ptr(), rows.data_ptr(), goal.data_ptr(), prediction.data_ptr(), grad.data_ptr(),
+        packed.data_ptr(), rows.data_ptr(), None if factors is None else factors.data_ptr(), goal.data_ptr(),
+        prediction.data_ptr(), grad.data_ptr(),
         None if buffers is None else buffers.data_ptr(), size, None if flat_w is None else flat_w.data_ptr(), threads,
     )
     if status != 0:

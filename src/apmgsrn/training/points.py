@@ -22,7 +22,7 @@ import torch
 
 from apmgsrn.io.description import DescriptionError
 from apmgsrn.ops.sorted_search_cpu import LIBRARY as SEARCH_LIBRARY
-from apmgsrn.ops.sorted_search_cpu import ascending_search_cpu
+from apmgsrn.ops.sorted_search_cpu import ascending_search_cpu, guided_voxels_cpu
 from apmgsrn.ops.trilinear import axis_coordinates, sample_volume
 from apmgsrn.recipes import RUNTIME, VOLUME
 
@@ -122,6 +122,21 @@ class ErrorGuide:
             return self._every_voxel[1].index_select(0, index)
         return voxel_points(index, self.volume.shape)
 
+    def draw_voxels(self, count: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`draw`'s ``[count]`` voxel indices with their points ``[count, 3]`` and values ``[count]``: on a
+        CPU in one pass (:func:`apmgsrn.ops.sorted_search_cpu.guided_voxels_cpu`, the same numbers to the bit
+        from the same random draws), elsewhere through :meth:`draw` and :meth:`voxel_points`."""
+        if self.cumulative is None:
+            raise RuntimeError("ErrorGuide.draw before measure")
+        if (self.volume.device.type == "cpu" and self.volume.dtype == torch.float32
+                and self.cumulative.dtype == torch.float64 and SEARCH_LIBRARY.available()):
+            offset = torch.rand((), generator=generator, dtype=torch.float64)
+            offsets = (torch.randint(0, self.block, (3, count), generator=generator)
+                       if self.block > 1 else None)
+            return guided_voxels_cpu(self.cumulative, float(offset), count, self.block, self.volume, offsets)
+        index = self.draw(count, generator)
+        return index, self.voxel_points(index), self.volume.reshape(-1)[index]
+
     def draw(self, count: int, generator: torch.Generator) -> torch.Tensor:
         """``[count]`` voxel indices (flat) drawn in proportion to the measured errors."""
         if self.cumulative is None:
@@ -184,11 +199,12 @@ def draw_batch(
     d, h, w = volume.shape
     guided = voxel_count(on_voxels, guided_share) if guide is not None else 0
     index = torch.randint(0, d * h * w, (on_voxels - guided,), generator=generator, device=volume.device)
-    if guided:
-        index = torch.cat([guide.draw(guided, generator), index])
     voxels = voxel_points(index, volume.shape) if guide is None else guide.voxel_points(index)
-    points = torch.cat([voxels, uniform])
-    targets = torch.cat([volume.reshape(-1)[index], sample_volume(volume, uniform)])
+    if not guided:
+        return torch.cat([voxels, uniform]), torch.cat([volume.reshape(-1)[index], sample_volume(volume, uniform)])
+    _, guided_points, guided_values = guide.draw_voxels(guided, generator)
+    points = torch.cat([guided_points, voxels, uniform])
+    targets = torch.cat([guided_values, volume.reshape(-1)[index], sample_volume(volume, uniform)])
     return points, targets
 
 
