@@ -70,13 +70,15 @@ def quality_chart(rows: list[QualityRow], path: Path) -> None:
     atomic_write(path, figure.savefig, "chart")
 
 
-def rate_distortion_chart(rows: list[CompressRow], path: Path, title: str = "") -> None:
+def rate_distortion_chart(rows: list[CompressRow], path: Path, title: str = "",
+                          ratio_label: str = "compression ratio (stored bytes / compressed bytes)") -> None:
     """PSNR against compression ratio (log scale): a line per compressor, a point per network.
 
     Args:
         rows: results of ``bench compress`` for one volume.
         path: PNG file to write.
         title: chart title (the volume).
+        ratio_label: the x axis' title: what ``compression_ratio`` of the rows is against.
     """
     figure = _figure(6.4, 4.2)
     axis = figure.subplots()
@@ -108,7 +110,7 @@ def rate_distortion_chart(rows: list[CompressRow], path: Path, title: str = "") 
             axis.plot([r.compression_ratio for r in points], [r.psnr for r in points], "-o", markersize=3,
                       color=COLOURS.get(method), label=label)
     axis.set_xscale("log")
-    axis.set_xlabel("compression ratio (stored bytes / compressed bytes)")
+    axis.set_xlabel(ratio_label)
     axis.set_ylabel("PSNR (dB)")
     axis.set_title(title)
     axis.grid(alpha=0.3, which="both")

@@ -1,4 +1,4 @@
-"""``apmgsrn bench quality|compress|series``: compare APMGSRN with fVSRN, NGP, SZ3, ZFP, SPERR and TTHRESH on your
+"""``apmgsrn bench quality|compress|rd|series``: compare APMGSRN with fVSRN, NGP, SZ3, ZFP, SPERR and TTHRESH on your
 volumes, and one model for a whole time series with one model per step on your series."""
 
 from __future__ import annotations
@@ -82,6 +82,42 @@ def register(subparsers) -> None:
     add_device_argument(compress)
     compress.set_defaults(func=run_compress_command, paths=compress_paths)
 
+    rd = commands.add_parser(
+        "rd",
+        help="the rate-distortion page: every compressor and network at the same ratios, crossovers, access cost",
+        description="For each volume (default: the shared volumes of 128^3 and more that no compressor made, "
+        "and a 128^3 turbulence computed here), every compressor at each ratio against float32 (its setting "
+        "found by bisection) and each network kind trained by 'apmgsrn train --ratio'; PSNR, largest error, "
+        "the crossover of each network with each compressor, the points/s of a random query and the time of a "
+        "64^3 region. Writes the page (--page) and its charts (images/ beside it); OUT keeps bench compress's "
+        "CSV of each volume and the models, so the same command measures only what is missing.",
+    )
+    rd.add_argument("data", nargs="*", metavar="DATA",
+                    help="volume files (PATH or PATH:VARIABLE) or registered volume names (default: c60, "
+                         "richtmyer-meshkov, turbulence-vorticity-128)")
+    rd.add_argument("--ratios", nargs="+", type=float,
+                    help="ratios against float32 bytes (default 30 100 300 1000 3000 10000; --quick 100 1000)")
+    rd.add_argument("--quick", action="store_true",
+                    help="two ratios and 200 iterations unless given: to try the page out")
+    rd.add_argument("--models", nargs="+", choices=MODEL_KINDS,
+                    help="network kinds, each trained by train --model KIND --ratio R (default: the default "
+                         "model and apmgsrn)")
+    rd.add_argument("--compressors", nargs="+", choices=COMPRESSORS, default=list(COMPRESSORS))
+    _add_budget(rd, None, None)
+    rd.set_defaults(iterations=None)
+    rd.add_argument("--seed", type=int, default=0, help="the networks' training seed (default 0)")
+    rd.add_argument("--query-points", type=int, help="random points of the query test (default 2^18)")
+    rd.add_argument("--region", type=int, help="side of the decoded region (default 64)")
+    rd.add_argument("--compress-seconds", type=float, metavar="S",
+                    help="leave out a compressor on a volume once one compression takes longer than S seconds "
+                         "(its ratio search compresses up to 40 times; default: no limit)")
+    rd.add_argument("--out", default="bench-results/rate_distortion", help=OUT_HELP.replace(
+        "bench-results", "bench-results/rate_distortion"))
+    rd.add_argument("--page", help="Markdown page to write (default OUT/rate_distortion.md); charts in images/ "
+                                   "beside it")
+    add_device_argument(rd)
+    rd.set_defaults(func=run_rd_command, paths=rd_paths)
+
     series = commands.add_parser(
         "series",
         help="one model for a whole time series against one model per step: PSNR per step, file size, time",
@@ -148,6 +184,16 @@ def compress_paths(args: argparse.Namespace) -> CommandPaths:
     return CommandPaths(reads=reads, writes=[Output(args.out, "--out", "results folder")])
 
 
+def rd_paths(args: argparse.Namespace) -> CommandPaths:
+    """The volumes are read (a registered one still to be computed is not there yet); the results folder and
+    the page written."""
+    from apmgsrn.bench.rate_distortion import DEFAULT_VOLUMES, page_path, pending_volume
+
+    reads = [parse_data_spec(text).path for text in (args.data or DEFAULT_VOLUMES) if not pending_volume(text)]
+    return CommandPaths(reads=reads, writes=[Output(args.out, "--out", "results folder"),
+                                             Output(page_path(args.out, args.page), "--page", "page")])
+
+
 def series_paths(args: argparse.Namespace) -> CommandPaths:
     """The series' files are read; the results folder written."""
     from apmgsrn.series.data import input_files
@@ -201,6 +247,27 @@ def run_compress_command(args: argparse.Namespace) -> int:
     for reason in report.skipped:
         print(f"note: skipped {reason}")
     print(f"wrote {report.csv}, {report.markdown}" + (f" and {report.chart}" if report.rows else ""))
+    return 0
+
+
+def run_rd_command(args: argparse.Namespace) -> int:
+    from apmgsrn.bench.rate_distortion import (
+        DEFAULT_VOLUMES, QUICK_ITERATIONS, QUICK_RATIOS, RateDistortionPlan, page_path, resolve_volume,
+        run_rate_distortion)
+    from apmgsrn.device import resolve_device
+
+    # The plan's defaults, --quick's where asked, then what the command line gives.
+    options = {"ratios": QUICK_RATIOS, "iterations": QUICK_ITERATIONS} if args.quick else {}
+    options.update({name: getattr(args, name) for name in ("iterations", "query_points", "region", "compress_seconds")
+                    if getattr(args, name) is not None})
+    options.update({name: tuple(dict.fromkeys(getattr(args, name))) for name in ("ratios", "models")
+                    if getattr(args, name)})
+    plan = RateDistortionPlan(datasets=tuple(resolve_volume(text) for text in (args.data or DEFAULT_VOLUMES)),
+                              compressors=tuple(dict.fromkeys(args.compressors)), batch_size=args.batch_size,
+                              seed=args.seed, **options)
+    report = run_rate_distortion(plan, Path(args.out), page_path(args.out, args.page), resolve_device(args.device),
+                                 log=_log)
+    print(f"wrote {report.page}" + (f" and {', '.join(str(c) for c in report.charts)}" if report.charts else ""))
     return 0
 
 

@@ -133,6 +133,7 @@ FLAGS = {
     "ratios": "--ratios",
     "ratio_tolerance": "--ratio-tolerance",
     "query_points": "--query-points",
+    "compress_seconds": "--compress-seconds",
     "every": "--every",
 }
 
