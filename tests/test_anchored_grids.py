@@ -68,7 +68,7 @@ def test_the_command_line_names_a_bad_count_in_one_line(tmp_path, neghip_crop, c
 
 def test_a_small_size_target_anchors_one_grid_unless_told_otherwise(test_data, tmp_path, capsys):
     volume = str(test_data / "neghip_64x64x64_uint8.raw")  # 262,144 bytes
-    common = ["--iterations", "5", "--batch-size", "256", "--device", "cpu"]
+    common = ["--model", "apmgsrn", "--iterations", "5", "--batch-size", "256", "--device", "cpu"]
     assert main(["train", volume, "--out", str(tmp_path / "a.apmgsrn"), *common, "--ratio", "100"]) == 0
     out = capsys.readouterr().out
     assert "4 grids" in out and "one grid anchored over the domain" in out

@@ -120,7 +120,7 @@ def test_pack_refuses_a_volume_of_another_shape(float32_model, test_data, tmp_pa
 
 def test_train_to_a_ratio_chooses_the_model_size_and_lands_under_it(neghip, tmp_path, capsys):
     out = tmp_path / "r.apmgsrn"
-    small = [a for a in TINY if a not in ("--resolution", "8")]
+    small = ["--model", "apmgsrn", *(a for a in TINY if a not in ("--resolution", "8"))]
     code, trained = run_json(["train", str(neghip), "--out", str(out), *small, "--ratio", "20"], capsys)
     assert code == 0 and trained["model_bytes"] == out.stat().st_size <= 32**3 / 20
     chosen = apmgsrn.load(out).description.config.encoder.resolution
@@ -133,7 +133,8 @@ def test_train_to_a_ratio_chooses_the_model_size_and_lands_under_it(neghip, tmp_
 def test_a_tiny_size_target_shrinks_the_decoder_and_the_grid_count_unless_they_were_given():
     from apmgsrn.models.registry import preset_config
     from apmgsrn.recipes import PACKING
-    from apmgsrn.training.packing import config_for_bytes, packed_overhead
+    from apmgsrn.training.packing import packed_overhead
+    from apmgsrn.training.sizing import config_for_bytes
 
     def estimate(config):
         parameters = sum(int(np.prod(shape)) for shape in config.parameter_shapes().values())

@@ -1,9 +1,11 @@
 """The names a user chooses from (model kinds, size presets, schedules, value transforms, ...), one list each.
 
 The library validates against these lists and the command line offers them, so both always agree. The
-module imports nothing (no torch, no numpy): ``apmgsrn --help`` lists the choices without loading the
+module imports only the recipes (no torch, no numpy): ``apmgsrn --help`` lists the choices without loading the
 library behind them.
 """
+
+from apmgsrn.recipes import PACKING
 
 #: Model kinds (docs/method.md §2 and §5): keys of :data:`apmgsrn.models.registry.ENCODERS`. ``apmgsrn`` is the
 #: paper's (its presets and results unchanged), ``hybrid`` the default (docs/models.md).
@@ -13,14 +15,17 @@ MODEL_KINDS = ("apmgsrn", "fvsrn", "ngp", "hybrid")
 DEFAULT_MODEL = "hybrid"
 
 
-def default_model(series: bool = False, byte_target: bool = False, joint: bool = False) -> str:
+def default_model(series: bool = False, byte_target: int | None = None, joint: bool = False) -> str:
     """The model kind to build when none is named: :data:`DEFAULT_MODEL` for a volume (or its bricks) and for a
     time series trained step by step (packed to its size by the series' own packing); the paper's ``apmgsrn``
-    for a joint time series (its basis grids extend APMGSRN's) and for a volume's byte target
-    (``--ratio``/``--size``, whose models resize APMGSRN's grids; docs/time_series.md, docs/packing.md)."""
+    for a joint time series (its basis grids extend APMGSRN's). A volume's byte target (``--ratio``/``--size``,
+    ``byte_target`` bytes) gets :data:`DEFAULT_MODEL` from ``PACKING.hybrid_min_bytes`` up, ``apmgsrn`` below
+    (docs/packing.md)."""
     if series:
         return "apmgsrn" if joint else DEFAULT_MODEL
-    return "apmgsrn" if byte_target else DEFAULT_MODEL
+    if byte_target is not None and byte_target < PACKING.hybrid_min_bytes:
+        return "apmgsrn"
+    return DEFAULT_MODEL
 
 
 #: The paper's model and its two baselines: what ``bench compress`` runs unless given ``--models`` (the

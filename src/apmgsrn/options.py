@@ -40,6 +40,7 @@ from apmgsrn.arguments import (
     int_type,
     number_type,
 )
+from apmgsrn import recipes
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.limits import LIMITS
 
@@ -114,7 +115,8 @@ class TrainOptions:
     # model
     model: str | None = option(group=MODEL, choices=MODEL_KINDS,
                                help=f"default {DEFAULT_MODEL} (docs/models.md); apmgsrn for a joint time series or "
-                                    "--ratio/--size; apmgsrn is the paper's model")
+                                    f"a --ratio/--size under {recipes.PACKING.hybrid_min_bytes:,} bytes "
+                                    "(docs/packing.md); apmgsrn is the paper's model")
     preset: str = option("small", group=MODEL, choices=SIZE_PRESETS, help="size preset (default small)")
     grids: int | None = option(group=MODEL, type=int, help="number of grids M")
     features: int | None = option(group=MODEL, type=int, help="features per grid C (per level for ngp and hybrid)")

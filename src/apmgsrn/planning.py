@@ -32,7 +32,8 @@ from apmgsrn.series.field import series_config
 from apmgsrn.series.fit import series_budget
 from apmgsrn.series.packing import SeriesPacking, default_series_decoder, default_series_packing, default_series_qat
 from apmgsrn.series.steps import StepwiseConfig, stepwise_config
-from apmgsrn.training.packing import PackConfig, anchored_grids_for, config_for_bytes, packed_overhead
+from apmgsrn.training.packing import PackConfig, packed_overhead
+from apmgsrn.training.sizing import anchored_grids_for, config_for_bytes
 from apmgsrn.training.trainer import TrainConfig, default_budget
 
 #: The packing options: a model is packed when any of them is given.
@@ -321,13 +322,15 @@ def _volume_plan(volume: Volume, paths: tuple[str, ...], options: TrainOptions, 
     bricks = _bricks(options)
     packing = pack_config(options, volume.stored_bytes) if packing_requested(options) else None
     byte_target = packing is not None and packing.target_bytes is not None
-    model = options.model or default_model(series=False, byte_target=byte_target)
+    model = options.model or default_model(series=False, byte_target=packing.target_bytes if byte_target else None)
     field_config, train_config = _configs(options, model, device, None, False)
     if byte_target and options.resolution is None:
-        fixed = (*(("grids",) if options.grids is not None else ()),
-                 *(("decoder",) if options.width is not None or options.hidden_layers is not None else ()))
+        given = {"grids": options.grids, "levels": options.levels, "log2_table_size": options.log2_table_size,
+                 "decoder": options.width if options.width is not None else options.hidden_layers}
+        fixed = tuple(name for name, value in given.items() if value is not None)
         overhead = packed_overhead(field_config, tuple(volume.shape), SourceInfo.of_volume(volume))
-        field_config = config_for_bytes(field_config, packing.target_bytes, fixed, overhead=overhead)
+        field_config = config_for_bytes(field_config, packing.target_bytes, fixed, overhead=overhead,
+                                        volume_shape=tuple(volume.shape))
         if options.anchored_grids is None:
             train_config = replace(train_config, anchored_grids=anchored_grids_for(field_config))
     return Plan("volume", paths, tuple(volume.shape), None, volume.stored_bytes, str(device), model, field_config,

@@ -186,6 +186,12 @@ class PackingRecipe:
     min_grids: int = 4
     #: a size target's model of at most this many grids anchors one (HCCI, 10,000:1: 36.0-42.8 dB, not 27.1-30.9)
     anchor_max_grids: int = 8
+    #: share of a sized hybrid's encoder parameters its domain levels take: the small preset's split (0.37), untuned
+    hybrid_level_share: float = 0.375
+    #: fewest rows (log2) a sized hybrid's domain level hashes into; below it the levels are fewer instead (untuned)
+    hybrid_min_log2_table: int = 6
+    #: a byte target's unnamed model is a hybrid from here up, APMGSRN below (hybrid -0.96 dB at 2,097 B, +7.8 at 2,614)
+    hybrid_min_bytes: int = 2_400
     #: an error bound's correction quantises this much tighter than promised (float32 rounding)
     bound_margin: float = 1 / 64
     #: peak learning rate of a single field's quantisation-aware fine-tune

@@ -125,11 +125,12 @@ def run(args: argparse.Namespace) -> int:
     device = torch.device(plan.device)
     volume, field_config, train_config, packing = plan.source, plan.field, plan.training, plan.packing
     if packing is not None and packing.target_bytes is not None and args.resolution is None and not args.json:
-        grids = getattr(field_config.encoder, "grids", None)
-        shape = "x".join(str(r) for r in reversed(field_config.encoder.resolution))  # x*y*z
-        print(f"model size  {f'{grids} grids' if grids else 'a grid'} of {shape}, "
+        from apmgsrn.training.sizing import sized_words
+
+        size, options = sized_words(field_config)
+        print(f"model size  {size}, "
               f"decoder {field_config.decoder.hidden_layers} x {field_config.decoder.width}, chosen to pack "
-              f"into {packing.target_bytes:,} bytes (--resolution, --grids, --width to choose yourself)"
+              f"into {packing.target_bytes:,} bytes ({options} to choose yourself)"
               + (", one grid anchored over the domain" if train_config.anchored_grids else ""))
     out = Path(args.out)
     try:

@@ -125,12 +125,6 @@ class PackConfig:
         return "size" if self.target_bytes is not None else "psnr-loss"
 
 
-def anchored_grids_for(config) -> int:
-    """Grids to anchor when training ``config``, a model :func:`config_for_bytes` sized: 1 for an adaptive
-    encoder of at most ``PACKING.anchor_max_grids`` grids, else 0."""
-    return 1 if 0 < getattr(config.encoder, "grids", 0) <= PACKING.anchor_max_grids else 0
-
-
 def packed_overhead(config, volume_shape: tuple[int, int, int] = (256, 256, 256),
                     source: SourceInfo | None = None) -> int:
     """The bytes a packed file of a model of ``config`` fitted to ``volume_shape`` takes beside its coded
@@ -156,72 +150,6 @@ def _placeholder_report(mode: str, bits: int | None, target_bytes: int | None) -
               "float32_max_abs_error": math.pi, "float32_parameter_bytes": 10**9, "qat_iterations": 0,
               "scale": math.pi, "psnr": math.pi, "max_abs_error": math.pi, "psnr_cost": math.pi}
     return _rounded(report)
-
-
-def config_for_bytes(config, target_bytes: int, fixed: tuple[str, ...] = (),
-                     bits_per_parameter: float = PACKING.bits_per_parameter, overhead: int | None = None):
-    """A config like ``config`` (a :class:`~apmgsrn.models.registry.FieldConfig` of an encoder with a
-    ``resolution``: apmgsrn, fvsrn) whose packed file comes to about ``target_bytes``.
-
-    Chooses, unless ``fixed`` names it (``"grids"``, ``"decoder"``): the decoder, from the packing recipe's
-    ``decoder_ladder`` by its ``decoder_share`` (:class:`~apmgsrn.recipes.PackingRecipe`); the number of grids
-    (apmgsrn), halved while each would be coarser than its ``min_resolution``; then the largest resolution (2^3 ..
-    256^3, one axis finer at a time) whose ``parameters * bits_per_parameter / 8`` plus the file's ``overhead``
-    fits (None: :func:`packed_overhead` of ``config``). Features and every other setting stay as given.
-
-    Raises:
-        ApmgsrnError: the encoder has no resolution to choose, or even resolution 2 does not fit.
-    """
-    if not hasattr(config.encoder, "resolution"):
-        raise ApmgsrnError(f"target_bytes={target_bytes}: choosing the size of a {config.model} model is not "
-                           "supported; give its size options and pack to the target", arguments=("target_bytes",))
-    overhead = packed_overhead(config) if overhead is None else overhead
-    budget = max(target_bytes - overhead, 0) * 8 / bits_per_parameter  # parameters
-
-    def parameters(candidate) -> int:
-        return sum(math.prod(shape) for shape in candidate.parameter_shapes().values())
-
-    def with_resolution(candidate, resolution: tuple[int, int, int]):
-        return replace(candidate, encoder=replace(candidate.encoder, resolution=resolution))
-
-    def largest_resolution(candidate) -> tuple[int, int, int] | None:
-        """The largest of 2^3, 2x2x3, 2x3x3, 3^3, ... 256^3 (D, H, W) that fits: one axis finer at a time,
-        so a small budget is filled to within a few percent, not to within a cube."""
-        best = None
-        for side in range(2, 257):
-            for resolution in ((side, side, side), (side, side, side + 1), (side, side + 1, side + 1)):
-                if max(resolution) > 256 or parameters(with_resolution(candidate, resolution)) > budget:
-                    return best
-                best = resolution
-        return best
-
-    def with_decoder(candidate):
-        if "decoder" in fixed:
-            return candidate
-        current = (candidate.decoder.hidden_layers, candidate.decoder.width)
-        ladder = [size for size in PACKING.decoder_ladder
-                  if size[0] <= current[0] and size[1] <= current[1]] or [current]
-        for layers, width in ladder:
-            decoder = replace(candidate.decoder, hidden_layers=layers, width=width)
-            shapes = decoder.parameter_shapes(candidate.encoder.out_features)
-            if sum(math.prod(shape) for shape in shapes.values()) <= PACKING.decoder_share * budget:
-                break
-        return replace(candidate, decoder=decoder)
-
-    candidate = with_decoder(config)
-    resolution = largest_resolution(candidate)
-    while ("grids" not in fixed and hasattr(config.encoder, "grids")
-           and candidate.encoder.grids // 2 >= PACKING.min_grids
-           and (resolution is None or min(resolution) < PACKING.min_resolution)):
-        candidate = with_decoder(replace(config, encoder=replace(config.encoder, grids=candidate.encoder.grids // 2)))
-        resolution = largest_resolution(candidate)
-    if resolution is None:
-        smallest = with_resolution(candidate, (2, 2, 2))
-        raise ApmgsrnError(f"target_bytes={target_bytes}: even grids of 2^3 take about "
-                           f"{parameters(smallest) * bits_per_parameter / 8 + overhead:.0f} bytes; "
-                           "pass a larger target (a lower ratio), or fewer grids or a narrower decoder",
-                           arguments=("target_bytes",))
-    return with_resolution(candidate, resolution)
 
 
 # ------------------------------------------------------------------------------------------ quantiser

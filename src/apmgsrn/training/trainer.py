@@ -93,7 +93,7 @@ class TrainConfig:
             loss moves the others). With the default initialisation they cover the whole domain, so no
             region is ever left without features: a point no grid covers decodes to the bottom of the value
             range. 0 (docs/method.md §3, and what older checkpoints ran with): every grid moves. Small models
-            sized for a byte target anchor one (:func:`apmgsrn.training.packing.anchored_grids_for`).
+            sized for a byte target anchor one (:func:`apmgsrn.training.sizing.anchored_grids_for`).
         placement_loss: what moves the grid placements. ``"density"`` (docs/method.md §4): the feature-density
             loss, between ``density_start`` and the freeze. ``"reconstruction"``: the reconstruction error
             itself, from the first iteration until the freeze, at ``placement_lr`` scaled by the network's
