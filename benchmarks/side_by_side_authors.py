@@ -51,9 +51,9 @@ DONE = re.compile(r"Model completed training after (\d+)m ([0-9.]+)s")
 METHODS = ("authors", "hybrid", "apmgsrn")
 
 
-def authors_seconds(code: Path, volume: Path, variable: str | None, iterations: int, batch: int, seed_dir: Path) -> float:
-    """The authors' training time (seconds) for ``iterations`` of their small preset."""
-    del variable  # their reader takes the file's first variable
+def authors_seconds(code: Path, volume: Path, iterations: int, batch: int) -> float:
+    """The authors' training time (seconds) for ``iterations`` of their small preset (their reader takes the
+    file's first variable)."""
     argv = ["--model", "APMGSRN", "--n_grids", "16", "--n_features", "1", "--feature_grid_shape", "16,16,16",
             "--n_layers", "2", "--nodes_per_layer", "64", "--iterations", str(iterations),
             "--points_per_iteration", str(batch), "--lr", "0.01", "--device", "cpu", "--data_device", "cpu",
@@ -61,7 +61,7 @@ def authors_seconds(code: Path, volume: Path, variable: str | None, iterations: 
             "--save_name", f"side_by_side_{iterations}"]
     script = str(code / "train.py")
     prelude = PRELUDE.format(code=str(code), script=script, argv=argv)
-    out = subprocess.run([sys.executable, "-c", prelude], cwd=seed_dir, capture_output=True, text=True)
+    out = subprocess.run([sys.executable, "-c", prelude], cwd=code, capture_output=True, text=True)
     found = DONE.search(out.stdout)
     if out.returncode != 0 or found is None:
         raise SystemExit(f"the authors' train.py failed (rc {out.returncode}):\n{out.stdout[-2000:]}\n{out.stderr[-2000:]}")
@@ -117,7 +117,7 @@ def main() -> None:
             for method, n in order:
                 start = time.perf_counter()
                 if method == "authors":
-                    s = authors_seconds(code, path, variable, n, args.batch_size, code)
+                    s = authors_seconds(code, path, n, args.batch_size)
                 else:
                     s = own_seconds(method, path, variable, n, args.batch_size, work)
                 seconds.setdefault((method, n), []).append(s)

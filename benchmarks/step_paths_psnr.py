@@ -26,19 +26,19 @@ from apmgsrn.training import trainer as trainer_module
 PATHS = ("autograd", "vector", "tile")
 
 
+ORIGINAL_INIT = trainer_module.Trainer.__init__
+ORIGINAL_TAKES = field_train_cpu.tile_unit_takes
+
+
 def use_path(path: str) -> None:
     """Point the trainer and the fused kernel at one path (process-wide)."""
-    original_init = trainer_module.Trainer.__dict__.get("_original_init") or trainer_module.Trainer.__init__
-    trainer_module.Trainer._original_init = original_init
 
     def init(self, *args, **kwargs):
-        original_init(self, *args, **kwargs)
+        ORIGINAL_INIT(self, *args, **kwargs)
         self.fused_step = path != "autograd"
 
     trainer_module.Trainer.__init__ = init
-    takes = field_train_cpu.__dict__.get("_original_takes") or field_train_cpu.tile_unit_takes
-    field_train_cpu._original_takes = takes
-    field_train_cpu.tile_unit_takes = takes if path == "tile" else (lambda *args: False)
+    field_train_cpu.tile_unit_takes = ORIGINAL_TAKES if path == "tile" else (lambda *args: False)
 
 
 def main() -> None:
