@@ -314,7 +314,7 @@ def test_a_guided_draw_in_one_pass_gives_what_the_tensor_path_gives_bit_for_bit(
     """The CPU's one-pass guided draw (search, block, voxel, position, value) against the tensor operations it
     replaces, from the same random draws: the same indices, points and values to the bit, on a real volume
     measured voxel by voxel and in blocks (voxels clamped at a block that the volume's edge cuts), and on
-    lattices with an axis of one voxel."""
+    lattices with an axis of one voxel; on one thread and with the draws split between threads."""
     from apmgsrn.ops.sorted_search_cpu import LIBRARY
     from apmgsrn.training.points import ErrorGuide
 
@@ -324,12 +324,18 @@ def test_a_guided_draw_in_one_pass_gives_what_the_tensor_path_gives_bit_for_bit(
     volume = volume if volume is not None and volume.shape == shape else torch.rand(shape)
     guide = ErrorGuide(volume, pool=pool) if pool else ErrorGuide(volume)
     guide.measure(lambda points: torch.zeros(len(points)), torch.Generator())  # errors = |values|
-    for seed, count in ((1, 777), (2, 1), (3, 20000)):
-        index, points, values = guide.draw_voxels(count, torch.Generator().manual_seed(seed))
-        expected = guide.draw(count, torch.Generator().manual_seed(seed))
-        assert torch.equal(index, expected)
-        assert torch.equal(points, guide.voxel_points(expected))
-        assert torch.equal(values, volume.reshape(-1)[expected])
+    threads = torch.get_num_threads()
+    try:
+        for workers in (1, 2, 3):  # 20,000 draws run on one thread, then split between two and three
+            torch.set_num_threads(workers)
+            for seed, count in ((1, 777), (2, 1), (3, 20000)):
+                index, points, values = guide.draw_voxels(count, torch.Generator().manual_seed(seed))
+                expected = guide.draw(count, torch.Generator().manual_seed(seed))
+                assert torch.equal(index, expected)
+                assert torch.equal(points, guide.voxel_points(expected))
+                assert torch.equal(values, volume.reshape(-1)[expected])
+    finally:
+        torch.set_num_threads(threads)
 
 
 def test_error_guided_points_sit_on_voxels_with_their_values_and_keep_the_uniform_share(channel):

@@ -268,6 +268,8 @@ class RuntimeRecipe:
     ordered_batch_table_bytes: int = 2 * 1024 * 1024
     #: points an error measurement evaluates at once on a CPU (elsewhere 2^16): 0.09 s against 0.14 for 2^18 voxels
     cpu_measure_chunk: int = 1 << 13
+    #: fewest guided draws a thread takes: below it one thread draws them (a thread's start costs about 5 us)
+    draws_per_thread: int = 4096
 
 
 VOLUME = VolumeRecipe()
