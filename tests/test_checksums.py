@@ -25,6 +25,7 @@ from apmgsrn.decomposition.planner import DecompositionConfig
 from apmgsrn.errors import ApmgsrnError, ApmgsrnNote
 from apmgsrn.io import container, verify_file
 from apmgsrn.io.brick_folder import manifest_path
+from apmgsrn.io.container import manifest_checksum, sealed_manifest_text
 from apmgsrn.io.description import time_steps
 from apmgsrn.models.registry import preset_config
 from apmgsrn.training.checkpoint import CHECKPOINT_KIND
@@ -246,6 +247,7 @@ def test_a_manifest_of_format_2_loads_with_a_note(bricks, tmp_path):
     del manifest["run_id"]
     for entry in manifest["bricks"]:
         del entry["checksum"], entry["run"]
+    del manifest["manifest_checksum"]  # written before manifests carried one
     manifest_path(folder).write_text(json.dumps(manifest))
     with pytest.warns(ApmgsrnNote, match="manifest.json: brick manifest of format 2"):
         values = decoded(folder)
@@ -257,9 +259,39 @@ def test_a_manifest_of_format_3_without_its_records_is_refused(bricks, tmp_path)
     shutil.copytree(bricks, folder)
     manifest = json.loads(manifest_path(folder).read_text())
     del manifest["bricks"][1]["checksum"]
-    manifest_path(folder).write_text(json.dumps(manifest))
+    manifest_path(folder).write_text(sealed_manifest_text(manifest))
     with pytest.raises(ApmgsrnError, match=r"bricks\[1\] records no checksum"):
         apmgsrn.load(folder)
+
+
+def test_a_manifest_changed_after_it_was_written_is_refused_as_damaged(bricks, tmp_path):
+    """A brick folder's manifest carries a crc32c of its own content: a number changed in it that every field
+    check accepts (the value range) is refused as damage, in one line and with exit code 2 from the command
+    line; the same content sealed again loads."""
+    folder = tmp_path / "changed"
+    shutil.copytree(bricks, folder)
+    manifest = json.loads(manifest_path(folder).read_text())
+    assert manifest["manifest_checksum"] == manifest_checksum(manifest)
+    low, high = manifest["value_range"]
+    manifest["value_range"] = [low, high + (high - low)]
+    manifest_path(folder).write_text(json.dumps(manifest, indent=1))
+    with pytest.raises(ApmgsrnError, match="manifest.json: damaged: the brick model manifest's checksum") as caught:
+        apmgsrn.load(folder)
+    assert "\n" not in str(caught.value)
+    assert main(["info", str(folder)]) == 2
+    manifest_path(folder).write_text(sealed_manifest_text(manifest))
+    apmgsrn.load(folder)
+
+
+def test_a_manifest_written_without_its_own_checksum_loads_with_a_note(bricks, tmp_path):
+    folder = tmp_path / "unsealed"
+    shutil.copytree(bricks, folder)
+    manifest = json.loads(manifest_path(folder).read_text())
+    del manifest["manifest_checksum"]
+    manifest_path(folder).write_text(json.dumps(manifest, indent=1))
+    with pytest.warns(ApmgsrnNote, match="manifest.json: brick model manifest written without its own checksum"):
+        values = decoded(folder)
+    assert all(torch.equal(a, b) for a, b in zip(values, decoded(bricks)))
 
 
 # ------------------------------------------------------------------------------------------- verify
@@ -334,6 +366,16 @@ def test_verify_checks_a_time_series_brick_folder_group_by_group(test_data, tmp_
     assert main(["verify", str(out)]) == 2
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 6 and lines[-1].startswith(f"{brick}: damaged: checksum of tensor")
+    brick.write_bytes(data)
+    # The series' own manifest is sealed too: a step renamed after it was written is damage.
+    series_json = out / "series.json"
+    record = json.loads(series_json.read_text())
+    record["steps"][0]["label"] -= 0.25  # still a number before the next step's: every field check accepts it
+    series_json.write_text(json.dumps(record, indent=1))
+    with pytest.raises(ApmgsrnError, match="series.json: damaged: the time-series brick manifest's checksum"):
+        apmgsrn.load(out)
+    series_json.write_text(sealed_manifest_text(record))  # the same content sealed again loads
+    apmgsrn.load(out)
 
 
 def test_the_command_line_prints_the_note_as_one_line(models, tmp_path):

@@ -23,6 +23,7 @@ from apmgsrn.errors import ApmgsrnError
 from apmgsrn.inference.evaluate import evaluate
 from apmgsrn.io import SourceInfo, model_kind
 from apmgsrn.io.brick_folder import brick_file_name, manifest_path
+from apmgsrn.io.container import sealed_manifest_text
 from apmgsrn.models.registry import preset_config
 from apmgsrn.training.trainer import TrainConfig
 
@@ -196,7 +197,7 @@ def test_rerun_after_a_kill_trains_missing_and_resumes_interrupted_bricks(refere
     (out / brick_file_name(plan.bricks[3].name)).unlink()
     manifest = json.loads(manifest_path(out).read_text())
     manifest["complete"] = False
-    manifest_path(out).write_text(json.dumps(manifest))
+    manifest_path(out).write_text(sealed_manifest_text(manifest))
 
     original = Trainer.save_checkpoint
     killed = tmp_path / "killed"
@@ -342,19 +343,19 @@ def test_hostile_or_corrupt_brick_models_are_refused(reference, tmp_path):
 
     out, manifest = fresh("escape")
     manifest["bricks"][0]["file"] = "../../etc/passwd"
-    manifest_path(out).write_text(json.dumps(manifest))
+    manifest_path(out).write_text(sealed_manifest_text(manifest))
     with pytest.raises(ApmgsrnError, match=r"bricks\[0\] has an invalid name or file"):
         apmgsrn.load(out)
 
     out, manifest = fresh("huge")
     manifest["grid"] = [1000, 1000, 1000]
-    manifest_path(out).write_text(json.dumps(manifest))
+    manifest_path(out).write_text(sealed_manifest_text(manifest))
     with pytest.raises(ApmgsrnError, match="does not match"):
         apmgsrn.load(out)
 
     out, manifest = fresh("newer")
     manifest["format_version"] = 99
-    manifest_path(out).write_text(json.dumps(manifest))
+    manifest_path(out).write_text(sealed_manifest_text(manifest))
     with pytest.raises(ApmgsrnError, match="newer apmgsrn"):
         apmgsrn.load(out)
 

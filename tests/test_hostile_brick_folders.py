@@ -14,6 +14,7 @@ import pytest
 import apmgsrn
 from apmgsrn.cli.main import main
 from apmgsrn.errors import ApmgsrnError
+from apmgsrn.io.container import sealed_manifest_text
 
 REFERENCE = Path(__file__).parent / "data" / "reference_bricks"
 
@@ -29,7 +30,7 @@ def edit_manifest(folder: Path, change) -> None:
     path = folder / "manifest.json"
     manifest = json.loads(path.read_text())
     change(manifest)
-    path.write_text(json.dumps(manifest))
+    path.write_text(sealed_manifest_text(manifest))
 
 
 def set_brick(key: str, value):

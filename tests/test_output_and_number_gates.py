@@ -374,9 +374,11 @@ def test_a_brick_model_answers_nan_points_with_nan(tmp_path, test_data):
     text = manifest.read_text()
     import json
 
+    from apmgsrn.io.container import sealed_manifest_text
+
     record = json.loads(text)
     record["run_id"] = "0" * 32  # the bricks were trained by another run than the folder names
-    manifest.write_text(json.dumps(record))
+    manifest.write_text(sealed_manifest_text(record))
     with pytest.raises(ApmgsrnError, match="run"):
         apmgsrn.load(folder)
 

@@ -8,7 +8,8 @@
       brick_001_000_000.apmgsrn
       brick_001_000_000.apmgsrn.ckpt training checkpoint of a brick in progress (removed when it is done)
 
-The manifest is plain JSON checked field by field, and every brick file is a checked single-field file, so
+The manifest is plain JSON checked field by field and sealed with a crc32c of its own content
+(``manifest_checksum``: a change to it is refused as damage), and every brick file is a checked single-field file, so
 loading never runs code from the folder. The manifest is written atomically at the start of training
 (``complete: false``) and again at the end; each brick file is written atomically by the job that trained it,
 so a crash at any moment leaves only whole files.
@@ -22,7 +23,6 @@ before these entries existed (format version 2 and older) still load, with a not
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import uuid
@@ -39,6 +39,7 @@ from apmgsrn.io.container import (
     file_checksum,
     note_unchecked,
     read_header,
+    sealed_manifest_text,
 )
 from apmgsrn.io.description import (
     BrickEntry,
@@ -126,8 +127,7 @@ def write_manifest(directory: str | os.PathLike, manifest: dict) -> None:
     """Write ``manifest.json`` atomically, as this format version (an older folder finished by this version
     gets its run id and brick checksums from the writer)."""
     manifest["format_version"] = FORMAT_VERSION
-    text = json.dumps(manifest, indent=1, allow_nan=True)
-    atomic_write_text(manifest_path(directory), text, "brick manifest", model_part=True)
+    atomic_write_text(manifest_path(directory), sealed_manifest_text(manifest), "brick manifest", model_part=True)
 
 
 def read_manifest(directory: str | os.PathLike) -> dict:

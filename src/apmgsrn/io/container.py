@@ -231,6 +231,22 @@ def file_checksum(path: str | os.PathLike) -> str:
     return f"{value:08x}"
 
 
+#: The key under which a folder's JSON manifest (a brick or time-series brick folder) holds its own checksum.
+MANIFEST_CHECKSUM = "manifest_checksum"
+
+
+def manifest_checksum(manifest: dict) -> str:
+    """crc32c of a folder manifest's canonical JSON (keys sorted, no spaces), its own checksum left out."""
+    body = {key: value for key, value in manifest.items() if key != MANIFEST_CHECKSUM}
+    return _crc([json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=True).encode()])
+
+
+def sealed_manifest_text(manifest: dict) -> str:
+    """A folder manifest's JSON text with its own checksum (:data:`MANIFEST_CHECKSUM`), verified on reading."""
+    body = {key: value for key, value in manifest.items() if key != MANIFEST_CHECKSUM}
+    return json.dumps({**body, MANIFEST_CHECKSUM: manifest_checksum(body)}, indent=1, allow_nan=True)
+
+
 #: Files already noted as written without checksums (each is noted once per process).
 _NOTED: set[str] = set()
 

@@ -17,7 +17,15 @@ import numpy as np
 from apmgsrn.limits import LIMITS
 from apmgsrn.data.grid import AxisCoordinates, VolumeMetadata
 from apmgsrn.errors import ApmgsrnError
-from apmgsrn.io.container import FORMAT, FORMAT_VERSION, parse_json
+from apmgsrn.io.container import (
+    CHECKSUMS_VERSION,
+    FORMAT,
+    FORMAT_VERSION,
+    MANIFEST_CHECKSUM,
+    manifest_checksum,
+    note_unchecked,
+    parse_json,
+)
 from apmgsrn.models.registry import FieldConfig
 
 
@@ -432,7 +440,9 @@ def check_time(description: ModelDescription, time: int | None) -> int:
 
 def read_manifest_file(path: Path, kind: str, max_bytes: int, what: str, check: Callable[[dict], None]) -> dict:
     """Read a folder's JSON manifest of ``kind`` (nothing in it is executed): size capped before reading,
-    format, kind and version checked, then ``check`` (which raises :class:`DescriptionError`).
+    format, kind and version checked, its own checksum verified (``manifest_checksum``; one written without it
+    loads with a note), then ``check`` (which raises :class:`DescriptionError`). The dict returned holds every
+    field but the checksum.
 
     Args:
         path: the manifest file.
@@ -462,6 +472,13 @@ def read_manifest_file(path: Path, kind: str, max_bytes: int, what: str, check: 
             f"{path}: written by a newer apmgsrn (model format {version}, this one reads up to {FORMAT_VERSION}); "
             "upgrade apmgsrn to load it"
         )
+    recorded = manifest.pop(MANIFEST_CHECKSUM, None)
+    if recorded is None and version >= CHECKSUMS_VERSION:  # older formats: the caller notes what is unchecked
+        note_unchecked(path, f"{what} written without its own checksum (apmgsrn before 2026-12-03): a change "
+                       "to it cannot be detected")
+    elif recorded is not None and recorded != manifest_checksum(manifest):
+        raise ApmgsrnError(f"{path}: damaged: the {what}'s checksum does not match its contents (it was changed "
+                           "after it was written); re-train the model")
     try:
         check(manifest)
     except DescriptionError as exc:

@@ -17,7 +17,6 @@ the missing pairs. ``series.json`` is plain JSON checked entry by entry; group f
 
 from __future__ import annotations
 
-import json
 import os
 import re
 from pathlib import Path
@@ -25,7 +24,7 @@ from pathlib import Path
 from apmgsrn.limits import LIMITS
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.atomic import atomic_write_text
-from apmgsrn.io.container import FORMAT, FORMAT_VERSION
+from apmgsrn.io.container import FORMAT, FORMAT_VERSION, sealed_manifest_text
 from apmgsrn.io.description import (
     DescriptionError,
     SourceInfo,
@@ -80,7 +79,7 @@ def new_series_manifest(labels, names, groups: list[range], settings: dict, sour
 
 def write_series_manifest(directory: str | os.PathLike, manifest: dict) -> None:
     """Write ``series.json`` atomically."""
-    atomic_write_text(series_manifest_path(directory), json.dumps(manifest, indent=1, allow_nan=True),
+    atomic_write_text(series_manifest_path(directory), sealed_manifest_text(manifest),
                       "time-series brick manifest", model_part=True)
 
 
