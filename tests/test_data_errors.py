@@ -69,11 +69,21 @@ def test_directory_that_is_not_zarr(tmp_path: Path) -> None:
     _raises(tmp_path / "empty.zarr", "not a readable Zarr")
 
 
-@pytest.mark.parametrize("suffix", [".nc", ".h5", ".hdf5", ".npy", ".vti", ".vtr"])
+@pytest.mark.parametrize("suffix", [".nc", ".h5", ".hdf5", ".vti", ".vtr"])
 def test_garbage_bytes_under_a_known_suffix(tmp_path: Path, suffix: str) -> None:
     path = tmp_path / f"garbage{suffix}"
     path.write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
     _raises(path, "not a readable")
+
+
+@pytest.mark.parametrize("content", [b"", b"hello\n", bytes(range(256)) * 16])
+def test_a_file_without_numpys_header_is_not_an_npy_array(tmp_path: Path, content: bytes) -> None:
+    """Named .npy but not written by numpy.save (empty, text, garbage): said so, without numpy's advice to
+    load it as a pickle."""
+    path = tmp_path / "volume.npy"
+    path.write_bytes(content)
+    message = _raises(path, "not a .npy array (it lacks numpy's header)")
+    assert "pickle" not in message
 
 
 @pytest.mark.parametrize("name", ["miranda_density_80x64x48.nc", "darkmatter_density_64.h5", VTI])

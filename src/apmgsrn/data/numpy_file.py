@@ -13,9 +13,19 @@ from apmgsrn.data.memory_map import MemoryMappedVolume
 from apmgsrn.data.opener import check_declared_array, check_regular
 from apmgsrn.errors import ApmgsrnError
 
+#: The first bytes of every .npy file (numpy.lib.format).
+NPY_MAGIC = b"\x93NUMPY"
+
 
 def _map_npy(path: Path) -> np.ndarray:
     size = check_regular(path).st_size
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(len(NPY_MAGIC))
+    except OSError as exc:
+        raise ApmgsrnError(f"{path}: cannot read ({exc.strerror})") from None
+    if magic != NPY_MAGIC and not magic.startswith(b"PK"):  # numpy reads a .npz (a zip) and says so below
+        raise ApmgsrnError(f"{path}: not a .npy array (it lacks numpy's header); save the volume with numpy.save")
     try:
         # allow_pickle=False: an .npy of Python objects could run code when loaded.
         array = np.load(path, mmap_mode="r", allow_pickle=False)
