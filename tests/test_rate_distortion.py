@@ -13,6 +13,7 @@ from apmgsrn.bench.rate_distortion import (
     classical_wins,
     crossover_text,
     crossovers,
+    failure_reason,
     psnr_at,
 )
 from apmgsrn.bench.results import CompressRow
@@ -162,3 +163,12 @@ def test_the_paragraph_says_where_each_compressor_wins_by_how_much_and_where_a_n
     # The network behind again at the highest ratio: no lead claimed.
     rows[("apmgsrn", 3000.0)] = _row("apmgsrn", 3030.0, 30.0)
     assert "At the highest ratio compared (3,000:1) a compressor still leads" in classical_wins(result, ("apmgsrn",))
+
+
+def test_a_failed_training_is_reported_by_its_error_or_its_exception_not_by_its_progress():
+    progress = "model size  4 grids of 4^3, decoder 1 x 16, chosen to pack into 838 bytes\n"
+    traceback = "Traceback (most recent call last):\n  File \"x.py\", line 1\nIndexError: index -1 is out of bounds\n"
+    assert failure_reason(traceback, progress, 1) == "IndexError: index -1 is out of bounds"
+    assert failure_reason("error: --size 10: too small\n", progress, 2) == "--size 10: too small"
+    assert failure_reason("", progress, 1) == progress.strip()
+    assert failure_reason("", "", -9) == "exit status -9"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 import apmgsrn
@@ -39,6 +40,23 @@ def test_every_kind_sized_for_a_ratio_lands_within_five_percent_under_it(kind, v
     assert trained["model_bytes"] == out.stat().st_size
     assert 0.95 * target <= out.stat().st_size <= target
     assert apmgsrn.load(out).description.config.model == kind
+
+
+def test_a_hybrid_sized_without_domain_levels_packs_loads_and_decodes(test_data, tmp_path, capsys):
+    """Below the smallest level table the hybrid is sized with no domain levels (an empty table): it packs to
+    within 5 % under its target, verifies and decodes finite values."""
+    volume = test_data / "turbulence_vorticity_48.npy"
+    target = 48 ** 3 * 4 // 500  # 884 bytes
+    assert config_for_bytes(preset_config("hybrid", "small"), target, volume_shape=(48, 48, 48)).encoder.levels == 0
+    out = tmp_path / "m.apmgsrn"
+    code, trained = run_json(["train", str(volume), "--model", "hybrid", "--size", str(target), *SHORT,
+                              "--out", str(out)], capsys)
+    assert code == 0 and 0.95 * target <= out.stat().st_size <= target
+    assert main(["verify", str(out)]) == 0
+    model = apmgsrn.load(out)
+    assert model.description.config.encoder.levels == 0
+    values = model.predict([[0.0, 0.0, 0.0], [0.5, -0.5, 0.25]])
+    assert np.isfinite(values).all()
 
 
 @pytest.mark.parametrize("kind", MODEL_KINDS)

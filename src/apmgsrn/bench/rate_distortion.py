@@ -435,6 +435,14 @@ def train_command(spec: DataSpec, kind: str, stored_ratio: float, out: Path, pla
                       "--out", str(out)]
 
 
+def failure_reason(stderr: str, stdout: str, returncode: int) -> str:
+    """One line saying why a command failed: its ``error:`` line, else the last line it wrote on stderr (a
+    traceback's exception), else on stdout, else its exit status."""
+    said = [[line for line in text.splitlines() if line.strip()] for text in (stderr, stdout)]
+    errors = [line for line in said[0] + said[1] if line.startswith("error:")]
+    return (errors or said[0] or said[1] or [f"exit status {returncode}"])[-1].removeprefix("error: ")
+
+
 def _measure_network(spec: DataSpec, volume, data: np.ndarray, kind: str, ratio: float, model_file: Path,
                      points: torch.Tensor, region: tuple[slice, ...], plan: RateDistortionPlan,
                      device: torch.device, log: Callable[[str], None]) -> tuple[CompressRow, PointRow]:
@@ -446,11 +454,8 @@ def _measure_network(spec: DataSpec, volume, data: np.ndarray, kind: str, ratio:
             str(Path(__file__).resolve().parents[2]), os.environ.get("PYTHONPATH"))))}
         done = subprocess.run(command, capture_output=True, text=True, env=environment)
         if done.returncode != 0 or not model_file.exists():
-            lines = [line for line in (done.stderr + done.stdout).splitlines() if line.strip()]
-            errors = [line for line in lines if line.startswith("error:")]
-            reason = (errors or lines or [f"exit status {done.returncode}"])[-1]
             raise NotMeasured(f"training {kind} for {stored_ratio:.4g}:1 of the stored bytes failed: "
-                              f"{reason.removeprefix('error: ')}")
+                              f"{failure_reason(done.stderr, done.stdout, done.returncode)}")
     row = measure_model(model_file, data, points, spec.label, device, volume.stored_bytes)
     model = load(model_file, device=device)
     z, y, x = region

@@ -236,6 +236,8 @@ def parameter_sensitivity(field: NeuralField, points: int = 1 << 18, batch: int 
 def group_means(values: np.ndarray, size: int) -> np.ndarray:
     """``[G]`` means of ``values`` over its groups of ``size`` elements (the last may be shorter)."""
     count = group_count(values.size, size)
+    if count == 0:  # an empty tensor (a hybrid sized without domain levels): no groups
+        return np.zeros(0)
     padded = np.zeros(count * size)
     padded[: values.size] = values
     members = np.full(count, size)
