@@ -75,6 +75,27 @@ def test_the_page_chart_and_a_rerun_that_measures_nothing_again(test_data, tmp_p
     assert len((out / "compress_turbulence_vorticity_48.csv").read_text().splitlines()) == 7
 
 
+def test_a_network_file_far_from_its_ratio_is_not_measured_there(test_data, tmp_path, monkeypatch, capsys):
+    """A model file at a point's path that does not give the point's ratio (a float32 model left where packing
+    failed, a file of other settings) is listed as not measured, naming the file, not drawn at that ratio."""
+    pytest.importorskip("pysz")
+    pytest.importorskip("numcodecs_wasm_sperr")
+    out, page = tmp_path / "results", tmp_path / "rd.md"
+    assert _bench_rd(test_data, out, page) == 0
+    at_30, at_100 = sorted((out / "models").glob("rd_*.apmgsrn"), key=lambda p: p.stat().st_size, reverse=True)
+    fresh = tmp_path / "fresh"
+    (fresh / "models").mkdir(parents=True)
+    (fresh / "models" / at_30.name).write_bytes(at_100.read_bytes())  # the 100:1 file where 30:1's belongs
+    (fresh / "models" / at_100.name).write_bytes(at_100.read_bytes())
+    capsys.readouterr()
+    assert _bench_rd(test_data, fresh, page) == 0
+    log = capsys.readouterr().out
+    assert "apmgsrn 30:1: not measured" in log and "not within 5% of 30:1" in log
+    assert "not within 5% of 30:1" in page.read_text()
+    row = next(line for line in page.read_text().splitlines() if line.startswith("| APMGSRN |"))
+    assert row.strip("|").split("|")[1].strip() == "–"
+
+
 def test_curves_that_cross_once_meet_where_their_log_ratio_lines_do():
     network = [(100.0, 40.0), (1000.0, 38.0), (10000.0, 30.0)]
     compressor = [(100.0, 50.0), (1000.0, 36.0), (10000.0, 25.0)]

@@ -340,6 +340,12 @@ def measure_volume(plan: RateDistortionPlan, spec: DataSpec, out: Path, device: 
             else:
                 row, point = found
                 log(f"{label} {method} at {ratio:g}:1: reused ({row.psnr:.2f} dB)")
+            if is_network and abs(row.compression_ratio_float32 / ratio - 1) > RATIO_ACCEPT:
+                # a float32 model left where packing failed, or a file from other settings: not this point
+                missing[key] = (f"{model_file} gives {row.compression_ratio_float32:,.4g}:1, not within "
+                                f"{RATIO_ACCEPT:.0%} of {ratio:,.4g}:1 (delete it to train it again)")
+                log(f"{label} {method} {ratio:g}:1: not measured, {missing[key]}")
+                continue
             rows[key] = dataclasses.replace(row, compression_ratio=row.compression_ratio_float32)
             seconds[key] = point.region_seconds
     return VolumeResult(label, "x".join(str(n) for n in reversed(data.shape)), str(volume.dtype), spec.stem,
@@ -350,7 +356,10 @@ def measure_volume(plan: RateDistortionPlan, spec: DataSpec, out: Path, device: 
 def _recorded(index: list[PointRow], compress_rows: list[CompressRow], label: str, method: str, ratio: float,
               model_file: Path | None) -> tuple[CompressRow, PointRow] | str | None:
     """What the CSVs hold for ``method`` at ``ratio``: the row and its index entry, the reason it was skipped,
-    or None (measure it). A network's entry counts only for the same model file (budget and seed)."""
+    or None (measure it). A network's entry counts only for the same model file (budget and seed), and only
+    while that file is there (deleted, it is trained again)."""
+    if model_file is not None and not model_file.exists():
+        return None
     for point in reversed(index):
         if point.method != method or not math.isclose(point.ratio, ratio):
             continue
