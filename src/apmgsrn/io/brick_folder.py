@@ -9,8 +9,8 @@
       brick_001_000_000.apmgsrn.ckpt training checkpoint of a brick in progress (removed when it is done)
 
 The manifest is plain JSON checked field by field and sealed with a crc32c of its own content
-(``manifest_checksum``: a change to it is refused as damage), and every brick file is a checked single-field file, so
-loading never runs code from the folder. The manifest is written atomically at the start of training
+(``manifest_checksum``: a change to it is refused as damage), and every brick file is a checked single-field
+file, so loading never runs code from the folder. The manifest is written atomically at the start of training
 (``complete: false``) and again at the end; each brick file is written atomically by the job that trained it,
 so a crash at any moment leaves only whole files.
 
