@@ -128,6 +128,41 @@ def test_quantisation_aware_fine_tune_recovers_psnr_at_few_bits(reference, test_
     assert tuned.report["psnr"] > plain.report["psnr"] + 0.2
 
 
+def test_the_fine_tune_draws_its_points_as_the_models_kind_trains(reference, test_data, monkeypatch):
+    """The quantisation-aware fine-tune draws the share of its batches exactly at voxel centres that it is
+    given (none, or half here), and pack_field gives it the share the model's kind trains with."""
+    from apmgsrn.recipes import model_recipe
+    from apmgsrn.training import packing
+
+    model, truth = reference
+    values = fitted_values(model.field, truth)
+    d, h, w = values.shape
+    seen = []
+    original = type(model.field).normalized
+
+    def recording(self, points, **kwargs):
+        seen.append(points.detach().clone())
+        return original(self, points, **kwargs)
+
+    monkeypatch.setattr(type(model.field), "normalized", recording)
+    quantizer = packing.bits_quantizer(model.field, 8)
+    for fraction in (0.0, 0.5):
+        seen.clear()
+        field = apmgsrn.load(test_data / "reference_field.apmgsrn").field
+        packing.quantization_aware_fine_tune(field, values, quantizer, 3, 2048, 1e-3, voxel_fraction=fraction)
+        points = torch.cat(seen)
+        scaled = (points + 1) / 2 * torch.tensor([w - 1, h - 1, d - 1], dtype=points.dtype)
+        on_lattice = (scaled - scaled.round()).abs().amax(dim=1) < 1e-4
+        assert on_lattice.float().mean().item() == pytest.approx(fraction, abs=0.02)
+
+    passed = {}
+    monkeypatch.setattr(packing, "quantization_aware_fine_tune",
+                        lambda *args, **kwargs: passed.setdefault("fraction", args[7]))
+    pack_field(model.field, truth, PackConfig(bits=6, qat_iterations=5, **FAST), model.description.source, {},
+               values=values, batch_size=2048)
+    assert passed["fraction"] == model_recipe(model.field.config.model).voxel_fraction
+
+
 # ------------------------------------------------------------------------------- error bound
 TEST_VOLUMES = {
     "neghip": ("neghip_64x64x64_uint8.raw", None, "none"),

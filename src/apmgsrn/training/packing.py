@@ -58,9 +58,9 @@ from apmgsrn.io.quantization import (
 )
 from apmgsrn.models.corrected_field import CorrectedField
 from apmgsrn.models.field import NeuralField
-from apmgsrn.ops.trilinear import sample_volume
-from apmgsrn.recipes import PACKING
+from apmgsrn.recipes import PACKING, model_recipe
 from apmgsrn.training.budget import coded_budget, largest_fitting, overhead_bytes
+from apmgsrn.training.points import draw_batch
 
 #: ``bits=FLOAT32_BITS`` keeps every parameter exactly (float32, entropy-coded): for an error bound alone.
 FLOAT32_BITS = 32
@@ -322,12 +322,14 @@ def fitted_values(field: NeuralField, truth: np.ndarray, device: torch.device | 
 
 
 def quantization_aware_fine_tune(field: NeuralField, values: torch.Tensor, quantizer: Quantizer, iterations: int,
-                                 batch_size: int, lr: float, seed: int = 0) -> None:
+                                 batch_size: int, lr: float, seed: int = 0, voxel_fraction: float = 0.0) -> None:
     """Fine-tune ``field`` in place so that its quantised parameters fit ``values`` well.
 
     Each iteration evaluates the field with every parameter replaced by its quantised value, and applies
     the gradient to the float parameters (straight-through estimator); Adam, learning rate ``lr`` falling
-    to zero on a half cosine. Grid placements (the density loss's parameters) stay where they are.
+    to zero on a half cosine. Grid placements (the density loss's parameters) stay where they are. The points
+    are drawn as the model's kind trains (``voxel_fraction`` of them on voxels): a hybrid fine-tuned on uniform
+    points alone loses what its voxel points taught it (docs/packing.md, "How it works").
 
     Args:
         field: the trained field (on the training device).
@@ -337,6 +339,7 @@ def quantization_aware_fine_tune(field: NeuralField, values: torch.Tensor, quant
         batch_size: random points per iteration.
         lr: peak learning rate.
         seed: seeds the points.
+        voxel_fraction: share of each batch drawn at voxel centres (:func:`~apmgsrn.training.points.draw_batch`).
     """
     if iterations <= 0:
         return
@@ -357,8 +360,7 @@ def quantization_aware_fine_tune(field: NeuralField, values: torch.Tensor, quant
         for iteration in range(iterations):
             for group in optimizer.param_groups:
                 group["lr"] = lr * 0.5 * (1 + math.cos(math.pi * iteration / iterations))
-            points = torch.rand(batch_size, 3, generator=generator, device=device) * 2 - 1
-            target = sample_volume(values, points)  # [B]
+            points, target = draw_batch(values, batch_size, voxel_fraction, generator)  # [B, 3], [B]
             saved = {}
             with torch.no_grad():
                 for name, p in named.items():
@@ -508,7 +510,7 @@ def pack_field(
         say(f"quantisation-aware fine-tune: {config.qat_iterations} iterations")
         field.to(values.device)
         quantization_aware_fine_tune(field, values, quantizer, config.qat_iterations, batch_size, config.qat_lr,
-                                     config.seed)
+                                     config.seed, model_recipe(field.config.model).voxel_fraction)
         field.cpu()
         report["qat_iterations"] = config.qat_iterations
     field = field.cpu().eval()
