@@ -152,3 +152,35 @@ def test_the_installed_command_exits_2_without_traceback(tmp_path):
                             capture_output=True, text=True)
     assert result.returncode == 2
     assert result.stderr.strip().count("\n") == 0 and result.stderr.startswith("error: ")
+
+
+def test_a_reader_that_stops_early_gets_no_traceback(test_data, monkeypatch):
+    """`apmgsrn info MODEL | head -1`: writing to a pipe whose reader has gone ends the command quietly with the
+    status a tool killed by SIGPIPE has (141), not with a traceback."""
+    import io
+    import os
+
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    stdout = io.TextIOWrapper(os.fdopen(write_end, "wb"), line_buffering=True)
+    monkeypatch.setattr(sys, "stdout", stdout)
+    try:
+        assert main(["info", str(test_data / "reference_field.apmgsrn")]) == 141
+    finally:
+        monkeypatch.undo()
+        try:
+            stdout.close()
+        except OSError:
+            pass
+
+
+def test_a_packing_that_fails_after_training_says_where_the_trained_model_is(test_data, tmp_path, capsys):
+    """A bound too tight for float32 is found only after training: the one-line error says so and that the
+    trained model is at --out, unpacked, and that file loads."""
+    import apmgsrn
+
+    out = tmp_path / "m.apmgsrn"
+    fails_cleanly(capsys, ["train", str(test_data / "turbulence_vorticity_48.npy"), "--iterations", "5",
+                           "--batch-size", "1024", "--device", "cpu", "--max-error", "1e-9", "--json", "--out", str(out)],
+                  "--max-error", f"the trained model is kept, not packed, at {out}", "apmgsrn pack")
+    assert apmgsrn.load(out).description.packing is None

@@ -149,8 +149,12 @@ def run(args: argparse.Namespace) -> int:
         from apmgsrn.training.packing import pack_volume_model
 
         kept = result.packed_summary(train_config.batch_size, device)
-        packed = pack_volume_model(result.field, volume, packing, kept, device, out,
-                                   log=(lambda line: None) if args.json else print)
+        try:
+            packed = pack_volume_model(result.field, volume, packing, kept, device, out,
+                                       log=(lambda line: None) if args.json else print)
+        except ApmgsrnError as exc:  # the trained float32 model is at out: say so, so that no one re-trains
+            raise ApmgsrnError(f"{exc} (the trained model is kept, not packed, at {out}: `apmgsrn pack {out} "
+                               "DATA --out FILE` packs it)", arguments=exc.arguments) from None
         compression = compression_figures(voxels, str(volume.dtype), volume.dtype.itemsize, packed.file_bytes)
     summary = {
         "model": str(out),
