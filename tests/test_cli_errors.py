@@ -181,6 +181,7 @@ def test_a_packing_that_fails_after_training_says_where_the_trained_model_is(tes
 
     out = tmp_path / "m.apmgsrn"
     fails_cleanly(capsys, ["train", str(test_data / "turbulence_vorticity_48.npy"), "--iterations", "5",
-                           "--batch-size", "1024", "--device", "cpu", "--max-error", "1e-9", "--json", "--out", str(out)],
+                           "--batch-size", "1024", "--device", "cpu", "--max-error", "1e-9", "--json",
+                           "--out", str(out)],
                   "--max-error", f"the trained model is kept, not packed, at {out}", "apmgsrn pack")
     assert apmgsrn.load(out).description.packing is None
