@@ -453,3 +453,27 @@ def test_memory_mapped_bricks_are_read_in_slabs_and_the_map_released(test_data):
     assert region.shape == brick.shape
     assert (region == volume.read(*brick.slices())).all()
     assert len(READS) == -(-brick.shape[0] // 3) and recording._handle is None
+
+
+def test_a_brick_job_that_runs_again_in_its_run_returns_its_file_untouched(test_data, tmp_path, monkeypatch):
+    """Dask computes a result again when the worker that held it is lost: the job's second run finds the file
+    its run wrote for this brick and returns that file's figures without training or writing, so a file whose
+    checksum the manifest has recorded is never replaced. A job of another run trains its own."""
+    from apmgsrn.decomposition import brick_training
+    from apmgsrn.decomposition.brick_training import BrickJob
+
+    brick = plan_bricks((64, 64, 64), GRID).bricks[0]
+    path = tmp_path / brick_file_name(brick.name)
+    job = BrickJob(RawVolume(test_data / NEGHIP), brick, FIELD, brick_train_config(TRAIN, brick), path, threads=1,
+                   source=SourceInfo(path=NEGHIP), run="a" * 32)
+    first = train_brick(job)
+    data, stamp = path.read_bytes(), path.stat().st_mtime_ns
+    calls = []
+    original = brick_training._fit_region
+    monkeypatch.setattr(brick_training, "_fit_region", lambda *args: calls.append(1) or original(*args))
+    again = train_brick(job)
+    assert not calls and again.ok and path.read_bytes() == data and path.stat().st_mtime_ns == stamp
+    assert (again.psnr, again.iterations, again.value_min, again.value_max, again.model_bytes) == pytest.approx(
+        (first.psnr, first.iterations, first.value_min, first.value_max, first.model_bytes), rel=1e-5)
+    assert train_brick(replace(job, run="b" * 32)).ok and calls == [1]
+    assert apmgsrn.load(path).description.training["brick"]["run"] == "b" * 32

@@ -26,6 +26,7 @@ from apmgsrn.decomposition.planner import Brick
 from apmgsrn.device import resolve_device
 from apmgsrn.errors import ApmgsrnError
 from apmgsrn.io import SourceInfo
+from apmgsrn.io.brick_folder import finished_brick_summary
 from apmgsrn.io.field_file import FIELD_KIND
 from apmgsrn.models.registry import FieldConfig
 from apmgsrn.recipes import BRICKS
@@ -278,6 +279,14 @@ def train_brick(job: BrickJob) -> BrickResult:
             torch.set_num_threads(_job_threads(job))
         elif device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
+        done = finished_brick_summary(job.model_path, job.job_kind.file_kind, _box(job))
+        if done is not None:  # this run's file of this brick is there: the job ran before (a lost result)
+            return BrickResult(brick.name, brick.index, ok=True, psnr=done["psnr"],
+                               max_abs_error=done["max_abs_error"], seconds=done["seconds"],
+                               iterations=done["iterations"], stopped_early=bool(done["stopped_early"]),
+                               value_min=done["value_min"], value_max=done["value_max"],
+                               model_bytes=done["bytes"], peak_rss_bytes=peak_rss_bytes(), worker=worker,
+                               device=str(done["device"] or ""))
         volume = job.volume.open() if isinstance(job.volume, VolumeRecipe) else job.volume
         region = job.job_kind.read(volume, brick)  # [d, h, w] ([T, d, h, w] for a series) float32: this brick only
         return _fit_region(job, region, device, worker, volume.path)
@@ -288,13 +297,19 @@ def train_brick(job: BrickJob) -> BrickResult:
         torch.set_num_threads(threads)
 
 
+def _box(job: BrickJob) -> dict:
+    """What a brick's file records of the brick it was trained as (and the run that trained it)."""
+    brick = job.brick
+    return {"name": brick.name, "index": brick.index, "position": list(brick.position),
+            "start": list(brick.start), "stop": list(brick.stop), **({"run": job.run} if job.run else {})}
+
+
 def _fit_region(job: BrickJob, region: np.ndarray, device: torch.device, worker: str, path) -> BrickResult:
     brick = job.brick
     where = f"{path} ({brick.name}, voxels z {brick.start[0]}:{brick.stop[0]} " \
             f"y {brick.start[1]}:{brick.stop[1]} x {brick.start[2]}:{brick.stop[2]})"
     prepared = prepare_values(region, job.transform, job.log_offset, where, device)
-    box = {"name": brick.name, "index": brick.index, "position": list(brick.position),
-           "start": list(brick.start), "stop": list(brick.stop), **({"run": job.run} if job.run else {})}
+    box = _box(job)
     fingerprint = {"brick": brick.name, "box": [list(brick.start), list(brick.stop)],
                    "source": job.source.to_dict(), "field": job.field_config.to_dict()}
     # A brick always resumes its own checkpoint: the job may be a retry after a crash.

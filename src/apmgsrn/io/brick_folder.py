@@ -244,6 +244,22 @@ def brick_file_ready(path: str | os.PathLike, kind: str = FIELD_KIND) -> bool:
         return False
 
 
+def finished_brick_summary(path: str | os.PathLike, kind: str, box: dict) -> dict | None:
+    """The figures of the brick file at ``path`` when this run already wrote it as this brick (``box``: the
+    name, start, stop and run a job records in its file), else None. A job that runs twice (Dask computes a
+    result again when the worker holding it is lost) then returns them without training or writing again:
+    a second write after the run has recorded the file's checksum would leave a file the manifest refuses."""
+    if not box.get("run") or not brick_file_ready(path, kind):
+        return None
+    try:
+        trained_as = _trained_as(model_file_description(path))
+    except ApmgsrnError:
+        return None
+    if any(trained_as.get(key) != box[key] for key in ("name", "start", "stop", "run")):
+        return None
+    return brick_summary_from_file(path)
+
+
 def brick_record(path: str | os.PathLike) -> dict:
     """What a manifest records of a finished brick file: its checksum and the run its file says trained it."""
     trained_as = _trained_as(model_file_description(path))
