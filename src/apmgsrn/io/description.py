@@ -474,8 +474,8 @@ def read_manifest_file(path: Path, kind: str, max_bytes: int, what: str, check: 
         )
     recorded = manifest.pop(MANIFEST_CHECKSUM, None)
     if recorded is None and version >= CHECKSUMS_VERSION:  # older formats: the caller notes what is unchecked
-        note_unchecked(path, f"{what} written without its own checksum (apmgsrn before 2026-12-03): a change "
-                       "to it cannot be detected")
+        note_unchecked(path, f"{what} written without its own checksum (by an older apmgsrn): a change to it "
+                       "cannot be detected")
     elif recorded is not None and recorded != manifest_checksum(manifest):
         raise ApmgsrnError(f"{path}: damaged: the {what}'s checksum does not match its contents (it was changed "
                            "after it was written); re-train the model")
